@@ -1,0 +1,38 @@
+"""Shared test configuration.
+
+Tests that need an external toolchain (g++, avr-gcc, simavr) call :func:`require_tool`;
+it skips when the tool is missing, unless ``STIPI_REQUIRE_TOOLCHAIN=1`` (set by ``.ci/run``)
+turns the skip into a failure so that CI never passes by skipping what matters.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+from pathlib import Path
+
+import pytest
+
+REPO_ROOT = Path(__file__).resolve().parent.parent
+SHARED_REFERENCE = REPO_ROOT.parent / "shared" / "reference"
+
+
+def require_tool(*names: str) -> None:
+    """Skip (or fail under ``STIPI_REQUIRE_TOOLCHAIN=1``) unless every named program is on PATH."""
+    missing = [n for n in names if shutil.which(n) is None]
+    if not missing:
+        return
+    msg = f"toolchain missing: {', '.join(missing)}"
+    if os.environ.get("STIPI_REQUIRE_TOOLCHAIN") == "1":
+        pytest.fail(msg + " (STIPI_REQUIRE_TOOLCHAIN=1)")
+    pytest.skip(msg)
+
+
+def require_path(path: Path, what: str) -> None:
+    """Skip (or fail under ``STIPI_REQUIRE_TOOLCHAIN=1``) unless ``path`` exists."""
+    if path.exists():
+        return
+    msg = f"toolchain missing: {what} ({path})"
+    if os.environ.get("STIPI_REQUIRE_TOOLCHAIN") == "1":
+        pytest.fail(msg + " (STIPI_REQUIRE_TOOLCHAIN=1)")
+    pytest.skip(msg)
