@@ -1,0 +1,670 @@
+"""Occluded-pixel counting of one camera frame: Eqs. (1)-(2) of the STIP-I paper.
+
+This module owns the regions of interest (:class:`RectROI`, :class:`CircleROI`), the
+grayscale conversion, the binary-inverted thresholding of Eq. (1), the occluded-pixel sum
+S_k of Eq. (2), frame-quality checks (saturation, empty ROI) and the automatic choice of the
+threshold p (Otsu). Its hot path, :meth:`FrameProcessor.count`, runs once per frame at the
+camera rate. It does not decode video, keep time series, or convert S_k into physical units:
+pitting parameters are :mod:`~stipi_daemon.analysis.pitting`'s job and the S-to-mm/N
+conversion is :mod:`~stipi_daemon.analysis.calibration`'s.
+
+Pixel and ROI conventions
+-------------------------
+Frames are numpy arrays in OpenCV layout: ``frame[y, x]`` (row y, column x), origin at the
+top-left corner, 8-bit (``uint8``) gray ``(H, W)``, ``(H, W, 1)``, BGR ``(H, W, 3)`` or BGRA
+``(H, W, 4)``. Pixel (x, y) has its centre at integer coordinates (x, y). 16-bit frames are
+rejected: the threshold p of Eq. (1) is on the 8-bit scale (0 = black, 255 = white), and
+only the caller knows the sensor's bit depth (10, 12 or 16 bit) needed to rescale.
+
+* A :class:`RectROI` covers columns ``x_px .. x_px + width_px - 1`` and rows
+  ``y_px .. y_px + height_px - 1``.
+* A :class:`CircleROI` covers the pixels whose centre satisfies
+  ``(x - cx_px)**2 + (y - cy_px)**2 <= radius_px**2`` (evaluated in float64).
+
+An ROI may extend beyond the frame: it is clipped to the frame and only its pixels inside
+the frame are counted (flag :attr:`~stipi_daemon.analysis.flags.Flag.ROI_CLIPPED`). An ROI
+with no pixel inside the frame gives S_k = 0 and flag
+:attr:`~stipi_daemon.analysis.flags.Flag.EMPTY_ROI`.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Annotated, Any, Final, Literal
+
+import cv2
+import numpy as np
+import numpy.typing as npt
+from pydantic import BaseModel, ConfigDict, Field
+
+from stipi_daemon.analysis.flags import Flag
+from stipi_daemon.errors import AnalysisError
+
+__all__ = [
+    "DEFAULT_MIN_SEPARABILITY",
+    "DEFAULT_SATURATION_LIMIT_FRACTION",
+    "ROI",
+    "SATURATION_LEVEL",
+    "CircleROI",
+    "Frame",
+    "FrameMeasurement",
+    "FrameProcessor",
+    "RectROI",
+    "occluded_pixel_count",
+    "otsu_threshold",
+    "roi_mask",
+    "threshold_binary_inverted",
+    "to_gray",
+]
+
+GrayImage = npt.NDArray[np.uint8]
+"""2-D ``uint8`` image, values 0 (black) .. 255 (white)."""
+
+Frame = npt.NDArray[Any]
+"""A camera frame as accepted by this module's functions (layout checked at run time)."""
+
+SATURATION_LEVEL: Final = 255
+"""Gray value [8-bit] at which a pixel counts as saturated (clipped at the sensor maximum)."""
+
+DEFAULT_SATURATION_LIMIT_FRACTION: Final = 0.01
+"""Default fraction [1] of ROI pixels at :data:`SATURATION_LEVEL` above which a frame is
+flagged :attr:`~Flag.SATURATED_FRAME`. A correctly exposed probe image has essentially no
+clipped pixels; 1 % leaves room for specular highlights at the LEDs."""
+
+DEFAULT_MIN_SEPARABILITY: Final = 0.8
+"""Default minimum Otsu separability [1] (between-class over total variance) accepted by
+:func:`otsu_threshold`. A unimodal Gaussian histogram scores 2/pi = 0.64 and a flat one 0.75;
+two well separated intensity levels score close to 1."""
+
+
+# --------------------------------------------------------------------------------------------
+# Regions of interest
+# --------------------------------------------------------------------------------------------
+
+
+class RectROI(BaseModel):
+    """Axis-aligned rectangular region of interest (the paper's m x n window, Eq. (2)).
+
+    Attributes
+    ----------
+    kind : "rect"
+        Discriminator for :data:`ROI`.
+    x_px, y_px : int
+        Column and row of the top-left pixel [px]; may be negative (ROI clipped to the frame).
+    width_px, height_px : int
+        Size [px], > 0.
+    """
+
+    model_config = ConfigDict(frozen=True, extra="forbid", strict=True)
+
+    kind: Literal["rect"] = "rect"
+    x_px: int
+    y_px: int
+    width_px: int = Field(gt=0)
+    height_px: int = Field(gt=0)
+
+
+class CircleROI(BaseModel):
+    """Circular region of interest around the light-occlusion disc (Fig. 5 (a)).
+
+    Attributes
+    ----------
+    kind : "circle"
+        Discriminator for :data:`ROI`.
+    cx_px, cy_px : float
+        Centre column and row [px]; integers are pixel centres; may lie outside the frame.
+    radius_px : float
+        Radius [px], > 0. Pixels whose centre is within ``radius_px`` of the centre belong
+        to the ROI.
+    """
+
+    model_config = ConfigDict(frozen=True, extra="forbid", strict=True, allow_inf_nan=False)
+
+    kind: Literal["circle"] = "circle"
+    cx_px: float
+    cy_px: float
+    radius_px: float = Field(gt=0)
+
+
+ROI = Annotated[RectROI | CircleROI, Field(discriminator="kind")]
+"""Either ROI shape; the ``kind`` field selects it when loading from a config file."""
+
+
+# --------------------------------------------------------------------------------------------
+# Frame validation and grayscale conversion
+# --------------------------------------------------------------------------------------------
+
+_SUPPORTED_LAYOUTS = "uint8 gray (H, W) or (H, W, 1), BGR (H, W, 3) or BGRA (H, W, 4)"
+
+
+def _check_frame_layout(shape: tuple[int, ...], dtype: np.dtype[np.generic]) -> int | None:
+    """Validate a frame's shape and dtype; return the cvtColor code (None for gray).
+
+    Raises
+    ------
+    AnalysisError
+        For any dtype other than uint8, a dimension other than 2 or 3, a channel count other
+        than 1, 3 or 4, or an empty frame.
+    """
+    if dtype != np.uint8:
+        if dtype == np.uint16:
+            raise AnalysisError(
+                "frame dtype uint16 is not accepted: the threshold p of Eq. (1) is on the "
+                "8-bit scale 0..255; rescale with the sensor's bit depth first, e.g. "
+                "(frame >> (bits - 8)).astype(np.uint8)"
+            )
+        raise AnalysisError(f"frame dtype {dtype} is not supported; expected {_SUPPORTED_LAYOUTS}")
+    if len(shape) == 2:
+        code = None
+    elif len(shape) == 3 and shape[2] == 1:
+        code = None
+    elif len(shape) == 3 and shape[2] == 3:
+        code = cv2.COLOR_BGR2GRAY
+    elif len(shape) == 3 and shape[2] == 4:
+        code = cv2.COLOR_BGRA2GRAY
+    else:
+        raise AnalysisError(f"frame shape {shape} is not supported; expected {_SUPPORTED_LAYOUTS}")
+    if shape[0] == 0 or shape[1] == 0:
+        raise AnalysisError(f"frame shape {shape} is empty (zero rows or columns)")
+    return code
+
+
+def _as_gray(image: npt.NDArray[np.uint8], code: int | None) -> GrayImage:
+    if code is None:
+        return image if image.ndim == 2 else image[:, :, 0]
+    return np.asarray(cv2.cvtColor(image, code), dtype=np.uint8)
+
+
+def to_gray(frame: Frame) -> GrayImage:
+    """Convert a camera frame to an 8-bit grayscale image (Section III.A).
+
+    Parameters
+    ----------
+    frame : numpy.ndarray
+        uint8 gray ``(H, W)`` or ``(H, W, 1)`` (returned as a 2-D view, not copied),
+        BGR ``(H, W, 3)`` or BGRA ``(H, W, 4)`` (converted with OpenCV's
+        ``Y = 0.299 R + 0.587 G + 0.114 B``, alpha ignored).
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(H, W)`` uint8 gray image [8-bit intensity].
+
+    Raises
+    ------
+    AnalysisError
+        For any other dtype (uint16 included, see the module docstring) or shape.
+    """
+    if not isinstance(frame, np.ndarray):
+        raise AnalysisError(f"frame must be a numpy array, got {type(frame).__name__}")
+    code = _check_frame_layout(frame.shape, frame.dtype)
+    return _as_gray(frame.view(np.uint8), code)
+
+
+def _check_threshold(p: object) -> int:
+    if isinstance(p, bool) or not isinstance(p, int | np.integer):
+        raise AnalysisError(f"threshold p must be an integer 0..255, got {p!r}")
+    if not 0 <= int(p) <= 255:
+        raise AnalysisError(f"threshold p must be in 0..255, got {int(p)}")
+    return int(p)
+
+
+def threshold_binary_inverted(gray: Frame, p: int) -> GrayImage:
+    """Binary-inverted thresholding, Eq. (1).
+
+    ``I_seg = 0`` where ``I_g > p`` and ``I_seg = 1`` otherwise, i.e. pixels at or below the
+    threshold (dark, light-occluded) are 1.
+
+    Parameters
+    ----------
+    gray : numpy.ndarray
+        2-D uint8 grayscale image I_g [8-bit intensity].
+    p : int
+        Threshold [8-bit intensity], 0..255. p = 255 marks every pixel; p = 0 marks only
+        pixels of value 0.
+
+    Returns
+    -------
+    numpy.ndarray
+        uint8 image of the same shape holding 0 or 1.
+
+    Raises
+    ------
+    AnalysisError
+        If ``gray`` is not a non-empty 2-D uint8 array or ``p`` is not an integer in 0..255.
+    """
+    p_int = _check_threshold(p)
+    if not isinstance(gray, np.ndarray) or gray.ndim != 2:
+        shape = getattr(gray, "shape", None)
+        raise AnalysisError(f"gray image must be a 2-D uint8 array, got shape {shape}")
+    _check_frame_layout(gray.shape, gray.dtype)
+    _, binary = cv2.threshold(gray.view(np.uint8), p_int, 1, cv2.THRESH_BINARY_INV)
+    return np.asarray(binary, dtype=np.uint8)
+
+
+# --------------------------------------------------------------------------------------------
+# ROI geometry
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class _RoiGeometry:
+    """An ROI clipped to a frame: bounding box (half-open) and optional mask inside it."""
+
+    y0: int
+    y1: int
+    x0: int
+    x1: int
+    mask: npt.NDArray[np.uint8] | None  # 0/1 over the bounding box; None = whole box
+    pixel_count: int
+    clipped: bool
+
+    @property
+    def empty(self) -> bool:
+        return self.pixel_count == 0
+
+
+def _roi_geometry(height: int, width: int, roi: RectROI | CircleROI | None) -> _RoiGeometry:
+    if roi is None:
+        return _RoiGeometry(0, height, 0, width, None, height * width, False)
+    if isinstance(roi, RectROI):
+        x0, y0 = max(roi.x_px, 0), max(roi.y_px, 0)
+        x1, y1 = min(roi.x_px + roi.width_px, width), min(roi.y_px + roi.height_px, height)
+        if x0 >= x1 or y0 >= y1:
+            return _RoiGeometry(0, 0, 0, 0, None, 0, True)
+        clipped = (x1 - x0, y1 - y0) != (roi.width_px, roi.height_px)
+        return _RoiGeometry(y0, y1, x0, x1, None, (x1 - x0) * (y1 - y0), clipped)
+    if isinstance(roi, CircleROI):
+        return _circle_geometry(height, width, roi)
+    raise AnalysisError(f"roi must be a RectROI, a CircleROI or None, got {type(roi).__name__}")
+
+
+def _circle_membership(
+    ys: npt.NDArray[np.float64], xs: npt.NDArray[np.float64], roi: CircleROI
+) -> npt.NDArray[np.bool_]:
+    """The definition of circle membership (module docstring), on pixel-centre grids."""
+    dy = ys[:, None] - roi.cy_px
+    dx = xs[None, :] - roi.cx_px
+    inside: npt.NDArray[np.bool_] = dx * dx + dy * dy <= roi.radius_px * roi.radius_px
+    return inside
+
+
+def _circle_geometry(height: int, width: int, roi: CircleROI) -> _RoiGeometry:
+    r = roi.radius_px
+    # Unclipped bounding box, widened by one pixel against rounding of cy +- r; the exact
+    # membership test below decides, then the box is trimmed to the member pixels.
+    full_y0, full_y1 = math.floor(roi.cy_px - r) - 1, math.ceil(roi.cy_px + r) + 2
+    full_x0, full_x1 = math.floor(roi.cx_px - r) - 1, math.ceil(roi.cx_px + r) + 2
+    y0, y1 = max(full_y0, 0), min(full_y1, height)
+    x0, x1 = max(full_x0, 0), min(full_x1, width)
+    if y0 >= y1 or x0 >= x1:
+        return _RoiGeometry(0, 0, 0, 0, None, 0, True)
+    inside = _circle_membership(
+        np.arange(y0, y1, dtype=np.float64), np.arange(x0, x1, dtype=np.float64), roi
+    )
+    rows = np.flatnonzero(inside.any(axis=1))
+    cols = np.flatnonzero(inside.any(axis=0))
+    if rows.size == 0:
+        return _RoiGeometry(0, 0, 0, 0, None, 0, True)
+    inside = inside[rows[0] : rows[-1] + 1, cols[0] : cols[-1] + 1]
+    by0, by1 = y0 + int(rows[0]), y0 + int(rows[-1]) + 1
+    bx0, bx1 = x0 + int(cols[0]), x0 + int(cols[-1]) + 1
+    # Clipped if any member pixel centre of the whole (unclipped) disc lies outside the frame.
+    clipped = False
+    if full_y0 < 0 or full_x0 < 0 or full_y1 > height or full_x1 > width:
+        whole = _circle_membership(
+            np.arange(full_y0, full_y1, dtype=np.float64),
+            np.arange(full_x0, full_x1, dtype=np.float64),
+            roi,
+        )
+        clipped = int(np.count_nonzero(whole)) != int(np.count_nonzero(inside))
+    mask = np.ascontiguousarray(inside, dtype=np.uint8)
+    return _RoiGeometry(by0, by1, bx0, bx1, mask, int(np.count_nonzero(mask)), clipped)
+
+
+def roi_mask(
+    frame_shape: tuple[int, ...], roi: RectROI | CircleROI | None
+) -> npt.NDArray[np.bool_]:
+    """Boolean ``(H, W)`` mask of the frame pixels that belong to ``roi`` (clipped).
+
+    Parameters
+    ----------
+    frame_shape : tuple of int
+        Frame shape ``(H, W)`` or ``(H, W, C)``; see :func:`to_gray` for accepted layouts.
+    roi : RectROI or CircleROI or None
+        Region of interest; None selects the whole frame.
+
+    Returns
+    -------
+    numpy.ndarray
+        bool array, True inside the ROI. Meant for overlays and checks, not the hot path.
+    """
+    _check_frame_layout(tuple(frame_shape), np.dtype(np.uint8))
+    height, width = int(frame_shape[0]), int(frame_shape[1])
+    geo = _roi_geometry(height, width, roi)
+    out = np.zeros((height, width), dtype=np.bool_)
+    if geo.empty:
+        return out
+    out[geo.y0 : geo.y1, geo.x0 : geo.x1] = True if geo.mask is None else geo.mask.astype(bool)
+    return out
+
+
+# --------------------------------------------------------------------------------------------
+# Frame processor (hot path)
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class FrameMeasurement:
+    """S_k of one frame with its quality information.
+
+    Attributes
+    ----------
+    s_k_px : int
+        Occluded pixel count S_k, Eq. (2) [px].
+    saturated_fraction : float
+        Fraction of ROI pixels at gray level :data:`SATURATION_LEVEL` [1]; 0 for an empty ROI.
+    flags : frozenset of Flag
+        :attr:`~Flag.SATURATED_FRAME`, :attr:`~Flag.EMPTY_ROI` and/or
+        :attr:`~Flag.ROI_CLIPPED`.
+    """
+
+    s_k_px: int
+    saturated_fraction: float
+    flags: frozenset[Flag]
+
+
+class FrameProcessor:
+    """Computes S_k (Eq. (2)) of frames of one fixed shape, ROI and threshold.
+
+    Everything that does not depend on the pixel values (ROI clipping, bounding box, circle
+    mask, scratch buffers) is computed once here, so :meth:`count` only crops (a view),
+    converts the crop to gray when the frame is colour, thresholds it with
+    ``cv2.threshold(THRESH_BINARY_INV, maxval=1)`` into a preallocated buffer, masks it for
+    a circular ROI (``cv2.bitwise_and``) and counts with ``cv2.countNonZero``.
+
+    Parameters
+    ----------
+    frame_shape : tuple of int
+        Shape of every frame to be processed: ``(H, W)``, ``(H, W, 1)``, ``(H, W, 3)`` (BGR)
+        or ``(H, W, 4)`` (BGRA); frames must be uint8.
+    p : int
+        Threshold of Eq. (1) [8-bit intensity], 0..255.
+    roi : RectROI or CircleROI or None
+        Region of interest; None counts the whole frame. Clipped to the frame.
+    saturation_limit_fraction : float
+        Fraction [1] of ROI pixels at :data:`SATURATION_LEVEL` above which :meth:`measure`
+        flags :attr:`~Flag.SATURATED_FRAME`; in [0, 1].
+
+    Raises
+    ------
+    AnalysisError
+        For an unsupported frame layout, a threshold outside 0..255 or a bad limit.
+
+    Notes
+    -----
+    The processor keeps scratch buffers, so one instance must not be used from several
+    threads at once. Create one per thread.
+    """
+
+    def __init__(
+        self,
+        frame_shape: tuple[int, ...],
+        p: int,
+        roi: RectROI | CircleROI | None = None,
+        *,
+        saturation_limit_fraction: float = DEFAULT_SATURATION_LIMIT_FRACTION,
+    ) -> None:
+        shape = tuple(int(n) for n in frame_shape)
+        self._code = _check_frame_layout(shape, np.dtype(np.uint8))
+        self._p = _check_threshold(p)
+        limit = float(saturation_limit_fraction)
+        if not 0.0 <= limit <= 1.0:
+            raise AnalysisError(
+                f"saturation_limit_fraction must be in [0, 1], got {saturation_limit_fraction!r}"
+            )
+        self._saturation_limit = limit
+        self._shape = shape
+        self._roi = roi
+        self._geo = _roi_geometry(shape[0], shape[1], roi)
+        box = (self._geo.y1 - self._geo.y0, self._geo.x1 - self._geo.x0)
+        self._gray_buf = np.empty(box, dtype=np.uint8)
+        self._bin_buf = np.empty(box, dtype=np.uint8)
+        self._mask = self._geo.mask
+        # An empty ROI is reported as EMPTY_ROI alone; ROI_CLIPPED means "partly outside".
+        if self._geo.empty:
+            self._static_flags = frozenset({Flag.EMPTY_ROI})
+        elif self._geo.clipped:
+            self._static_flags = frozenset({Flag.ROI_CLIPPED})
+        else:
+            self._static_flags = frozenset()
+
+    @property
+    def frame_shape(self) -> tuple[int, ...]:
+        """Shape every processed frame must have."""
+        return self._shape
+
+    @property
+    def p(self) -> int:
+        """Threshold of Eq. (1) [8-bit intensity]."""
+        return self._p
+
+    @property
+    def roi(self) -> RectROI | CircleROI | None:
+        """The ROI as configured (before clipping)."""
+        return self._roi
+
+    @property
+    def roi_pixel_count(self) -> int:
+        """Number of frame pixels inside the clipped ROI [px]; the largest possible S_k."""
+        return self._geo.pixel_count
+
+    @property
+    def roi_is_empty(self) -> bool:
+        """True when no frame pixel lies in the ROI (every S_k is 0, flag EMPTY_ROI)."""
+        return self._geo.empty
+
+    @property
+    def roi_is_clipped(self) -> bool:
+        """True when part of the ROI lies outside the frame (also True for an empty ROI)."""
+        return self._geo.clipped
+
+    @property
+    def bounding_box(self) -> tuple[int, int, int, int]:
+        """Clipped ROI bounding box ``(y0, y1, x0, x1)``, half-open [px]."""
+        g = self._geo
+        return g.y0, g.y1, g.x0, g.x1
+
+    def _gray_crop(self, frame: Frame) -> GrayImage:
+        if not isinstance(frame, np.ndarray):
+            raise AnalysisError(f"frame must be a numpy array, got {type(frame).__name__}")
+        if frame.shape != self._shape or frame.dtype != np.uint8:
+            raise AnalysisError(
+                f"frame has shape {frame.shape} and dtype {frame.dtype}; this processor was "
+                f"built for shape {self._shape} and dtype uint8"
+            )
+        g = self._geo
+        if g.empty:
+            return self._gray_buf
+        crop = frame[g.y0 : g.y1, g.x0 : g.x1]
+        if self._code is None:
+            return crop if crop.ndim == 2 else crop[:, :, 0]
+        cv2.cvtColor(crop, self._code, dst=self._gray_buf)
+        return self._gray_buf
+
+    def _count_where(self, gray: GrayImage, thresh: int, kind: int) -> int:
+        cv2.threshold(gray, thresh, 1, kind, dst=self._bin_buf)
+        if self._mask is not None:
+            cv2.bitwise_and(self._bin_buf, self._mask, dst=self._bin_buf)
+        return int(cv2.countNonZero(self._bin_buf))
+
+    def count(self, frame: Frame) -> int:
+        """Occluded pixel count S_k of one frame, Eqs. (1)-(2) [px].
+
+        Parameters
+        ----------
+        frame : numpy.ndarray
+            uint8 frame of :attr:`frame_shape`.
+
+        Returns
+        -------
+        int
+            Number of ROI pixels with gray value <= p; 0 for an empty ROI.
+
+        Raises
+        ------
+        AnalysisError
+            If the frame's shape or dtype differs from the processor's.
+        """
+        gray = self._gray_crop(frame)
+        if self._geo.empty:
+            return 0
+        return self._count_where(gray, self._p, cv2.THRESH_BINARY_INV)
+
+    def saturated_pixel_count(self, frame: Frame) -> int:
+        """Number of ROI pixels whose gray value is :data:`SATURATION_LEVEL` (255) [px]."""
+        gray = self._gray_crop(frame)
+        if self._geo.empty:
+            return 0
+        return self._count_where(gray, SATURATION_LEVEL - 1, cv2.THRESH_BINARY)
+
+    def saturation_fraction(self, frame: Frame) -> float:
+        """Fraction of ROI pixels at gray value 255 [1]; 0.0 for an empty ROI.
+
+        A pixel is saturated when its gray value (after BGR -> gray conversion) equals 255,
+        the 8-bit ceiling: its true brightness is unknown, and an over-exposed frame shrinks
+        the dark, light-occluded area, so S_k may be biased low.
+        """
+        if self._geo.empty:
+            self._gray_crop(frame)  # still validates the frame
+            return 0.0
+        return self.saturated_pixel_count(frame) / self._geo.pixel_count
+
+    def measure(self, frame: Frame) -> FrameMeasurement:
+        """S_k of one frame with its saturation fraction and quality flags.
+
+        Flags: :attr:`~Flag.SATURATED_FRAME` when the saturated fraction exceeds the
+        processor's ``saturation_limit_fraction``; :attr:`~Flag.EMPTY_ROI` and
+        :attr:`~Flag.ROI_CLIPPED` from the ROI geometry.
+        """
+        gray = self._gray_crop(frame)
+        if self._geo.empty:
+            return FrameMeasurement(0, 0.0, self._static_flags)
+        s_k = self._count_where(gray, self._p, cv2.THRESH_BINARY_INV)
+        n_sat = self._count_where(gray, SATURATION_LEVEL - 1, cv2.THRESH_BINARY)
+        fraction = n_sat / self._geo.pixel_count
+        flags = self._static_flags
+        if fraction > self._saturation_limit:
+            flags = flags | {Flag.SATURATED_FRAME}
+        return FrameMeasurement(s_k, fraction, flags)
+
+
+def occluded_pixel_count(frame: Frame, p: int, roi: RectROI | CircleROI | None = None) -> int:
+    """Occluded pixel count S_k of a single frame, Eqs. (1)-(2) [px].
+
+    Convenience form of :meth:`FrameProcessor.count`; for a video, build one
+    :class:`FrameProcessor` and reuse it, and use :meth:`FrameProcessor.measure` to get the
+    quality flags (an ROI outside the frame gives 0 here without a flag).
+
+    Parameters
+    ----------
+    frame : numpy.ndarray
+        uint8 gray, BGR or BGRA frame (see :func:`to_gray`).
+    p : int
+        Threshold of Eq. (1) [8-bit intensity], 0..255.
+    roi : RectROI or CircleROI or None
+        Region of interest (clipped to the frame); None counts the whole frame.
+
+    Returns
+    -------
+    int
+        Number of ROI pixels with gray value <= p.
+    """
+    if not isinstance(frame, np.ndarray):
+        raise AnalysisError(f"frame must be a numpy array, got {type(frame).__name__}")
+    _check_frame_layout(frame.shape, frame.dtype)
+    return FrameProcessor(frame.shape, p, roi).count(frame)
+
+
+# --------------------------------------------------------------------------------------------
+# Automatic threshold
+# --------------------------------------------------------------------------------------------
+
+
+def otsu_threshold(
+    reference_frame: Frame,
+    roi: RectROI | CircleROI | None = None,
+    *,
+    min_separability: float = DEFAULT_MIN_SEPARABILITY,
+) -> int:
+    """Threshold p for Eq. (1) chosen by Otsu's method on a reference frame's ROI pixels.
+
+    The paper picks p empirically. Use this instead when setting up a probe or a session:
+    record a reference frame in which the light-occluded pit pattern is clearly visible
+    (e.g. the indenter pressed into a phantom) so the ROI histogram has a dark (occluded)
+    and a bright (lit waveguide) mode, then fix the returned p for the whole measurement
+    (stored e.g. in the calibration). Do not re-run it per frame: a frame with no pit (the
+    "empty white circle" of the pitting state) has no dark mode, and a per-frame threshold
+    would make S_k of different frames incomparable.
+
+    Parameters
+    ----------
+    reference_frame : numpy.ndarray
+        uint8 gray, BGR or BGRA frame (see :func:`to_gray`).
+    roi : RectROI or CircleROI or None
+        Region whose pixels form the histogram (clipped to the frame); None = whole frame.
+    min_separability : float
+        Smallest accepted Otsu separability [1], in [0, 1]: between-class variance over total
+        variance at the chosen threshold. Below it the histogram is not bimodal enough for a
+        threshold to mean anything (see :data:`DEFAULT_MIN_SEPARABILITY`).
+
+    Returns
+    -------
+    int
+        p [8-bit intensity] such that Eq. (1) marks the dark mode: both classes
+        ``<= p`` and ``> p`` are non-empty.
+
+    Raises
+    ------
+    AnalysisError
+        If the ROI has no pixel in the frame; if all ROI pixels have one intensity (a uniform
+        frame: no bimodality); or if the separability is below ``min_separability``.
+    """
+    gray = to_gray(reference_frame)
+    if not 0.0 <= min_separability <= 1.0:
+        raise AnalysisError(f"min_separability must be in [0, 1], got {min_separability!r}")
+    geo = _roi_geometry(gray.shape[0], gray.shape[1], roi)
+    if geo.empty:
+        raise AnalysisError(f"Otsu threshold: the ROI {roi!r} has no pixel inside the frame")
+    crop = gray[geo.y0 : geo.y1, geo.x0 : geo.x1]
+    pixels = crop.reshape(-1) if geo.mask is None else crop[geo.mask.astype(bool)]
+    hist = np.bincount(pixels, minlength=256).astype(np.float64)
+    levels = np.flatnonzero(hist)
+    if levels.size < 2:
+        raise AnalysisError(
+            f"Otsu threshold: no bimodality, all {pixels.size} ROI pixels have intensity "
+            f"{int(levels[0])}; record a reference frame with the pit pattern visible"
+        )
+    column = np.ascontiguousarray(pixels).reshape(-1, 1)
+    t_float, _ = cv2.threshold(column, 0, 1, cv2.THRESH_BINARY_INV | cv2.THRESH_OTSU)
+    t = int(t_float)
+    # Separability eta = sigma_between^2 / sigma_total^2 at threshold t.
+    values = np.arange(256, dtype=np.float64)
+    prob = hist / hist.sum()
+    w0 = float(prob[: t + 1].sum())
+    w1 = 1.0 - w0
+    mean_total = float(prob @ values)
+    var_total = float(prob @ (values - mean_total) ** 2)
+    if w0 <= 0.0 or w1 <= 0.0:  # cannot happen with >= 2 levels; kept as a guard
+        raise AnalysisError(f"Otsu threshold {t} leaves one class empty")
+    mean0 = float(prob[: t + 1] @ values[: t + 1]) / w0
+    mean1 = float(prob[t + 1 :] @ values[t + 1 :]) / w1
+    eta = w0 * w1 * (mean1 - mean0) ** 2 / var_total
+    if eta < min_separability:
+        raise AnalysisError(
+            f"Otsu threshold: no clear bimodality in the ROI histogram (separability "
+            f"{eta:.3f} < {min_separability:.3f} at p = {t}); record a reference frame "
+            "with the pit pattern visible or set p by hand"
+        )
+    return t
