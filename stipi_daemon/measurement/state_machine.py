@@ -1,0 +1,1205 @@
+"""Pit/release state machine of one STIP-I measurement, as one pure transition table.
+
+This module owns the *procedure* of the paper's Section IV.B: wait for contact, hold the
+pitting force at 16 ± 1.5 N for 15 s, release the indenter, watch the recovery for up to
+105 s, then hand the recording to the analysis (T_0 of Eq. (6) is the release time). It
+decides phases, timing, faults and operator prompts from timestamped events. It does not
+own any I/O, clocks, storage or the analysis itself: the shell passes events in (all
+times on the host's monotonic clock [s]) and acts on the returned outputs.
+
+Design (after h11's ``_state.py``):
+
+* :func:`transition` ``(state, event, config) -> (state, outputs)`` is pure. It first runs
+  the *clock step* (:func:`_advance`: every event carries a time, and time-driven rules -
+  pitting complete, recovery timeout, band excursions, link and camera limits - fire on
+  whatever event brings the time forward, so :class:`Tick` only exists to bring it when
+  nothing else arrives), then dispatches through :data:`TABLE`.
+* :data:`TABLE` maps every ``(Phase, event type)`` pair to a handler. A pair is either
+  handled, explicitly ignored (:func:`_ignore`, no output), explicitly unexpected
+  (:func:`_unexpected`, an :class:`Advisory` and no change) or absorbed by a terminal
+  phase (:func:`_absorb`: the state is returned unchanged, no output, no clock step).
+* Terminal phases are ``DONE`` and the faults ``LINK_LOST``, ``CAMERA_STALLED``,
+  ``FORCE_OUT_OF_BAND`` and ``ABORTED``; they are absorbing. :func:`close` drives any state
+  to a terminal one (the session is closed).
+
+Policies (all thresholds are fields of :class:`MeasurementConfig`):
+
+* Pitting starts (T_pit_start) at the first force sample at or above the lower band edge
+  ``target - tolerance``; between ``contact_force_n`` and that edge the machine stays
+  ARMED (approach ramp). Pitting ends exactly ``pitting_duration_s`` later, whatever the
+  force did meanwhile, unless it faulted.
+* Force band during PITTING, with the force held between samples (zero-order hold): an
+  excursion outside ``target ± tolerance`` is reported (one :class:`Advisory` per
+  excursion) and tolerated while it lasts at most ``out_of_band_grace_s`` *continuously*
+  and the *cumulative* out-of-band time of the pitting phase stays at or below
+  ``out_of_band_limit_s``; breaking either rule is the fault ``FORCE_OUT_OF_BAND``. A drop
+  below ``release_force_n`` during PITTING (an early release) is therefore a fault after
+  the grace time. The band is not enforced in RELEASE (the operator is letting go).
+* RELEASE means "the operator has been asked to release". Release is *detected* when the
+  force stays below ``release_force_n`` for ``release_debounce_s`` (T_release = first
+  sample below the threshold), or *confirmed* by :class:`OperatorRelease`
+  (T_release = the button's time, flag ``release_confirmed_by_operator``).
+* Settling is decided here, from :class:`FrameSample` ``S_k`` values (Eqs. (1)-(2)): the
+  recovery is *settled* once every S_k of the last ``settle_hold_s`` (a plateau) satisfies
+  ``min >= settle_fraction * max`` - S_k varied by less than 2 % of its maximum, as in
+  the 98 % criterion of Eq. (6). A frame that breaks the band starts a new plateau at that
+  frame (conservative: never settles early). This only decides when acquisition may stop;
+  T_s and T_r of Eq. (6) are computed by the analysis from the stored series. With
+  ``stop_when_settled=False`` the recovery always lasts ``recovery_max_s`` (the paper's
+  fixed 105 s). A recovery that times out goes to ANALYSIS with ``not_settled``.
+* Link (force stream) down longer than ``link_loss_limit_s``: fault ``LINK_LOST`` in
+  ARMED, PITTING and RELEASE; in IDLE and RECOVERY only a flag (the camera carries the
+  recovery); ignored in ANALYSIS. Camera stalled longer than ``camera_stall_limit_s``:
+  fault ``CAMERA_STALLED`` in ARMED, PITTING, RELEASE and RECOVERY; a flag in IDLE;
+  ignored in ANALYSIS. See :data:`LINK_POLICY` and :data:`CAMERA_POLICY`.
+* Time never goes backwards in the state: ``now_s`` is the maximum event time seen. A
+  force sample or frame older than the previous one of its kind is dropped with an
+  :class:`Advisory` (``out_of_order_sample``).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field, replace
+from enum import StrEnum
+from typing import Final, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+from stipi_daemon.analysis.flags import Flag
+
+__all__ = [
+    "CAMERA_POLICY",
+    "EVENT_TYPES",
+    "FAULT_PHASES",
+    "LINK_POLICY",
+    "TABLE",
+    "TERMINAL_PHASES",
+    "Advisory",
+    "AdvisoryKind",
+    "AnalysisDone",
+    "Arm",
+    "CameraRecovered",
+    "CameraStalled",
+    "Event",
+    "Fault",
+    "ForceSample",
+    "FrameSample",
+    "LinkLost",
+    "LinkRestored",
+    "MachineState",
+    "MeasurementConfig",
+    "MeasurementFlag",
+    "OperatorAbort",
+    "OperatorPrompt",
+    "OperatorRelease",
+    "Output",
+    "Phase",
+    "PhaseChanged",
+    "Policy",
+    "SessionClosed",
+    "StartAnalysis",
+    "Tick",
+    "close",
+    "initial_state",
+    "transition",
+]
+
+
+# --------------------------------------------------------------------------- config
+
+
+class MeasurementConfig(BaseModel):
+    """Thresholds and durations of one measurement (Section IV.B); immutable.
+
+    Parameters
+    ----------
+    target_force_n : float
+        Pitting force to hold [N] (paper: 16 N).
+    force_tolerance_n : float
+        Half-width of the accepted force band [N] (paper: 1.5 N).
+    contact_force_n : float
+        Force above which the probe counts as touching the tissue [N].
+    pitting_duration_s : float
+        Pitting time from the first in-band sample [s] (paper: 15 s).
+    out_of_band_grace_s : float
+        Longest *continuous* excursion outside the band that is tolerated [s].
+    out_of_band_limit_s : float
+        Largest *cumulative* out-of-band time during pitting that is tolerated [s].
+    release_force_n : float
+        Force below which the indenter counts as released [N].
+    release_debounce_s : float
+        Time the force must stay below ``release_force_n`` to detect release [s].
+    release_overrun_warn_s : float
+        Time in RELEASE after which an over-pitting advisory is issued once [s].
+    recovery_max_s : float
+        Longest recovery observed after T_0 [s] (paper: 105 s).
+    stop_when_settled : bool
+        End the recovery as soon as S_k has settled (else always ``recovery_max_s``).
+    settle_fraction : float
+        Relative band of the settling test, as in T_s at 98 % of S_max (Eq. (6)) [1].
+    settle_hold_s : float
+        Time S_k must stay inside the settling band [s].
+    link_loss_limit_s : float
+        Time the force link may be down before the phase's policy applies [s].
+    camera_stall_limit_s : float
+        Time the camera may deliver no frame before the phase's policy applies [s].
+    """
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    target_force_n: float = Field(16.0, gt=0.0, allow_inf_nan=False)
+    force_tolerance_n: float = Field(1.5, gt=0.0, allow_inf_nan=False)
+    contact_force_n: float = Field(2.0, gt=0.0, allow_inf_nan=False)
+    pitting_duration_s: float = Field(15.0, gt=0.0, allow_inf_nan=False)
+    out_of_band_grace_s: float = Field(1.0, ge=0.0, allow_inf_nan=False)
+    out_of_band_limit_s: float = Field(3.0, ge=0.0, allow_inf_nan=False)
+    release_force_n: float = Field(8.0, gt=0.0, allow_inf_nan=False)
+    release_debounce_s: float = Field(0.1, ge=0.0, allow_inf_nan=False)
+    release_overrun_warn_s: float = Field(3.0, gt=0.0, allow_inf_nan=False)
+    recovery_max_s: float = Field(105.0, gt=0.0, allow_inf_nan=False)
+    stop_when_settled: bool = True
+    settle_fraction: float = Field(0.98, gt=0.0, lt=1.0, allow_inf_nan=False)
+    settle_hold_s: float = Field(10.0, gt=0.0, allow_inf_nan=False)
+    link_loss_limit_s: float = Field(2.0, gt=0.0, allow_inf_nan=False)
+    camera_stall_limit_s: float = Field(1.0, gt=0.0, allow_inf_nan=False)
+
+    @model_validator(mode="after")
+    def _check_consistency(self) -> MeasurementConfig:
+        low = self.band_low_n
+        if low <= 0.0:
+            raise ValueError(
+                f"force_tolerance_n ({self.force_tolerance_n} N) must be below "
+                f"target_force_n ({self.target_force_n} N)"
+            )
+        if self.contact_force_n >= low:
+            raise ValueError(
+                f"contact_force_n ({self.contact_force_n} N) must be below the band's lower "
+                f"edge target_force_n - force_tolerance_n ({low} N)"
+            )
+        if self.release_force_n >= low:
+            raise ValueError(
+                f"release_force_n ({self.release_force_n} N) must be below the band's lower "
+                f"edge target_force_n - force_tolerance_n ({low} N)"
+            )
+        if self.settle_hold_s >= self.recovery_max_s:
+            raise ValueError(
+                f"settle_hold_s ({self.settle_hold_s} s) must be shorter than "
+                f"recovery_max_s ({self.recovery_max_s} s)"
+            )
+        return self
+
+    @property
+    def band_low_n(self) -> float:
+        """Lower edge of the force band [N]."""
+        return self.target_force_n - self.force_tolerance_n
+
+    @property
+    def band_high_n(self) -> float:
+        """Upper edge of the force band [N]."""
+        return self.target_force_n + self.force_tolerance_n
+
+
+# --------------------------------------------------------------------------- phases
+
+
+class Phase(StrEnum):
+    """Phases of a measurement; the last five are terminal (absorbing)."""
+
+    IDLE = "idle"
+    ARMED = "armed"
+    PITTING = "pitting"
+    RELEASE = "release"
+    RECOVERY = "recovery"
+    ANALYSIS = "analysis"
+    DONE = "done"
+    LINK_LOST = "link_lost"
+    CAMERA_STALLED = "camera_stalled"
+    FORCE_OUT_OF_BAND = "force_out_of_band"
+    ABORTED = "aborted"
+
+
+FAULT_PHASES: Final = frozenset(
+    {Phase.LINK_LOST, Phase.CAMERA_STALLED, Phase.FORCE_OUT_OF_BAND, Phase.ABORTED}
+)
+TERMINAL_PHASES: Final = FAULT_PHASES | {Phase.DONE}
+
+
+class Policy(StrEnum):
+    """What a watchdog limit (link, camera) does in a phase once exceeded."""
+
+    FAULT = "fault"
+    FLAG = "flag"
+    IGNORE = "ignore"
+
+
+LINK_POLICY: Final[dict[Phase, Policy]] = {
+    Phase.IDLE: Policy.FLAG,
+    Phase.ARMED: Policy.FAULT,
+    Phase.PITTING: Policy.FAULT,
+    Phase.RELEASE: Policy.FAULT,
+    Phase.RECOVERY: Policy.FLAG,
+    Phase.ANALYSIS: Policy.IGNORE,
+}
+"""Force-link loss longer than ``link_loss_limit_s``, per non-terminal phase."""
+
+CAMERA_POLICY: Final[dict[Phase, Policy]] = {
+    Phase.IDLE: Policy.FLAG,
+    Phase.ARMED: Policy.FAULT,
+    Phase.PITTING: Policy.FAULT,
+    Phase.RELEASE: Policy.FAULT,
+    Phase.RECOVERY: Policy.FAULT,
+    Phase.ANALYSIS: Policy.IGNORE,
+}
+"""Camera stall longer than ``camera_stall_limit_s``, per non-terminal phase."""
+
+
+class MeasurementFlag(StrEnum):
+    """Caveats recorded on a measurement (the analysis' own flags live in ``Flag``)."""
+
+    RELEASE_CONFIRMED_BY_OPERATOR = "release_confirmed_by_operator"
+    """T_0 is the operator's button press, not a detected force drop."""
+    FORCE_EXCURSION = "force_excursion"
+    """The pitting force left the band at least once (tolerated)."""
+    PITTING_OVERRUN = "pitting_overrun"
+    """The indenter was held longer than ``release_overrun_warn_s`` after pitting ended."""
+    LINK_LOST_IN_RECOVERY = "link_lost_in_recovery"
+    """The force link was down past its limit during recovery (camera data intact)."""
+    LINK_LOST_WHILE_IDLE = "link_lost_while_idle"
+    """The force link was down past its limit before arming."""
+    CAMERA_STALLED_WHILE_IDLE = "camera_stalled_while_idle"
+    """The camera stalled past its limit before arming."""
+
+
+class AdvisoryKind(StrEnum):
+    """Kinds of non-fatal :class:`Advisory` outputs."""
+
+    FORCE_OUT_OF_BAND = "force_out_of_band"
+    RELEASE_OVERRUN = "release_overrun"
+    EARLY_RELEASE_REQUEST = "early_release_request"
+    RELEASE_UNDER_FORCE = "release_under_force"
+    LINK_DOWN = "link_down"
+    LINK_RESTORED = "link_restored"
+    LINK_LOST_FLAGGED = "link_lost_flagged"
+    CAMERA_STALLED = "camera_stalled"
+    CAMERA_RECOVERED = "camera_recovered"
+    CAMERA_STALL_FLAGGED = "camera_stall_flagged"
+    OUT_OF_ORDER_SAMPLE = "out_of_order_sample"
+    UNEXPECTED_EVENT = "unexpected_event"
+
+
+# --------------------------------------------------------------------------- events
+
+
+def _finite(name: str, value: float) -> None:
+    if not math.isfinite(value):
+        raise ValueError(f"{name} must be finite, got {value!r}")
+
+
+@dataclass(frozen=True, slots=True)
+class _Timed:
+    t_s: float
+    """Host monotonic time of the event [s]."""
+
+    def __post_init__(self) -> None:
+        _finite(f"{type(self).__name__}.t_s", self.t_s)
+
+
+@dataclass(frozen=True, slots=True)
+class Arm(_Timed):
+    """The operator starts a measurement."""
+
+
+@dataclass(frozen=True, slots=True)
+class ForceSample(_Timed):
+    """One load-cell reading at ``t_s`` [s]: ``force_n`` [N] (finite; may be negative)."""
+
+    force_n: float
+
+    def __post_init__(self) -> None:
+        _finite("ForceSample.t_s", self.t_s)
+        _finite("ForceSample.force_n", self.force_n)
+
+
+@dataclass(frozen=True, slots=True)
+class FrameSample(_Timed):
+    """One camera frame at ``t_s`` [s] with its occluded-pixel sum ``s_k`` (Eq. (2)) [px]."""
+
+    s_k: float
+
+    def __post_init__(self) -> None:
+        _finite("FrameSample.t_s", self.t_s)
+        _finite("FrameSample.s_k", self.s_k)
+        if self.s_k < 0.0:
+            raise ValueError(f"FrameSample.s_k must be >= 0 (a pixel sum), got {self.s_k!r}")
+
+
+@dataclass(frozen=True, slots=True)
+class OperatorRelease(_Timed):
+    """The operator confirms that the indenter has been released."""
+
+
+@dataclass(frozen=True, slots=True)
+class OperatorAbort(_Timed):
+    """The operator aborts the measurement."""
+
+
+@dataclass(frozen=True, slots=True)
+class LinkLost(_Timed):
+    """The link watchdog saw no frame from the probe (force stream stopped)."""
+
+
+@dataclass(frozen=True, slots=True)
+class LinkRestored(_Timed):
+    """Frames from the probe arrive again."""
+
+
+@dataclass(frozen=True, slots=True)
+class CameraStalled(_Timed):
+    """The camera watchdog saw no frame."""
+
+
+@dataclass(frozen=True, slots=True)
+class CameraRecovered(_Timed):
+    """Camera frames arrive again."""
+
+
+@dataclass(frozen=True, slots=True)
+class Tick(_Timed):
+    """Time passes (drives timeouts when no other event arrives)."""
+
+
+@dataclass(frozen=True, slots=True)
+class AnalysisDone(_Timed):
+    """The analysis started by :class:`StartAnalysis` has finished (success or flagged)."""
+
+
+@dataclass(frozen=True, slots=True)
+class SessionClosed(_Timed):
+    """The session is closed; any non-terminal phase ends (see :func:`close`)."""
+
+
+Event = (
+    Arm
+    | ForceSample
+    | FrameSample
+    | OperatorRelease
+    | OperatorAbort
+    | LinkLost
+    | LinkRestored
+    | CameraStalled
+    | CameraRecovered
+    | Tick
+    | AnalysisDone
+    | SessionClosed
+)
+
+EVENT_TYPES: Final[tuple[type[Event], ...]] = (
+    Arm,
+    ForceSample,
+    FrameSample,
+    OperatorRelease,
+    OperatorAbort,
+    LinkLost,
+    LinkRestored,
+    CameraStalled,
+    CameraRecovered,
+    Tick,
+    AnalysisDone,
+    SessionClosed,
+)
+
+
+# --------------------------------------------------------------------------- outputs
+
+
+@dataclass(frozen=True, slots=True)
+class PhaseChanged:
+    """The machine moved from ``old`` to ``new`` at ``t_s`` [s] because of ``reason``."""
+
+    old: Phase
+    new: Phase
+    t_s: float
+    reason: str
+
+
+@dataclass(frozen=True, slots=True)
+class OperatorPrompt:
+    """What the operator must do next (emitted only when the text changes)."""
+
+    text: str
+
+
+@dataclass(frozen=True, slots=True)
+class Advisory:
+    """A non-fatal problem worth recording and showing (a warning)."""
+
+    kind: AdvisoryKind
+    detail: str
+    t_s: float
+
+
+@dataclass(frozen=True, slots=True)
+class Fault:
+    """The measurement stopped in the fault phase ``kind`` at ``t_s`` [s]."""
+
+    kind: Phase
+    reason: str
+    t_s: float
+
+
+@dataclass(frozen=True, slots=True)
+class StartAnalysis:
+    """Start the analysis of the recorded pitting and recovery.
+
+    Parameters
+    ----------
+    t0_s : float
+        Release time T_0 of Eq. (6) [s].
+    t_end_s : float
+        End of the recovery window [s].
+    t_pit_start_s, t_pit_end_s : float
+        Pitting interval [s].
+    settled : bool
+        Whether S_k settled before ``recovery_max_s``.
+    t_settled_s : float | None
+        Time the settling test passed [s] (the end of the hold), if it did.
+    flags : tuple[str, ...]
+        Sorted caveats: :class:`MeasurementFlag` values and ``Flag.NOT_SETTLED``.
+    """
+
+    t0_s: float
+    t_end_s: float
+    t_pit_start_s: float
+    t_pit_end_s: float
+    settled: bool
+    t_settled_s: float | None
+    flags: tuple[str, ...]
+
+
+Output = PhaseChanged | OperatorPrompt | Advisory | Fault | StartAnalysis
+
+
+# --------------------------------------------------------------------------- state
+
+
+@dataclass(frozen=True, slots=True)
+class MachineState:
+    """Everything the machine knows; immutable, replaced on every transition.
+
+    Times are host monotonic [s]; ``None`` means "not yet" / "not active".
+    """
+
+    phase: Phase
+    now_s: float
+    """Latest event time seen; never decreases."""
+    phase_entered_s: float
+    t_pit_start_s: float | None = None
+    t_pit_end_s: float | None = None
+    t_release_s: float | None = None
+    """T_0 for the analysis (Eq. (6))."""
+    t_recovery_end_s: float | None = None
+    t_settled_s: float | None = None
+    release_by: Literal["force", "operator"] | None = None
+    # force stream
+    last_force_t_s: float | None = None
+    last_force_n: float | None = None
+    contact: bool = False
+    # band accounting (PITTING)
+    oob_since_s: float | None = None
+    """Start of the current out-of-band excursion."""
+    oob_total_s: float = 0.0
+    """Cumulative out-of-band time of the pitting phase [s]."""
+    oob_accounted_to_s: float | None = None
+    n_excursions: int = 0
+    max_excursion_s: float = 0.0
+    below_release_since_s: float | None = None
+    overrun_warned: bool = False
+    # watchdogs
+    link_down_since_s: float | None = None
+    camera_stalled_since_s: float | None = None
+    # settling (RECOVERY)
+    last_frame_t_s: float | None = None
+    plateau_min: float | None = None
+    plateau_max: float | None = None
+    plateau_start_s: float | None = None
+    """Start of the current settling plateau (S_k within the band since then)."""
+    # bookkeeping
+    flags: frozenset[str] = field(default_factory=frozenset)
+    last_prompt: str = ""
+    end_reason: str | None = None
+
+    @property
+    def terminal(self) -> bool:
+        """True in DONE and in every fault phase."""
+        return self.phase in TERMINAL_PHASES
+
+
+def initial_state(t_s: float) -> MachineState:
+    """Return the IDLE state at host time ``t_s`` [s]."""
+    _finite("initial_state t_s", t_s)
+    return MachineState(phase=Phase.IDLE, now_s=t_s, phase_entered_s=t_s)
+
+
+Result = tuple[MachineState, list[Output]]
+Handler = Callable[[MachineState, Event, MeasurementConfig], Result]
+
+
+# --------------------------------------------------------------------------- helpers
+
+
+def _prompt(state: MachineState, text: str) -> Result:
+    """Emit ``text`` unless it is already the current prompt."""
+    if text == state.last_prompt:
+        return state, []
+    return replace(state, last_prompt=text), [OperatorPrompt(text)]
+
+
+def _goto(
+    state: MachineState,
+    new: Phase,
+    reason: str,
+    config: MeasurementConfig,
+    **changes: object,
+) -> Result:
+    """Enter ``new`` at ``state.now_s``; faults also emit :class:`Fault`."""
+    t = state.now_s
+    out: list[Output] = [PhaseChanged(state.phase, new, t, reason)]
+    nxt = replace(state, phase=new, phase_entered_s=t, **changes)  # type: ignore[arg-type]
+    if new in FAULT_PHASES:
+        out.append(Fault(new, reason, t))
+        nxt = replace(nxt, end_reason=reason)
+    elif new is Phase.DONE:
+        nxt = replace(nxt, end_reason=reason)
+    nxt, prompt = _prompt(nxt, _phase_prompt(nxt, config))
+    return nxt, out + prompt
+
+
+def _phase_prompt(state: MachineState, config: MeasurementConfig) -> str:
+    """Prompt on entering a phase."""
+    if state.phase is Phase.IDLE:
+        return "Press Start to arm the probe"
+    if state.phase is Phase.ARMED:
+        return _press_prompt(config)
+    if state.phase is Phase.PITTING:
+        assert state.t_pit_start_s is not None
+        if state.oob_since_s is not None and state.last_force_n is not None:
+            return _band_prompt(state.last_force_n, config)
+        left_s = state.t_pit_start_s + config.pitting_duration_s - state.now_s
+        return f"Hold {_fmt_band(config)}: {_whole_s_left(left_s)} s left"
+    if state.phase is Phase.RELEASE:
+        return "Release the indenter now"
+    if state.phase is Phase.RECOVERY:
+        assert state.t_release_s is not None
+        return _recovery_prompt(state.now_s - state.t_release_s, config)
+    if state.phase is Phase.ANALYSIS:
+        return "Analysing the recovery"
+    if state.phase is Phase.DONE:
+        return "Measurement complete"
+    return f"Measurement stopped: {state.end_reason}"
+
+
+def _press_prompt(config: MeasurementConfig) -> str:
+    return f"Press the probe on the tissue until the force reads {config.target_force_n:g} N"
+
+
+def _band_prompt(force_n: float, config: MeasurementConfig) -> str:
+    hint = "ease off" if force_n > config.band_high_n else "press harder"
+    return f"Force {force_n:.1f} N: {hint} to {_fmt_band(config)}"
+
+
+def _recovery_prompt(elapsed_s: float, config: MeasurementConfig) -> str:
+    return (
+        f"Keep the probe still: recovery {math.floor(max(elapsed_s, 0.0)):.0f}/"
+        f"{config.recovery_max_s:.0f} s"
+    )
+
+
+def _whole_s_left(left_s: float) -> int:
+    """Whole seconds left, rounding up but ignoring float noise (15.000000000000002 -> 15)."""
+    return math.ceil(left_s - 1e-9)
+
+
+def _fmt_band(config: MeasurementConfig) -> str:
+    return f"{config.target_force_n:.1f} ± {config.force_tolerance_n:.1f} N"
+
+
+def _in_band(force_n: float, config: MeasurementConfig) -> bool:
+    return config.band_low_n <= force_n <= config.band_high_n
+
+
+def _with_flag(state: MachineState, flag: str) -> MachineState:
+    return replace(state, flags=state.flags | {flag})
+
+
+# --------------------------------------------------------------------------- clock step
+
+
+def _advance(state: MachineState, config: MeasurementConfig) -> Result:
+    """Apply every time-driven rule of the current phase up to ``state.now_s``."""
+    now = state.now_s
+    out: list[Output] = []
+    phase = state.phase
+
+    # watchdogs
+    if state.link_down_since_s is not None and now - state.link_down_since_s > (
+        config.link_loss_limit_s
+    ):
+        down_s = now - state.link_down_since_s
+        policy = LINK_POLICY[phase]
+        if policy is Policy.FAULT:
+            return _goto(
+                state, Phase.LINK_LOST, f"probe link down for {down_s:.1f} s in {phase}", config
+            )
+        flag = (
+            MeasurementFlag.LINK_LOST_IN_RECOVERY
+            if phase is Phase.RECOVERY
+            else MeasurementFlag.LINK_LOST_WHILE_IDLE
+        )
+        if policy is Policy.FLAG and flag not in state.flags:
+            state = _with_flag(state, flag)
+            out.append(
+                Advisory(AdvisoryKind.LINK_LOST_FLAGGED, f"probe link down for {down_s:.1f} s", now)
+            )
+    if state.camera_stalled_since_s is not None and now - state.camera_stalled_since_s > (
+        config.camera_stall_limit_s
+    ):
+        stall_s = now - state.camera_stalled_since_s
+        policy = CAMERA_POLICY[phase]
+        if policy is Policy.FAULT:
+            return _goto(
+                state,
+                Phase.CAMERA_STALLED,
+                f"camera stalled for {stall_s:.1f} s in {phase}",
+                config,
+            )
+        flag = MeasurementFlag.CAMERA_STALLED_WHILE_IDLE
+        if policy is Policy.FLAG and flag not in state.flags:
+            state = _with_flag(state, flag)
+            out.append(
+                Advisory(
+                    AdvisoryKind.CAMERA_STALL_FLAGGED, f"camera stalled for {stall_s:.1f} s", now
+                )
+            )
+
+    if phase is Phase.PITTING:
+        state, more = _advance_pitting(state, config)
+        return state, out + more
+    if phase is Phase.RELEASE:
+        assert state.t_pit_end_s is not None
+        waited_s = now - state.t_pit_end_s
+        if not state.overrun_warned and waited_s > config.release_overrun_warn_s:
+            state = replace(_with_flag(state, MeasurementFlag.PITTING_OVERRUN), overrun_warned=True)
+            out.append(
+                Advisory(
+                    AdvisoryKind.RELEASE_OVERRUN,
+                    f"indenter still held {waited_s:.1f} s after the pitting time ended",
+                    now,
+                )
+            )
+        return state, out
+    if phase is Phase.RECOVERY:
+        assert state.t_release_s is not None
+        elapsed_s = now - state.t_release_s
+        if elapsed_s >= config.recovery_max_s:
+            state, more = _start_analysis(
+                state, state.t_release_s + config.recovery_max_s, config, settled=False
+            )
+            return state, out + more
+        state, more = _prompt(state, _recovery_prompt(elapsed_s, config))
+        return state, out + more
+    return state, out
+
+
+def _advance_pitting(state: MachineState, config: MeasurementConfig) -> Result:
+    """Band accounting up to ``now`` (or the end of pitting), faults, completion."""
+    assert state.t_pit_start_s is not None and state.oob_accounted_to_s is not None
+    now = state.now_s
+    accounted_s = state.oob_accounted_to_s
+    t_complete = state.t_pit_start_s + config.pitting_duration_s
+    t_acc = min(now, t_complete)
+    if state.oob_since_s is not None and t_acc > accounted_s:
+        total = state.oob_total_s + (t_acc - accounted_s)
+        run = t_acc - state.oob_since_s
+        state = replace(
+            state,
+            oob_total_s=total,
+            oob_accounted_to_s=t_acc,
+            max_excursion_s=max(state.max_excursion_s, run),
+        )
+        force = f"{state.last_force_n:.1f} N" if state.last_force_n is not None else "unknown"
+        early = (
+            " (below the release threshold: indenter released early?)"
+            if state.last_force_n is not None and state.last_force_n < config.release_force_n
+            else ""
+        )
+        if run > config.out_of_band_grace_s:
+            return _goto(
+                state,
+                Phase.FORCE_OUT_OF_BAND,
+                f"force {force} outside {_fmt_band(config)} for {run:.2f} s continuously "
+                f"(limit {config.out_of_band_grace_s:.2f} s){early}",
+                config,
+            )
+        if total > config.out_of_band_limit_s:
+            return _goto(
+                state,
+                Phase.FORCE_OUT_OF_BAND,
+                f"force outside {_fmt_band(config)} for {total:.2f} s in total during pitting "
+                f"(limit {config.out_of_band_limit_s:.2f} s){early}",
+                config,
+            )
+    else:
+        state = replace(state, oob_accounted_to_s=max(accounted_s, t_acc))
+    if now >= t_complete:
+        state, out = _goto(
+            state,
+            Phase.RELEASE,
+            f"pitting complete ({config.pitting_duration_s:.1f} s)",
+            config,
+            t_pit_end_s=t_complete,
+            oob_since_s=None,
+        )
+        return state, out
+    left_s = t_complete - now
+    if state.oob_since_s is None:
+        return _prompt(state, f"Hold {_fmt_band(config)}: {_whole_s_left(left_s)} s left")
+    return state, []
+
+
+def _start_analysis(
+    state: MachineState, t_end_s: float, config: MeasurementConfig, *, settled: bool
+) -> Result:
+    t0_s, pit_start_s, pit_end_s = state.t_release_s, state.t_pit_start_s, state.t_pit_end_s
+    assert t0_s is not None and pit_start_s is not None and pit_end_s is not None
+    if not settled:
+        state = _with_flag(state, Flag.NOT_SETTLED)
+    state = replace(state, t_recovery_end_s=t_end_s)
+    reason = "recovery settled" if settled else "recovery window ended before S_k settled"
+    state, out = _goto(state, Phase.ANALYSIS, reason, config)
+    start = StartAnalysis(
+        t0_s=t0_s,
+        t_end_s=t_end_s,
+        t_pit_start_s=pit_start_s,
+        t_pit_end_s=pit_end_s,
+        settled=settled,
+        t_settled_s=state.t_settled_s,
+        flags=tuple(sorted(state.flags)),
+    )
+    return state, [out[0], start, *out[1:]]
+
+
+# --------------------------------------------------------------------------- handlers
+
+
+def _absorb(state: MachineState, event: Event, config: MeasurementConfig) -> Result:
+    """Terminal phases: the state is returned unchanged, nothing is emitted."""
+    return state, []
+
+
+def _ignore(state: MachineState, event: Event, config: MeasurementConfig) -> Result:
+    """Explicitly ignored (the clock step has already run)."""
+    return state, []
+
+
+def _unexpected(state: MachineState, event: Event, config: MeasurementConfig) -> Result:
+    """Not meaningful in this phase: reported, no change."""
+    return state, [
+        Advisory(
+            AdvisoryKind.UNEXPECTED_EVENT,
+            f"{type(event).__name__} ignored in phase {state.phase}",
+            state.now_s,
+        )
+    ]
+
+
+def _arm(state: MachineState, event: Event, config: MeasurementConfig) -> Result:
+    return _goto(state, Phase.ARMED, "armed by the operator", config)
+
+
+def _abort(state: MachineState, event: Event, config: MeasurementConfig) -> Result:
+    return _goto(state, Phase.ABORTED, f"aborted by the operator in {state.phase}", config)
+
+
+def _session_closed(state: MachineState, event: Event, config: MeasurementConfig) -> Result:
+    return _goto(state, Phase.ABORTED, f"session closed in {state.phase}", config)
+
+
+def _link_lost(state: MachineState, event: Event, config: MeasurementConfig) -> Result:
+    if state.link_down_since_s is not None:
+        return state, []
+    state = replace(state, link_down_since_s=event.t_s)
+    return state, [Advisory(AdvisoryKind.LINK_DOWN, f"probe link down in {state.phase}", event.t_s)]
+
+
+def _link_restored(state: MachineState, event: Event, config: MeasurementConfig) -> Result:
+    if state.link_down_since_s is None:
+        return state, []
+    down_s = state.now_s - state.link_down_since_s
+    state = replace(state, link_down_since_s=None)
+    return state, [
+        Advisory(AdvisoryKind.LINK_RESTORED, f"probe link back after {down_s:.2f} s", state.now_s)
+    ]
+
+
+def _camera_stalled(state: MachineState, event: Event, config: MeasurementConfig) -> Result:
+    if state.camera_stalled_since_s is not None:
+        return state, []
+    state = replace(state, camera_stalled_since_s=event.t_s)
+    return state, [
+        Advisory(AdvisoryKind.CAMERA_STALLED, f"camera stalled in {state.phase}", event.t_s)
+    ]
+
+
+def _camera_recovered(state: MachineState, event: Event, config: MeasurementConfig) -> Result:
+    if state.camera_stalled_since_s is None:
+        return state, []
+    stall_s = state.now_s - state.camera_stalled_since_s
+    state = replace(state, camera_stalled_since_s=None)
+    return state, [
+        Advisory(AdvisoryKind.CAMERA_RECOVERED, f"camera back after {stall_s:.2f} s", state.now_s)
+    ]
+
+
+def _take_force(state: MachineState, event: Event) -> tuple[MachineState, list[Output], bool]:
+    """Record a force sample; returns ``ok=False`` (with an advisory) if out of order."""
+    assert isinstance(event, ForceSample)
+    if state.last_force_t_s is not None and event.t_s < state.last_force_t_s:
+        return (
+            state,
+            [
+                Advisory(
+                    AdvisoryKind.OUT_OF_ORDER_SAMPLE,
+                    f"force sample at {event.t_s:.6f} s is older than the previous one "
+                    f"({state.last_force_t_s:.6f} s); dropped",
+                    state.now_s,
+                )
+            ],
+            False,
+        )
+    return replace(state, last_force_t_s=event.t_s, last_force_n=event.force_n), [], True
+
+
+def _force_idle(state: MachineState, event: Event, config: MeasurementConfig) -> Result:
+    state, out, _ = _take_force(state, event)
+    return state, out
+
+
+def _force_armed(state: MachineState, event: Event, config: MeasurementConfig) -> Result:
+    state, out, ok = _take_force(state, event)
+    if not ok:
+        return state, out
+    assert isinstance(event, ForceSample)
+    f = event.force_n
+    if f >= config.band_low_n:
+        # pitting starts at this sample; the clock and band accounting start here
+        oob = None if f <= config.band_high_n else event.t_s
+        state, more = _goto(
+            replace(state, contact=True),
+            Phase.PITTING,
+            f"force reached the band ({f:.1f} N)",
+            config,
+            t_pit_start_s=event.t_s,
+            oob_since_s=oob,
+            oob_accounted_to_s=event.t_s,
+            n_excursions=1 if oob is not None else 0,
+        )
+        out += more
+        state, more = _advance_pitting(state, config)
+        out += more
+        if oob is not None and state.phase is Phase.PITTING:
+            out.append(
+                Advisory(
+                    AdvisoryKind.FORCE_OUT_OF_BAND,
+                    f"force {f:.1f} N above {_fmt_band(config)} at the start of pitting",
+                    event.t_s,
+                )
+            )
+            state = _with_flag(state, MeasurementFlag.FORCE_EXCURSION)
+        return state, out
+    if f >= config.contact_force_n:
+        state, more = _prompt(
+            replace(state, contact=True),
+            f"Keep pressing: {f:.1f} N of {config.target_force_n:.1f} N",
+        )
+        return state, out + more
+    state, more = _prompt(replace(state, contact=False), _press_prompt(config))
+    return state, out + more
+
+
+def _force_pitting(state: MachineState, event: Event, config: MeasurementConfig) -> Result:
+    state, out, ok = _take_force(state, event)
+    if not ok:
+        return state, out
+    assert isinstance(event, ForceSample)
+    f = event.force_n
+    if _in_band(f, config):
+        if state.oob_since_s is not None:
+            state = replace(state, oob_since_s=None)
+        state, more = _advance_pitting(state, config)
+        return state, out + more
+    if state.oob_since_s is None:
+        state = _with_flag(
+            replace(
+                state,
+                oob_since_s=event.t_s,
+                oob_accounted_to_s=max(event.t_s, state.oob_accounted_to_s or event.t_s),
+                n_excursions=state.n_excursions + 1,
+            ),
+            MeasurementFlag.FORCE_EXCURSION,
+        )
+        out.append(
+            Advisory(
+                AdvisoryKind.FORCE_OUT_OF_BAND,
+                f"force {f:.1f} N outside {_fmt_band(config)} "
+                f"(excursion {state.n_excursions}, {state.oob_total_s:.2f} s out so far)",
+                event.t_s,
+            )
+        )
+    state, more = _prompt(state, _band_prompt(f, config))
+    return state, out + more
+
+
+def _force_release(state: MachineState, event: Event, config: MeasurementConfig) -> Result:
+    state, out, ok = _take_force(state, event)
+    if not ok:
+        return state, out
+    assert isinstance(event, ForceSample)
+    if event.force_n >= config.release_force_n:
+        return replace(state, below_release_since_s=None), out
+    since = state.below_release_since_s
+    if since is None:
+        since = event.t_s
+        state = replace(state, below_release_since_s=since)
+    if event.t_s - since >= config.release_debounce_s:
+        state, more = _goto(
+            state,
+            Phase.RECOVERY,
+            f"release detected: force below {config.release_force_n:.1f} N "
+            f"for {event.t_s - since:.2f} s",
+            config,
+            t_release_s=since,
+            release_by="force",
+        )
+        return state, out + more
+    return state, out
+
+
+def _force_recovery(state: MachineState, event: Event, config: MeasurementConfig) -> Result:
+    """The rebound force is recorded by the shell; the machine only keeps order."""
+    state, out, _ = _take_force(state, event)
+    return state, out
+
+
+def _operator_release_early(state: MachineState, event: Event, config: MeasurementConfig) -> Result:
+    assert state.t_pit_start_s is not None
+    left_s = state.t_pit_start_s + config.pitting_duration_s - state.now_s
+    return state, [
+        Advisory(
+            AdvisoryKind.EARLY_RELEASE_REQUEST,
+            f"release button ignored: {left_s:.1f} s of pitting left",
+            state.now_s,
+        )
+    ]
+
+
+def _operator_release(state: MachineState, event: Event, config: MeasurementConfig) -> Result:
+    out: list[Output] = []
+    if state.last_force_n is not None and state.last_force_n >= config.release_force_n:
+        out.append(
+            Advisory(
+                AdvisoryKind.RELEASE_UNDER_FORCE,
+                f"operator confirmed release while the force reads {state.last_force_n:.1f} N",
+                state.now_s,
+            )
+        )
+    state = _with_flag(state, MeasurementFlag.RELEASE_CONFIRMED_BY_OPERATOR)
+    state, more = _goto(
+        state,
+        Phase.RECOVERY,
+        "release confirmed by the operator",
+        config,
+        t_release_s=event.t_s,
+        release_by="operator",
+    )
+    return state, out + more
+
+
+def _frame_recovery(state: MachineState, event: Event, config: MeasurementConfig) -> Result:
+    assert isinstance(event, FrameSample) and state.t_release_s is not None
+    if state.last_frame_t_s is not None and event.t_s < state.last_frame_t_s:
+        return state, [
+            Advisory(
+                AdvisoryKind.OUT_OF_ORDER_SAMPLE,
+                f"frame at {event.t_s:.6f} s is older than the previous one "
+                f"({state.last_frame_t_s:.6f} s); dropped",
+                state.now_s,
+            )
+        ]
+    if event.t_s < state.t_release_s:
+        # a frame taken before T_0 that arrived late: not part of the recovery
+        return replace(state, last_frame_t_s=event.t_s), []
+    s = event.s_k
+    lo, hi = state.plateau_min, state.plateau_max
+    if lo is None or hi is None or config.settle_fraction * max(hi, s) > min(lo, s):
+        # first frame, or S_k left the band: a new plateau starts at this frame
+        state = replace(
+            state, plateau_min=s, plateau_max=s, plateau_start_s=event.t_s, last_frame_t_s=event.t_s
+        )
+    else:
+        state = replace(
+            state, plateau_min=min(lo, s), plateau_max=max(hi, s), last_frame_t_s=event.t_s
+        )
+    assert state.plateau_start_s is not None
+    if config.stop_when_settled and event.t_s - state.plateau_start_s >= config.settle_hold_s:
+        state = replace(state, t_settled_s=event.t_s)
+        return _start_analysis(state, event.t_s, config, settled=True)
+    return state, []
+
+
+def _analysis_done(state: MachineState, event: Event, config: MeasurementConfig) -> Result:
+    return _goto(state, Phase.DONE, "analysis finished", config)
+
+
+# --------------------------------------------------------------------------- the table
+
+_P = Phase
+
+TABLE: Final[dict[tuple[Phase, type[Event]], Handler]] = {
+    # IDLE: nothing measured yet
+    (_P.IDLE, Arm): _arm,
+    (_P.IDLE, ForceSample): _force_idle,
+    (_P.IDLE, FrameSample): _ignore,
+    (_P.IDLE, OperatorRelease): _unexpected,
+    (_P.IDLE, OperatorAbort): _abort,
+    (_P.IDLE, LinkLost): _link_lost,
+    (_P.IDLE, LinkRestored): _link_restored,
+    (_P.IDLE, CameraStalled): _camera_stalled,
+    (_P.IDLE, CameraRecovered): _camera_recovered,
+    (_P.IDLE, Tick): _ignore,
+    (_P.IDLE, AnalysisDone): _unexpected,
+    (_P.IDLE, SessionClosed): _session_closed,
+    # ARMED: waiting for contact and the approach ramp
+    (_P.ARMED, Arm): _unexpected,
+    (_P.ARMED, ForceSample): _force_armed,
+    (_P.ARMED, FrameSample): _ignore,
+    (_P.ARMED, OperatorRelease): _unexpected,
+    (_P.ARMED, OperatorAbort): _abort,
+    (_P.ARMED, LinkLost): _link_lost,
+    (_P.ARMED, LinkRestored): _link_restored,
+    (_P.ARMED, CameraStalled): _camera_stalled,
+    (_P.ARMED, CameraRecovered): _camera_recovered,
+    (_P.ARMED, Tick): _ignore,
+    (_P.ARMED, AnalysisDone): _unexpected,
+    (_P.ARMED, SessionClosed): _session_closed,
+    # PITTING: force held in the band for pitting_duration_s
+    (_P.PITTING, Arm): _unexpected,
+    (_P.PITTING, ForceSample): _force_pitting,
+    (_P.PITTING, FrameSample): _ignore,
+    (_P.PITTING, OperatorRelease): _operator_release_early,
+    (_P.PITTING, OperatorAbort): _abort,
+    (_P.PITTING, LinkLost): _link_lost,
+    (_P.PITTING, LinkRestored): _link_restored,
+    (_P.PITTING, CameraStalled): _camera_stalled,
+    (_P.PITTING, CameraRecovered): _camera_recovered,
+    (_P.PITTING, Tick): _ignore,
+    (_P.PITTING, AnalysisDone): _unexpected,
+    (_P.PITTING, SessionClosed): _session_closed,
+    # RELEASE: the operator has been asked to release
+    (_P.RELEASE, Arm): _unexpected,
+    (_P.RELEASE, ForceSample): _force_release,
+    (_P.RELEASE, FrameSample): _ignore,
+    (_P.RELEASE, OperatorRelease): _operator_release,
+    (_P.RELEASE, OperatorAbort): _abort,
+    (_P.RELEASE, LinkLost): _link_lost,
+    (_P.RELEASE, LinkRestored): _link_restored,
+    (_P.RELEASE, CameraStalled): _camera_stalled,
+    (_P.RELEASE, CameraRecovered): _camera_recovered,
+    (_P.RELEASE, Tick): _ignore,
+    (_P.RELEASE, AnalysisDone): _unexpected,
+    (_P.RELEASE, SessionClosed): _session_closed,
+    # RECOVERY: the camera watches the pit recover
+    (_P.RECOVERY, Arm): _unexpected,
+    (_P.RECOVERY, ForceSample): _force_recovery,
+    (_P.RECOVERY, FrameSample): _frame_recovery,
+    (_P.RECOVERY, OperatorRelease): _ignore,
+    (_P.RECOVERY, OperatorAbort): _abort,
+    (_P.RECOVERY, LinkLost): _link_lost,
+    (_P.RECOVERY, LinkRestored): _link_restored,
+    (_P.RECOVERY, CameraStalled): _camera_stalled,
+    (_P.RECOVERY, CameraRecovered): _camera_recovered,
+    (_P.RECOVERY, Tick): _ignore,
+    (_P.RECOVERY, AnalysisDone): _unexpected,
+    (_P.RECOVERY, SessionClosed): _session_closed,
+    # ANALYSIS: data complete, waiting for the analysis
+    (_P.ANALYSIS, Arm): _unexpected,
+    (_P.ANALYSIS, ForceSample): _ignore,
+    (_P.ANALYSIS, FrameSample): _ignore,
+    (_P.ANALYSIS, OperatorRelease): _ignore,
+    (_P.ANALYSIS, OperatorAbort): _abort,
+    (_P.ANALYSIS, LinkLost): _ignore,
+    (_P.ANALYSIS, LinkRestored): _ignore,
+    (_P.ANALYSIS, CameraStalled): _ignore,
+    (_P.ANALYSIS, CameraRecovered): _ignore,
+    (_P.ANALYSIS, Tick): _ignore,
+    (_P.ANALYSIS, AnalysisDone): _analysis_done,
+    (_P.ANALYSIS, SessionClosed): _session_closed,
+    # terminal phases absorb every event
+    **{(p, e): _absorb for p in sorted(TERMINAL_PHASES) for e in EVENT_TYPES},
+}
+"""Every ``(phase, event type)`` pair and its handler; nothing is implicit."""
+
+
+# --------------------------------------------------------------------------- entry points
+
+
+def transition(state: MachineState, event: Event, config: MeasurementConfig) -> Result:
+    """Apply one event; pure.
+
+    Parameters
+    ----------
+    state : MachineState
+        Current state.
+    event : Event
+        The event; its ``t_s`` [s] may be older than ``state.now_s`` (time then stays).
+    config : MeasurementConfig
+        Thresholds.
+
+    Returns
+    -------
+    tuple[MachineState, list[Output]]
+        The next state and what happened, in order.
+
+    Raises
+    ------
+    KeyError
+        Only if ``event`` is not one of :data:`EVENT_TYPES` (a programming error).
+    """
+    handler = TABLE[(state.phase, type(event))]
+    if state.terminal:
+        return handler(state, event, config)
+    out: list[Output] = []
+    if event.t_s > state.now_s:
+        state = replace(state, now_s=event.t_s)
+    # clock step: time-driven rules, repeated while they change the phase
+    while True:
+        before = state.phase
+        state, more = _advance(state, config)
+        out += more
+        if state.phase is before or state.terminal:
+            break
+    handler = TABLE[(state.phase, type(event))]
+    state, more = handler(state, event, config)
+    return state, out + more
+
+
+def close(state: MachineState, t_s: float, config: MeasurementConfig) -> Result:
+    """Close the session at ``t_s`` [s]: any non-terminal phase ends in a terminal one.
+
+    Time-driven rules still apply first (a recovery whose window has passed goes to
+    ANALYSIS), then ``SessionClosed`` ends every non-terminal phase in ``ABORTED`` (reason
+    "session closed in <phase>"); recorded data is the shell's and is kept. A terminal
+    state is returned unchanged.
+    """
+    return transition(state, SessionClosed(max(t_s, state.now_s)), config)
