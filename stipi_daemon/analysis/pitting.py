@@ -1,0 +1,634 @@
+"""Pitting parameters from an S_k series: pitting depth (Eq. 3), rebound force (Eq. 5) and
+recovery time (Eq. 6) of the STIP-I paper, Section III.B.
+
+This module owns the definitions of T_0, S_0, S_max, T_s and T_r on a sampled series, their
+edge cases (no recovery, never settled, settled within one frame, a noisy early crossing),
+the detection of T_0 when the caller has no release event, and the
+:class:`PittingParameters` record. It does not own S_k (see ``imaging``), the calibration
+coefficients or Eq. (4) (see ``calibration``), nor elasticity and viscosity (see ``vpr``).
+All functions are pure; inputs outside a stated domain raise
+:class:`~stipi_daemon.errors.AnalysisError`, caveated results carry :class:`Flag` values.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from scipy.ndimage import median_filter
+
+from stipi_daemon.analysis.flags import Flag
+from stipi_daemon.errors import AnalysisError
+
+if TYPE_CHECKING:
+    from stipi_daemon.analysis.calibration import Calibration
+
+__all__ = [
+    "DEFAULT_END_SLOPE_FRACTION",
+    "DEFAULT_PERSIST_FRAMES",
+    "DEFAULT_SETTLE_FRACTION",
+    "DEFAULT_WINDOW_S",
+    "FlaggedValue",
+    "PittingParameters",
+    "RecoveryTime",
+    "Series",
+    "compute_pitting_parameters",
+    "detect_recovery_start",
+    "pitting_depth_mm",
+    "rebound_force_n",
+    "recovery_time",
+    "validate_series",
+]
+
+#: Fraction of S_max that S_k must reach for the series to count as settled (Eq. 6, [-]).
+DEFAULT_SETTLE_FRACTION = 0.98
+#: Length of the recovery phase monitored after T_0 (paper: up to 105 s) [s].
+DEFAULT_WINDOW_S = 105.0
+#: Fraction of the recovery window, at its end, over which :func:`recovery_time` measures the
+#: final slope of S_k to decide whether the series is still rising (see there) [-].
+DEFAULT_END_SLOPE_FRACTION = 0.1
+#: Consecutive frames that must stay at or above the settling level for a crossing to count.
+#: At the paper's 60 fps, 3 frames are 50 ms: long enough to reject one noisy frame, short
+#: against any recovery time in Table I (2.19 s and longer).
+DEFAULT_PERSIST_FRAMES = 3
+
+
+@dataclass(frozen=True)
+class FlaggedValue:
+    """A scalar result with the quality flags that qualify it.
+
+    Attributes
+    ----------
+    value : float
+        The result, in the unit its producer documents.
+    flags : frozenset[Flag]
+        Caveats; empty when the value is an unqualified estimate.
+    """
+
+    value: float
+    flags: frozenset[Flag]
+
+
+@dataclass(frozen=True)
+class Series:
+    """A validated S_k series: finite, strictly increasing times and finite, non-negative S_k.
+
+    Attributes
+    ----------
+    times_s : numpy.ndarray
+        Frame times [s], strictly increasing.
+    s_px : numpy.ndarray
+        Occluded-pixel counts S_k at those times [px], finite and >= 0.
+    dropped : int
+        Number of input samples dropped because S_k was NaN or infinite.
+    """
+
+    times_s: NDArray[np.float64]
+    s_px: NDArray[np.float64]
+    dropped: int
+
+
+def validate_series(times_s: ArrayLike, s_px: ArrayLike, *, min_samples: int = 2) -> Series:
+    """Check a time series and drop samples whose value is NaN or infinite.
+
+    Parameters
+    ----------
+    times_s : array_like
+        Frame times [s]; one-dimensional, finite and strictly increasing.
+    s_px : array_like
+        Values at those times (S_k [px]); same length. NaN/inf samples are dropped and
+        counted (the caller flags :attr:`Flag.NON_FINITE_INPUT`); negative values raise.
+    min_samples : int
+        Minimum number of finite samples required.
+
+    Returns
+    -------
+    Series
+        The finite samples as float64 arrays and the number dropped.
+
+    Raises
+    ------
+    AnalysisError
+        Shapes differ, a time is non-finite or not strictly increasing, a value is negative,
+        or fewer than ``min_samples`` finite samples remain. The message names the index.
+    """
+    t = np.asarray(times_s, dtype=np.float64)
+    s = np.asarray(s_px, dtype=np.float64)
+    if t.ndim != 1 or s.ndim != 1:
+        raise AnalysisError(
+            f"times_s and s_px must be one-dimensional, got shapes {t.shape} and {s.shape}"
+        )
+    if t.shape != s.shape:
+        raise AnalysisError(
+            f"times_s and s_px must have the same length, got {t.size} and {s.size}"
+        )
+    bad_t = np.flatnonzero(~np.isfinite(t))
+    if bad_t.size:
+        raise AnalysisError(f"times_s[{bad_t[0]}] is {t[bad_t[0]]}: frame times must be finite")
+    if t.size > 1:
+        steps = np.diff(t)
+        bad_step = np.flatnonzero(~(steps > 0.0))
+        if bad_step.size:
+            i = int(bad_step[0]) + 1
+            raise AnalysisError(
+                f"times_s must be strictly increasing: times_s[{i}] = {t[i]} follows "
+                f"times_s[{i - 1}] = {t[i - 1]}"
+            )
+    finite = np.isfinite(s)
+    negative = np.flatnonzero(finite & (s < 0.0))
+    if negative.size:
+        i = int(negative[0])
+        raise AnalysisError(f"s_px[{i}] = {s[i]} is negative: S_k is a pixel count (>= 0)")
+    t_ok = t[finite]
+    s_ok = s[finite]
+    if t_ok.size < min_samples:
+        raise AnalysisError(
+            f"need at least {min_samples} finite samples, got {t_ok.size} "
+            f"({t.size - t_ok.size} of {t.size} were NaN or infinite)"
+        )
+    return Series(times_s=t_ok, s_px=s_ok, dropped=int(t.size - t_ok.size))
+
+
+def _require_finite(name: str, value: float) -> float:
+    v = float(value)
+    if not math.isfinite(v):
+        raise AnalysisError(f"{name} must be finite, got {v}")
+    return v
+
+
+def pitting_depth_mm(depth_change_mm: float, indenter_length_mm: float = 12.0) -> FlaggedValue:
+    """Pitting depth D_p = l - d_s, Eq. (3).
+
+    The paper defines d_s on [0, l]. A depth change outside that range (a calibration
+    extrapolated beyond its data) is clipped to the nearest bound and the result is flagged
+    :attr:`Flag.DEPTH_CLIPPED`, so that D_p always lies in [0, l].
+
+    Parameters
+    ----------
+    depth_change_mm : float
+        Depth change of the indenter d_s from Eq. (4) [mm].
+    indenter_length_mm : float
+        Total indenter length l [mm]; the paper's indenter is 12 mm long.
+
+    Returns
+    -------
+    FlaggedValue
+        D_p [mm] in [0, l], flagged ``DEPTH_CLIPPED`` when d_s was clipped.
+
+    Raises
+    ------
+    AnalysisError
+        ``depth_change_mm`` is NaN/inf, or ``indenter_length_mm`` is not finite and > 0.
+    """
+    d_s = _require_finite("depth_change_mm", depth_change_mm)
+    length = _require_finite("indenter_length_mm", indenter_length_mm)
+    if length <= 0.0:
+        raise AnalysisError(f"indenter_length_mm must be > 0, got {length}")
+    flags: frozenset[Flag] = frozenset()
+    if d_s < 0.0 or d_s > length:
+        flags = frozenset({Flag.DEPTH_CLIPPED})
+        d_s = min(max(d_s, 0.0), length)
+    return FlaggedValue(value=length - d_s, flags=flags)
+
+
+def rebound_force_n(s_max_px: float, calibration: Calibration) -> FlaggedValue:
+    """Rebound force F_r = (S_max - C1) / C2, Eq. (5).
+
+    Parameters
+    ----------
+    s_max_px : float
+        Maximum occluded area S_max over the recovery window [px].
+    calibration : Calibration
+        Probe calibration providing C1 [px] and C2 [px/N].
+
+    Returns
+    -------
+    FlaggedValue
+        F_r [N]. When S_max <= C1 the probe does not resolve the force: F_r is 0 and flagged
+        :attr:`Flag.REBOUND_BELOW_OFFSET`.
+
+    Raises
+    ------
+    AnalysisError
+        ``s_max_px`` is NaN/inf or negative, or the calibration gives a non-finite force.
+    """
+    s_max = _require_finite("s_max_px", s_max_px)
+    if s_max < 0.0:
+        raise AnalysisError(f"s_max_px must be >= 0 (a pixel count), got {s_max}")
+    if s_max <= calibration.c1_px:
+        return FlaggedValue(value=0.0, flags=frozenset({Flag.REBOUND_BELOW_OFFSET}))
+    force = float(calibration.rebound_force_n(s_max))
+    if not math.isfinite(force):
+        raise AnalysisError(
+            f"Eq. (5) gave a non-finite rebound force for S_max = {s_max} px "
+            f"(C1 = {calibration.c1_px} px, C2 = {calibration.c2_px_per_n} px/N)"
+        )
+    return FlaggedValue(value=force, flags=frozenset())
+
+
+@dataclass(frozen=True)
+class RecoveryTime:
+    """Result of :func:`recovery_time` (Eq. 6).
+
+    Attributes
+    ----------
+    t0_s : float
+        Start of recovery T_0 [s].
+    ts_s : float or None
+        Settling time T_s [s] (absolute, same clock as the series); None with ``NO_RECOVERY``.
+    recovery_time_s : float or None
+        T_r = T_s - T_0 [s]. A lower bound with ``NOT_SETTLED``, an upper bound with
+        ``SETTLED_WITHIN_ONE_FRAME``; None with ``NO_RECOVERY``.
+    s0_px : float
+        S_0, S_k at T_0 linearly interpolated between the two frames around T_0 [px].
+    s_max_px : float
+        S_max over the recovery window [px].
+    level_px : float
+        Settling level, ``settle_fraction * S_max`` [px].
+    n_frames : int
+        Finite frames in the recovery window (T_0, T_0 + window_s].
+    flags : frozenset[Flag]
+        Caveats (see :class:`Flag`).
+    """
+
+    t0_s: float
+    ts_s: float | None
+    recovery_time_s: float | None
+    s0_px: float
+    s_max_px: float
+    level_px: float
+    n_frames: int
+    flags: frozenset[Flag]
+
+
+def _s_max(values: NDArray[np.float64], top_frames: int) -> float:
+    if top_frames == 1:
+        return float(np.max(values))
+    n = min(top_frames, values.size)
+    top = np.partition(values, values.size - n)[values.size - n :]
+    return float(np.median(top))
+
+
+def _still_rising(
+    tw: NDArray[np.float64],
+    sw: NDArray[np.float64],
+    recovery_s: float,
+    band_px: float,
+    end_fraction: float,
+) -> bool:
+    """True when the final slope, continued for another T_r, would leave the settling band."""
+    if end_fraction <= 0.0:
+        return False
+    seg = tw >= tw[-1] - end_fraction * (tw[-1] - tw[0])
+    if np.count_nonzero(seg) < 3:
+        return False
+    x = tw[seg] - tw[seg].mean()
+    slope = float(x @ (sw[seg] - sw[seg].mean())) / float(x @ x)
+    return slope * recovery_s > band_px
+
+
+def recovery_time(
+    times_s: ArrayLike,
+    s_k: ArrayLike,
+    t0_s: float,
+    settle_fraction: float = DEFAULT_SETTLE_FRACTION,
+    window_s: float = DEFAULT_WINDOW_S,
+    *,
+    persist_frames: int = DEFAULT_PERSIST_FRAMES,
+    s_max_top_frames: int = 1,
+    end_slope_fraction: float = DEFAULT_END_SLOPE_FRACTION,
+) -> RecoveryTime:
+    """Recovery time T_r = T_s - T_0, Eq. (6).
+
+    Definitions on a sampled series (frames at ``times_s``):
+
+    * S_0 is S_k at T_0, linearly interpolated between the frames that bracket T_0 (exact
+      when T_0 is a frame time).
+    * The recovery window holds the frames with T_0 < t <= T_0 + ``window_s``.
+    * S_max is the maximum S_k over the window, as in the paper. With
+      ``s_max_top_frames = n > 1`` it is the median of the n largest frames instead, which
+      keeps a single bright outlier from raising the settling level.
+    * T_s is the first time S_k reaches ``settle_fraction * S_max`` (98 %, the paper's
+      reading "S_k reaches 98.0 % of S_max"; the level is a fraction of S_max itself, not
+      of the rise S_max - S_0), linearly interpolated between the last frame below the level
+      (or the point (T_0, S_0)) and the first frame at or above it.
+    * A crossing counts only when S_k then stays at or above the level for
+      ``persist_frames`` consecutive frames (the crossing frame included). Shorter
+      excursions are skipped and the result is flagged ``EARLY_NOISY_CROSSING``.
+
+    Edge cases:
+
+    * ``NO_RECOVERY``: S_max <= S_0, S_k never rises above its value at T_0; T_s and T_r
+      are None.
+    * ``SETTLED_WITHIN_ONE_FRAME``: the first frame after T_0 already counts as settled.
+      T_r is reported as the time from T_0 to that frame (at most one frame period), an
+      upper bound: the shape of the rise between the two samples is unknown.
+    * ``NOT_SETTLED``: no crossing persists inside the window. T_r is a lower bound: the
+      time from T_0 to the last window frame, or, when the window ends during an excursion
+      shorter than ``persist_frames``, to that excursion's interpolated crossing.
+    * ``NOT_SETTLED`` also when S_k is still rising at the end of the window. With S_max
+      taken from the window itself, the 98 % level is always reached once S_k keeps rising
+      (a recovery far slower than the window "settles" just before the window ends), so the
+      paper's rule alone cannot tell a plateau from a truncated rise. The slope of S_k over
+      the last ``end_slope_fraction`` of the window (least-squares line) is therefore
+      checked: if continuing at that slope for another T_r would raise S_k by more than the
+      settling band (1 - settle_fraction) * S_max, S_max is not a settled value and the
+      crossing found is reported as a lower bound. ``end_slope_fraction = 0`` disables the
+      check.
+
+    Parameters
+    ----------
+    times_s : array_like
+        Frame times [s], finite and strictly increasing.
+    s_k : array_like
+        Occluded-pixel counts S_k [px]; NaN/inf frames are dropped (``NON_FINITE_INPUT``).
+    t0_s : float
+        Start of the recovery T_0 [s], within the series' time span.
+    settle_fraction : float
+        Fraction of S_max defining T_s, in (0, 1] [-]. Paper: 0.98.
+    window_s : float
+        Length of the recovery window after T_0 [s]. Paper: 105 s.
+    persist_frames : int
+        Frames a crossing must persist, >= 1 (1 gives the paper's plain first crossing).
+    s_max_top_frames : int
+        Number of largest window frames whose median is S_max, >= 1 (1: plain maximum).
+    end_slope_fraction : float
+        Fraction of the window, at its end, for the still-rising check, in [0, 1) [-].
+
+    Returns
+    -------
+    RecoveryTime
+
+    Raises
+    ------
+    AnalysisError
+        Invalid series (see :func:`validate_series`), T_0 outside the series, a parameter
+        out of range, or no finite frame in the recovery window.
+    """
+    series = validate_series(times_s, s_k)
+    t, s = series.times_s, series.s_px
+    t0 = _require_finite("t0_s", t0_s)
+    fraction = _require_finite("settle_fraction", settle_fraction)
+    if not 0.0 < fraction <= 1.0:
+        raise AnalysisError(f"settle_fraction must be in (0, 1], got {fraction}")
+    window = _require_finite("window_s", window_s)
+    if window <= 0.0:
+        raise AnalysisError(f"window_s must be > 0, got {window}")
+    if persist_frames < 1:
+        raise AnalysisError(f"persist_frames must be >= 1, got {persist_frames}")
+    if s_max_top_frames < 1:
+        raise AnalysisError(f"s_max_top_frames must be >= 1, got {s_max_top_frames}")
+    if not 0.0 <= end_slope_fraction < 1.0:
+        raise AnalysisError(f"end_slope_fraction must be in [0, 1), got {end_slope_fraction}")
+    if not t[0] <= t0 <= t[-1]:
+        raise AnalysisError(
+            f"t0_s = {t0} s lies outside the series' finite samples [{t[0]}, {t[-1]}] s"
+        )
+    flags: set[Flag] = set()
+    if series.dropped:
+        flags.add(Flag.NON_FINITE_INPUT)
+
+    s0 = float(np.interp(t0, t, s))
+    in_window = (t > t0) & (t <= t0 + window)
+    tw, sw = t[in_window], s[in_window]
+    if tw.size == 0:
+        raise AnalysisError(
+            f"no finite frame in the recovery window ({t0}, {t0 + window}] s: "
+            "the series ends at T_0"
+        )
+    s_max = _s_max(sw, s_max_top_frames)
+    level = fraction * s_max
+
+    def result(ts: float | None) -> RecoveryTime:
+        return RecoveryTime(
+            t0_s=t0,
+            ts_s=ts,
+            recovery_time_s=None if ts is None else ts - t0,
+            s0_px=s0,
+            s_max_px=s_max,
+            level_px=level,
+            n_frames=int(tw.size),
+            flags=frozenset(flags),
+        )
+
+    if s_max <= s0:
+        flags.add(Flag.NO_RECOVERY)
+        return result(None)
+
+    above = sw >= level
+    # Runs of consecutive frames at or above the level: starts and (exclusive) ends.
+    padded = np.concatenate(([False], above, [False])).astype(np.int8)
+    edges = np.diff(padded)
+    starts = np.flatnonzero(edges == 1)
+    ends = np.flatnonzero(edges == -1)
+
+    def crossing_time(j: int) -> float:
+        t_prev, s_prev = (t0, s0) if j == 0 else (float(tw[j - 1]), float(sw[j - 1]))
+        t_j, s_j = float(tw[j]), float(sw[j])
+        # s_prev < level <= s_j here, so the denominator is > 0.
+        return t_prev + (level - s_prev) / (s_j - s_prev) * (t_j - t_prev)
+
+    for start, end in zip(starts.tolist(), ends.tolist(), strict=True):
+        if end - start >= persist_frames:
+            if start == 0:
+                flags.add(Flag.SETTLED_WITHIN_ONE_FRAME)
+                ts = float(tw[0])
+            else:
+                ts = crossing_time(start)
+            if _still_rising(tw, sw, ts - t0, (1.0 - fraction) * s_max, end_slope_fraction):
+                flags.add(Flag.NOT_SETTLED)
+            return result(ts)
+        if end == tw.size:
+            # The window ends during a short excursion: T_s is at least its crossing.
+            flags.add(Flag.NOT_SETTLED)
+            return result(float(tw[0]) if start == 0 else crossing_time(start))
+        flags.add(Flag.EARLY_NOISY_CROSSING)
+    flags.add(Flag.NOT_SETTLED)
+    return result(float(tw[-1]))
+
+
+def detect_recovery_start(
+    times_s: ArrayLike,
+    s_k: ArrayLike,
+    *,
+    search_start_s: float | None = None,
+    search_end_s: float | None = None,
+    smooth_frames: int = 1,
+) -> float:
+    """Estimate T_0, the start of the recovery, from the S_k series alone.
+
+    Use this only when the recording has no release event. The series is assumed to hold
+    the pitting phase (S_k high while the force is applied), then the release (S_k drops to
+    S_0) and the recovery (S_k rises toward S_max). T_0 is the time of the frame where S_k
+    (optionally median-smoothed) is lowest after the pitting peak: the search starts at the
+    largest S_k in the search range, or at ``search_start_s`` when given (e.g. the time of a
+    release command), and ends at ``search_end_s``. When several frames share the minimum,
+    the last one is taken: the recovery starts when S_k leaves its minimum.
+
+    Parameters
+    ----------
+    times_s : array_like
+        Frame times [s], finite and strictly increasing.
+    s_k : array_like
+        Occluded-pixel counts S_k [px]; NaN/inf frames are ignored.
+    search_start_s, search_end_s : float, optional
+        Bounds of the search [s], inclusive. Default: from the pitting peak to the end.
+    smooth_frames : int
+        Width of a moving median applied before the search, >= 1 (odd widths are centred).
+
+    Returns
+    -------
+    float
+        T_0 [s], the time of a frame.
+
+    Raises
+    ------
+    AnalysisError
+        Invalid series or bounds, no frame in the search range, or the minimum is the last
+        frame of the range (nothing recovers after it).
+    """
+    series = validate_series(times_s, s_k)
+    t, s = series.times_s, series.s_px
+    if smooth_frames < 1:
+        raise AnalysisError(f"smooth_frames must be >= 1, got {smooth_frames}")
+    if smooth_frames > 1:
+        s = median_filter(s, size=smooth_frames, mode="nearest")
+    lo = -math.inf if search_start_s is None else _require_finite("search_start_s", search_start_s)
+    hi = math.inf if search_end_s is None else _require_finite("search_end_s", search_end_s)
+    idx = np.flatnonzero((t >= lo) & (t <= hi))
+    if idx.size == 0:
+        raise AnalysisError(f"no finite frame between search_start_s={lo} and search_end_s={hi}")
+    if search_start_s is None:
+        peak = int(idx[np.argmax(s[idx])])
+        idx = idx[idx >= peak]
+    seg = s[idx]
+    last_min = int(idx[seg.size - 1 - int(np.argmin(seg[::-1]))])
+    if last_min == int(idx[-1]):
+        raise AnalysisError(
+            f"S_k is lowest at the last searched frame (t = {t[last_min]} s): "
+            "no recovery follows; pass search_start_s/search_end_s around the release"
+        )
+    return float(t[last_min])
+
+
+@dataclass(frozen=True)
+class PittingParameters:
+    """The paper's pitting parameters of one measurement (Section III.B).
+
+    Attributes
+    ----------
+    depth_mm : float
+        Pitting depth D_p, Eq. (3) [mm], in [0, l].
+    depth_change_mm : float
+        Depth change d_s from Eq. (4) as the calibration gives it, before clipping [mm].
+    rebound_force_n : float
+        Rebound force F_r, Eq. (5) [N], >= 0.
+    recovery_time_s : float or None
+        Recovery time T_r, Eq. (6) [s]; see :class:`RecoveryTime` for bounds and None.
+    t0_s : float
+        Start of the recovery T_0 [s].
+    ts_s : float or None
+        Settling time T_s [s].
+    s0_px : float
+        S_0 [px], S_k at T_0.
+    s_max_px : float
+        S_max [px] over the recovery window.
+    flags : frozenset[Flag]
+        Union of the flags of all three parameters.
+    """
+
+    depth_mm: float
+    depth_change_mm: float
+    rebound_force_n: float
+    recovery_time_s: float | None
+    t0_s: float
+    ts_s: float | None
+    s0_px: float
+    s_max_px: float
+    flags: frozenset[Flag]
+
+
+def compute_pitting_parameters(
+    times_s: ArrayLike,
+    s_k: ArrayLike,
+    t0_s: float,
+    calibration: Calibration,
+    *,
+    settle_fraction: float = DEFAULT_SETTLE_FRACTION,
+    window_s: float = DEFAULT_WINDOW_S,
+    persist_frames: int = DEFAULT_PERSIST_FRAMES,
+    s_max_top_frames: int = 1,
+    end_slope_fraction: float = DEFAULT_END_SLOPE_FRACTION,
+) -> PittingParameters:
+    """D_p, F_r and T_r (Eqs. 3-6) of one recovery series.
+
+    S_0 and S_max are taken as :func:`recovery_time` defines them; d_s is
+    ``calibration.depth_change_mm(S_0)`` (Eq. 4), D_p follows from Eq. (3) with the
+    calibration's indenter length, F_r from Eq. (5). ``CALIBRATION_EXTRAPOLATED`` is added
+    when S_0 lies outside the calibration's measured S_0 range or past the vertex of Eq. (4),
+    or F_r outside its measured force range.
+
+    Parameters
+    ----------
+    times_s : array_like
+        Frame times [s].
+    s_k : array_like
+        Occluded-pixel counts S_k [px].
+    t0_s : float
+        Start of the recovery T_0 [s] (the release event, or :func:`detect_recovery_start`).
+    calibration : Calibration
+        Probe calibration (alpha1, alpha2, C1, C2, indenter length).
+    settle_fraction, window_s, persist_frames, s_max_top_frames, end_slope_fraction
+        See :func:`recovery_time`.
+
+    Returns
+    -------
+    PittingParameters
+
+    Raises
+    ------
+    AnalysisError
+        As :func:`recovery_time`, or when Eq. (4) gives a non-finite depth change.
+    """
+    rt = recovery_time(
+        times_s,
+        s_k,
+        t0_s,
+        settle_fraction,
+        window_s,
+        persist_frames=persist_frames,
+        s_max_top_frames=s_max_top_frames,
+        end_slope_fraction=end_slope_fraction,
+    )
+    d_s = float(calibration.depth_change_mm(rt.s0_px))
+    if not math.isfinite(d_s):
+        raise AnalysisError(f"Eq. (4) gave a non-finite depth change for S_0 = {rt.s0_px} px")
+    depth = pitting_depth_mm(d_s, calibration.indenter_length_mm)
+    force = rebound_force_n(rt.s_max_px, calibration)
+    extra: set[Flag] = set()
+    s0_range = calibration.s0_valid_range_px
+    if rt.s0_px >= calibration.vertex_px or (
+        s0_range is not None and not s0_range[0] <= rt.s0_px <= s0_range[1]
+    ):
+        extra.add(Flag.CALIBRATION_EXTRAPOLATED)
+    f_range = calibration.force_valid_range_n
+    if (
+        f_range is not None
+        and Flag.REBOUND_BELOW_OFFSET not in force.flags
+        and not f_range[0] <= force.value <= f_range[1]
+    ):
+        extra.add(Flag.CALIBRATION_EXTRAPOLATED)
+    return PittingParameters(
+        depth_mm=depth.value,
+        depth_change_mm=d_s,
+        rebound_force_n=force.value,
+        recovery_time_s=rt.recovery_time_s,
+        t0_s=rt.t0_s,
+        ts_s=rt.ts_s,
+        s0_px=rt.s0_px,
+        s_max_px=rt.s_max_px,
+        flags=rt.flags | depth.flags | force.flags | frozenset(extra),
+    )
