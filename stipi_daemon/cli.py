@@ -10,8 +10,10 @@ from __future__ import annotations
 import argparse
 import sys
 from collections.abc import Sequence
+from pathlib import Path
 
 from stipi_daemon import __version__
+from stipi_daemon.commands import register_all
 from stipi_daemon.errors import StipiError
 
 
@@ -25,7 +27,32 @@ def build_parser() -> argparse.ArgumentParser:
         ),
     )
     parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
+    parser.add_argument(
+        "--config",
+        type=Path,
+        metavar="FILE",
+        help="run one measurement as FILE configures it (e.g. configs/demo.yaml)",
+    )
+    parser.add_argument(
+        "--realtime",
+        action="store_true",
+        help="with a simulated source: pace the run to the wall clock instead of accelerating",
+    )
+    parser.add_argument("--quiet", action="store_true", help="print only the results' path")
+    subparsers = parser.add_subparsers(title="commands", metavar="COMMAND")
+    register_all(subparsers)
     return parser
+
+
+def _run(args: argparse.Namespace) -> int:
+    from stipi_daemon.config import load_config
+    from stipi_daemon.runner import run_measurement
+
+    config = load_config(args.config)
+    outcome = run_measurement(config, realtime=args.realtime, quiet=args.quiet)
+    if args.quiet:
+        print(outcome.session_dir)
+    return outcome.exit_code
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -33,6 +60,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         handler = getattr(args, "handler", None)
+        if handler is None and args.config is not None:
+            return _run(args)
         if handler is None:
             parser.print_help()
             return 0

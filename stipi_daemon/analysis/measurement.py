@@ -1,0 +1,314 @@
+"""Whole-measurement analysis: from a recovery series to every result the paper reports.
+
+This module composes the analysis core for one measurement: the pitting parameters
+(Eqs. 3-6, :mod:`~stipi_daemon.analysis.pitting`), the paper's VPR model (Eqs. 7-10,
+:mod:`~stipi_daemon.analysis.vpr`), the fitted Kelvin-Voigt recovery
+(:mod:`~stipi_daemon.analysis.recovery_fit`) and the severity classification (Section
+IV.C, :mod:`~stipi_daemon.analysis.severity`), for both estimators side by side. It also
+owns the applied force F_a of Eq. (7) measured from the load cell during the pitting hold.
+It does not own how T_0 is found (the state machine or
+:func:`~stipi_daemon.analysis.pitting.detect_recovery_start` decide it), nor any I/O.
+
+Domain: the series must hold at least two frames at or after T_0 (else
+:class:`~stipi_daemon.errors.AnalysisError`). Parts that cannot be computed are ``None``
+with the reason in :attr:`MeasurementResult.notes`: no recovery (``no_recovery``) leaves
+T_r, eta and the paper's severity undefined; a zero pitting depth leaves E undefined; a
+fit that does not converge leaves the fitted estimator undefined.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike
+from pydantic import BaseModel, ConfigDict, Field
+
+from stipi_daemon.analysis.calibration import Calibration
+from stipi_daemon.analysis.flags import Flag
+from stipi_daemon.analysis.pitting import (
+    DEFAULT_PERSIST_FRAMES,
+    DEFAULT_SETTLE_FRACTION,
+    DEFAULT_WINDOW_S,
+    PittingParameters,
+    compute_pitting_parameters,
+)
+from stipi_daemon.analysis.recovery_fit import RecoveryFit, fit_recovery
+from stipi_daemon.analysis.severity import (
+    SeverityReference,
+    SeverityResult,
+    classify_fit,
+    classify_vpr,
+)
+from stipi_daemon.analysis.vpr import VPRModel
+from stipi_daemon.errors import AnalysisError
+
+__all__ = [
+    "AnalysisSettings",
+    "MeasurementResult",
+    "analyze_recovery",
+    "applied_force_n_from_samples",
+]
+
+
+class AnalysisSettings(BaseModel):
+    """Settings of the whole-measurement analysis (the ``analysis:`` section of a config).
+
+    Attributes
+    ----------
+    indenter_radius_mm : float
+        R of Eq. (7) [mm]; the paper's indenter is 15 mm in diameter.
+    applied_force_n : float or None
+        F_a of Eq. (7) [N]. ``None`` (default) uses the mean load-cell force over the
+        pitting hold, as measured; a number fixes it (the paper states 16 N).
+    settle_fraction : float
+        Fraction of S_max that defines T_s in Eq. (6) [-].
+    recovery_window_s : float
+        Recovery window after T_0 analysed [s] (the paper's 105 s).
+    persist_frames : int
+        Frames a 98 % crossing must persist to count (rejects a single noisy frame).
+    """
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    indenter_radius_mm: float = Field(7.5, gt=0.0, allow_inf_nan=False)
+    applied_force_n: float | None = Field(None, gt=0.0, allow_inf_nan=False)
+    settle_fraction: float = Field(DEFAULT_SETTLE_FRACTION, gt=0.0, lt=1.0)
+    recovery_window_s: float = Field(DEFAULT_WINDOW_S, gt=0.0, allow_inf_nan=False)
+    persist_frames: int = Field(DEFAULT_PERSIST_FRAMES, ge=1)
+
+
+@dataclass(frozen=True)
+class MeasurementResult:
+    """Every result of one measurement, both recovery estimators side by side.
+
+    Attributes
+    ----------
+    pitting : PittingParameters
+        D_p [mm], F_r [N], T_r [s] and their flags (Eqs. 3-6).
+    applied_force_n : float
+        F_a used in Eq. (7) [N].
+    indenter_radius_mm : float
+        R used in Eq. (7) [mm].
+    paper_model : VPRModel or None
+        E [kPa] from Eq. (7), eta = E * T_r [N*s/mm^2] from Eq. (8): the paper's estimator.
+    fit : RecoveryFit
+        Kelvin-Voigt recovery fitted to the S_k series after T_0 (tau [s] +- SE).
+    fit_model : VPRModel or None
+        E from Eq. (7), eta = E * tau [N*s/mm^2] from the fitted time constant.
+    severity_paper, severity_fit : SeverityResult or None
+        Section IV.C classification from each estimator.
+    notes : tuple[str, ...]
+        Why a part is ``None``, in words.
+    """
+
+    pitting: PittingParameters
+    applied_force_n: float
+    indenter_radius_mm: float
+    paper_model: VPRModel | None
+    fit: RecoveryFit
+    fit_model: VPRModel | None
+    severity_paper: SeverityResult | None
+    severity_fit: SeverityResult | None
+    notes: tuple[str, ...]
+
+    @property
+    def flags(self) -> frozenset[Flag]:
+        """Union of every part's flags."""
+        out = set(self.pitting.flags) | set(self.fit.flags)
+        for sev in (self.severity_paper, self.severity_fit):
+            if sev is not None:
+                out |= sev.flags
+        return frozenset(out)
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready summary with units in the keys (``summary.json``)."""
+        p = self.pitting
+
+        def model(m: VPRModel | None) -> dict[str, Any] | None:
+            if m is None:
+                return None
+            return {
+                "elasticity_kpa": m.elasticity_kpa,
+                "viscosity_n_s_per_mm2": m.viscosity_n_s_per_mm2,
+                "time_constant_s": m.time_constant_s,
+                "depth_mm": m.depth_mm,
+            }
+
+        def severity(s: SeverityResult | None) -> dict[str, Any] | None:
+            if s is None:
+                return None
+            return {
+                "severity": s.severity,
+                "nearest_grade": s.nearest_grade,
+                "recovered_percent": s.recovered_percent,
+                "threshold_recovered_percent": s.threshold_recovered_percent,
+                "window_s": [s.window_start_s, s.window_end_s],
+                "grade_distances": dict(s.grade_distances),
+                "flags": sorted(s.flags),
+            }
+
+        f = self.fit
+        return {
+            "pitting": {
+                "depth_mm": p.depth_mm,
+                "depth_change_mm": p.depth_change_mm,
+                "rebound_force_n": p.rebound_force_n,
+                "recovery_time_s": p.recovery_time_s,
+                "t0_s": p.t0_s,
+                "ts_s": p.ts_s,
+                "s0_px": p.s0_px,
+                "s_max_px": p.s_max_px,
+                "flags": sorted(p.flags),
+            },
+            "applied_force_n": self.applied_force_n,
+            "indenter_radius_mm": self.indenter_radius_mm,
+            "paper_estimator": model(self.paper_model),
+            "fitted_recovery": {
+                "tau_s": f.tau_s,
+                "tau_se_s": f.tau_se_s,
+                "amplitude_px": f.amplitude,
+                "amplitude_se_px": f.amplitude_se,
+                "offset_px": f.offset,
+                "offset_se_px": f.offset_se,
+                "window_s": [f.t_start_s, f.t_end_s],
+                "n_points": f.n_points,
+                "rmse_px": f.rmse,
+                "r_squared": f.r_squared,
+                "flags": sorted(f.flags),
+                "model": model(self.fit_model),
+            },
+            "severity": {
+                "paper_estimator": severity(self.severity_paper),
+                "fitted_recovery": severity(self.severity_fit),
+            },
+            "flags": sorted(self.flags),
+            "notes": list(self.notes),
+        }
+
+
+def applied_force_n_from_samples(
+    times_s: ArrayLike, force_n: ArrayLike, t_start_s: float, t_end_s: float
+) -> float:
+    """F_a of Eq. (7) [N]: the mean load-cell force over the pitting hold.
+
+    Parameters
+    ----------
+    times_s, force_n : array_like
+        Force samples: times [s] and forces [N]; non-finite samples are ignored.
+    t_start_s, t_end_s : float
+        The pitting hold [s], inclusive.
+
+    Raises
+    ------
+    AnalysisError
+        No finite force sample lies in the hold, or the mean is not > 0.
+    """
+    t = np.asarray(times_s, dtype=np.float64)
+    f = np.asarray(force_n, dtype=np.float64)
+    if t.shape != f.shape:
+        raise AnalysisError(f"times_s and force_n differ in length: {t.shape} vs {f.shape}")
+    sel = (t >= t_start_s) & (t <= t_end_s) & np.isfinite(t) & np.isfinite(f)
+    if not np.any(sel):
+        raise AnalysisError(
+            f"no force sample in the pitting hold [{t_start_s:.3f}, {t_end_s:.3f}] s"
+        )
+    mean = float(np.mean(f[sel]))
+    if not mean > 0.0:
+        raise AnalysisError(f"mean force over the pitting hold is {mean:.3f} N, not > 0")
+    return mean
+
+
+def analyze_recovery(
+    times_s: ArrayLike,
+    s_k: ArrayLike,
+    t0_s: float,
+    calibration: Calibration,
+    applied_force_n: float,
+    settings: AnalysisSettings,
+    reference: SeverityReference,
+) -> MeasurementResult:
+    """Analyse one measurement's S_k series from T_0 on, with both recovery estimators.
+
+    Parameters
+    ----------
+    times_s : array_like
+        Frame times [s] (strictly increasing), on the same clock as ``t0_s``.
+    s_k : array_like
+        Occluded pixel counts S_k [px] (Eq. 2) of those frames.
+    t0_s : float
+        Start of the recovery T_0 [s] (the release).
+    calibration : Calibration
+        Eqs. (4)-(5) coefficients in the pixel units of ``s_k``.
+    applied_force_n : float
+        F_a [N] for Eq. (7).
+    settings : AnalysisSettings
+        Radius, window, settling fraction.
+    reference : SeverityReference
+        Reference grade curves for Section IV.C.
+
+    Raises
+    ------
+    AnalysisError
+        The series is unusable (see :func:`~stipi_daemon.analysis.pitting.validate_series`).
+    """
+    if not (math.isfinite(applied_force_n) and applied_force_n > 0.0):
+        raise AnalysisError(f"applied_force_n must be finite and > 0, got {applied_force_n}")
+    pitting = compute_pitting_parameters(
+        times_s,
+        s_k,
+        t0_s,
+        calibration,
+        settle_fraction=settings.settle_fraction,
+        window_s=settings.recovery_window_s,
+        persist_frames=settings.persist_frames,
+    )
+    notes: list[str] = []
+    radius = settings.indenter_radius_mm
+
+    paper_model: VPRModel | None = None
+    try:
+        paper_model = VPRModel.from_pitting(
+            pitting, applied_force_n=applied_force_n, indenter_radius_mm=radius
+        )
+    except AnalysisError as exc:
+        notes.append(f"paper estimator undefined: {exc}")
+
+    fit = fit_recovery(times_s, s_k, t0_s, settings.recovery_window_s)
+    fit_model: VPRModel | None = None
+    if fit.tau_s is not None:
+        try:
+            fit_model = fit.to_vpr(
+                pitting.depth_mm, applied_force_n=applied_force_n, indenter_radius_mm=radius
+            )
+        except AnalysisError as exc:
+            notes.append(f"fitted estimator undefined: {exc}")
+    else:
+        notes.append(f"recovery fit gave no time constant (flags: {sorted(fit.flags)})")
+
+    severity_paper: SeverityResult | None = None
+    if paper_model is not None:
+        try:
+            severity_paper = classify_vpr(paper_model, reference)
+        except AnalysisError as exc:
+            notes.append(f"severity (paper estimator) undefined: {exc}")
+    severity_fit: SeverityResult | None = None
+    if fit.tau_s is not None:
+        try:
+            severity_fit = classify_fit(fit, reference)
+        except AnalysisError as exc:
+            notes.append(f"severity (fitted recovery) undefined: {exc}")
+
+    return MeasurementResult(
+        pitting=pitting,
+        applied_force_n=float(applied_force_n),
+        indenter_radius_mm=radius,
+        paper_model=paper_model,
+        fit=fit,
+        fit_model=fit_model,
+        severity_paper=severity_paper,
+        severity_fit=severity_fit,
+        notes=tuple(notes),
+    )

@@ -1,0 +1,177 @@
+"""The daemon's configuration file (``stipi-daemon --config FILE``), loaded once, typed.
+
+This module owns the schema of the YAML file a lab edits: where measurements come from
+(``source``), imaging settings (threshold and ROI of Eqs. 1-2), the calibration file, the
+state machine's thresholds (``measurement``), the analysis settings and storage. It
+validates everything with pydantic (unknown keys are errors) and reports problems as one
+:class:`~stipi_daemon.errors.ConfigError` line naming the file and the field path. Paths
+inside the file are resolved relative to the file. It does not open devices or files
+other than the config itself.
+
+Sources: ``simulator`` (a scene of :mod:`stipi_daemon.sim` rendered and analysed in
+process, no hardware). The probe transports (serial, BLE) and cameras (V4L2, video file)
+arrive as further ``kind`` values of ``source``.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated, Any, Literal
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from stipi_daemon.analysis.imaging import ROI
+from stipi_daemon.analysis.measurement import AnalysisSettings
+from stipi_daemon.errors import ConfigError
+from stipi_daemon.measurement.state_machine import MeasurementConfig
+
+__all__ = [
+    "CONFIG_FORMAT",
+    "CONFIG_VERSION",
+    "DaemonConfig",
+    "ImagingSettings",
+    "SimulatorSource",
+    "StorageSettings",
+    "load_config",
+]
+
+CONFIG_FORMAT = "stipi-daemon-config"
+CONFIG_VERSION = 1
+
+
+class _Model(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class SimulatorSource(_Model):
+    """Measure a simulated scene in process: frames and force samples from the simulator.
+
+    Attributes
+    ----------
+    kind : "simulator"
+    scene : Path
+        Scene YAML file (relative paths are relative to the config file).
+    seed : int or None
+        Random seed; ``None`` uses the scene's own.
+    """
+
+    kind: Literal["simulator"]
+    scene: Path
+    seed: int | None = None
+
+
+Source = Annotated[SimulatorSource, Field(discriminator="kind")]
+
+
+class ImagingSettings(_Model):
+    """Eqs. (1)-(2) settings.
+
+    Attributes
+    ----------
+    threshold_p : int or None
+        Threshold level p of Eq. (1), 0..255. ``None``: the calibration's ``threshold_p``
+        or, for a simulated source, the scene's.
+    roi : ROI or None
+        Region of interest; ``None``: for a simulated source, the scene's waveguide disc,
+        otherwise the whole frame.
+    saturation_limit_fraction : float
+        Fraction of ROI pixels at 255 above which a frame is flagged saturated [-].
+    """
+
+    threshold_p: int | None = Field(None, ge=0, le=255)
+    roi: ROI | None = None
+    saturation_limit_fraction: float = Field(0.01, ge=0.0, le=1.0)
+
+
+class StorageSettings(_Model):
+    """Where and how sessions are stored.
+
+    Attributes
+    ----------
+    root : Path
+        Directory holding one sub-directory per session (relative to the config file).
+    commit_interval_s : float
+        Longest time recorded rows wait before they are committed [s]; a crash loses at
+        most this much.
+    min_free_mb : float
+        Free space required on ``root``'s file system before a session starts [MB].
+    """
+
+    root: Path = Path("sessions")
+    commit_interval_s: float = Field(0.2, gt=0.0, le=0.25)
+    min_free_mb: float = Field(100.0, ge=0.0)
+
+
+class DaemonConfig(_Model):
+    """The whole configuration file."""
+
+    format: Literal["stipi-daemon-config"] = "stipi-daemon-config"
+    version: Literal[1] = 1
+    source: Source
+    calibration: Path | None = None
+    imaging: ImagingSettings = ImagingSettings()
+    measurement: MeasurementConfig = MeasurementConfig()
+    analysis: AnalysisSettings = AnalysisSettings()
+    storage: StorageSettings = StorageSettings()
+
+    def resolved(self, base: Path) -> DaemonConfig:
+        """The same config with relative paths made absolute against ``base``."""
+
+        def fix(p: Path) -> Path:
+            return p if p.is_absolute() else (base / p).resolve()
+
+        source = self.source.model_copy(update={"scene": fix(self.source.scene)})
+        storage = self.storage.model_copy(update={"root": fix(self.storage.root)})
+        cal = None if self.calibration is None else fix(self.calibration)
+        return self.model_copy(update={"source": source, "storage": storage, "calibration": cal})
+
+
+def _loc(loc: tuple[int | str, ...]) -> str:
+    out = ""
+    for part in loc:
+        if isinstance(part, int):
+            out += f"[{part}]"
+        else:
+            out += ("." if out else "") + part
+    return out or "(top level)"
+
+
+def parse_config(data: Any, source: str) -> DaemonConfig:
+    """Validate a parsed YAML mapping; errors name ``source`` and the field path."""
+    if not isinstance(data, dict):
+        raise ConfigError(f"{source}: the config must be a mapping, got {type(data).__name__}")
+    try:
+        return DaemonConfig.model_validate(data)
+    except ValidationError as exc:
+        err = exc.errors()[0]
+        loc = tuple(p for p in err["loc"] if p not in ("simulator",))
+        more = f" (and {exc.error_count() - 1} more)" if exc.error_count() > 1 else ""
+        msg = err["msg"]
+        if err["type"] == "extra_forbidden":
+            msg = "unknown key"
+        raise ConfigError(f"{source}: field '{_loc(loc)}': {msg}{more}") from None
+
+
+def load_config(path: str | Path) -> DaemonConfig:
+    """Load, validate and resolve a daemon config file.
+
+    Raises
+    ------
+    ConfigError
+        The file is missing, unreadable, not YAML, or fails validation; the message names
+        the file and the field.
+    """
+    p = Path(path)
+    try:
+        text = p.read_text(encoding="utf-8")
+    except OSError as exc:
+        raise ConfigError(f"{p}: cannot read config file: {exc.strerror or exc}") from None
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
+        problem = getattr(exc, "problem", None) or str(exc).splitlines()[0]
+        raise ConfigError(f"{p}: not valid YAML{where}: {problem}") from None
+    return parse_config(data, str(p)).resolved(p.resolve().parent)

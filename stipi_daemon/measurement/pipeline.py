@@ -1,0 +1,349 @@
+"""Live processing of one measurement: events in, phases, live parameters and results out.
+
+:class:`MeasurementPipeline` is the pure heart of a recording. The shell (the daemon, the
+demo, the offline ``analyze`` replay) feeds it force samples and frame S_k values on one
+clock (host seconds). It keeps the series, drives the pit/release state machine
+(:mod:`~stipi_daemon.measurement.state_machine`), computes live pitting parameters while
+the tissue recovers and, when the machine asks for it, runs the whole-measurement
+analysis (:func:`~stipi_daemon.analysis.measurement.analyze_recovery`). It does no I/O
+and reads no clock: the same inputs give the same outputs, live or replayed.
+
+T_0 (Eq. 6) is the release the state machine reports, refined on the S_k series: the
+frame where S_k is lowest after the pitting peak, searched from the start of pitting to
+``t0_refine_s`` after the reported release
+(:func:`~stipi_daemon.analysis.pitting.detect_recovery_start`). The force drop is sampled
+at the load-cell rate and debounced, and an operator may let go slightly before the
+machine's release prompt, while the occlusion minimum marks the moment the tissue starts
+to push back. If S_k has no minimum there, the reported release is kept and the note
+says so.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from stipi_daemon.analysis.calibration import Calibration
+from stipi_daemon.analysis.flags import Flag
+from stipi_daemon.analysis.measurement import (
+    AnalysisSettings,
+    MeasurementResult,
+    analyze_recovery,
+    applied_force_n_from_samples,
+)
+from stipi_daemon.analysis.pitting import compute_pitting_parameters, detect_recovery_start
+from stipi_daemon.analysis.recovery_fit import fit_recovery
+from stipi_daemon.analysis.severity import SeverityReference
+from stipi_daemon.analysis.vpr import elasticity_kpa
+from stipi_daemon.errors import AnalysisError
+from stipi_daemon.measurement.state_machine import (
+    AnalysisDone,
+    Arm,
+    Event,
+    ForceSample,
+    FrameSample,
+    MachineState,
+    MeasurementConfig,
+    Output,
+    Phase,
+    StartAnalysis,
+    close,
+    initial_state,
+    transition,
+)
+
+__all__ = ["LiveParameters", "MeasurementPipeline"]
+
+#: Minimum recovery observed before a live time-constant fit is attempted [s].
+LIVE_FIT_MIN_S = 2.0
+
+
+@dataclass(frozen=True)
+class LiveParameters:
+    """Parameters as known so far during the recovery (all may still change).
+
+    Attributes
+    ----------
+    t_s : float
+        Time of the newest frame used [s].
+    elapsed_s : float
+        Recovery observed so far, since T_0 [s].
+    depth_mm, rebound_force_n : float
+        D_p (Eq. 3) and F_r so far (Eq. 5, from the largest S_k so far).
+    recovery_time_s : float or None
+        T_r (Eq. 6); a lower bound while ``settled`` is False.
+    settled : bool
+        Whether S_k has reached 98 % of its maximum so far (and stayed).
+    elasticity_kpa : float or None
+        E (Eq. 7) from the measured hold force.
+    tau_s, tau_se_s : float or None
+        Fitted Kelvin-Voigt time constant and its standard error [s].
+    viscosity_n_s_per_mm2 : float or None
+        eta = E * tau from the fit [N*s/mm^2].
+    """
+
+    t_s: float
+    elapsed_s: float
+    depth_mm: float
+    rebound_force_n: float
+    recovery_time_s: float | None
+    settled: bool
+    elasticity_kpa: float | None
+    tau_s: float | None
+    tau_se_s: float | None
+    viscosity_n_s_per_mm2: float | None
+
+    def to_dict(self) -> dict[str, float | None]:
+        """Flat numeric mapping with units in the keys, for storage (``settled``: 1 or 0)."""
+        return {
+            "elapsed_s": self.elapsed_s,
+            "depth_mm": self.depth_mm,
+            "rebound_force_n": self.rebound_force_n,
+            "recovery_time_s": self.recovery_time_s,
+            "settled": 1.0 if self.settled else 0.0,
+            "elasticity_kpa": self.elasticity_kpa,
+            "tau_s": self.tau_s,
+            "tau_se_s": self.tau_se_s,
+            "viscosity_n_s_per_mm2": self.viscosity_n_s_per_mm2,
+        }
+
+
+@dataclass
+class _Series:
+    t: list[float] = field(default_factory=list)
+    v: list[float] = field(default_factory=list)
+
+    def arrays(self) -> tuple[np.ndarray, np.ndarray]:
+        return np.asarray(self.t, dtype=np.float64), np.asarray(self.v, dtype=np.float64)
+
+
+class MeasurementPipeline:
+    """One measurement's live processing (pure; see the module docstring).
+
+    Parameters
+    ----------
+    measurement : MeasurementConfig
+        State-machine thresholds (force band, durations, limits).
+    analysis : AnalysisSettings
+        Analysis settings (indenter radius, window, F_a override).
+    calibration : Calibration
+        Eqs. (4)-(5) in the pixel units of the S_k values fed in.
+    reference : SeverityReference
+        Reference grades for the severity classification.
+    t_start_s : float
+        Time the pipeline starts [s] (host clock).
+    t0_refine_s : float
+        How far after the reported release the T_0 search on S_k extends [s]; 0 disables
+        the refinement.
+    """
+
+    def __init__(
+        self,
+        *,
+        measurement: MeasurementConfig,
+        analysis: AnalysisSettings,
+        calibration: Calibration,
+        reference: SeverityReference,
+        t_start_s: float = 0.0,
+        t0_refine_s: float = 0.5,
+    ) -> None:
+        self.config = measurement
+        self.analysis = analysis
+        self.calibration = calibration
+        self.reference = reference
+        self.t0_refine_s = t0_refine_s
+        self.state: MachineState = initial_state(t_start_s)
+        self._force = _Series()
+        self._frames = _Series()
+        #: The state machine's request to analyse, once it came.
+        self.start: StartAnalysis | None = None
+        #: T_0 used by the analysis [s] (after refinement), once known.
+        self.t0_s: float | None = None
+        #: The final result, once analysed (None also when the analysis failed).
+        self.result: MeasurementResult | None = None
+        #: Why the analysis failed, if it did.
+        self.analysis_error: str | None = None
+        #: Notes about how the result was obtained.
+        self.notes: list[str] = []
+        self._live_t0: float | None = None
+
+    # ------------------------------------------------------------------ feeding
+
+    @property
+    def phase(self) -> Phase:
+        """Current phase of the state machine."""
+        return self.state.phase
+
+    @property
+    def finished(self) -> bool:
+        """Whether the machine reached a terminal phase (DONE or a fault)."""
+        return self.state.phase in (
+            Phase.DONE,
+            Phase.LINK_LOST,
+            Phase.CAMERA_STALLED,
+            Phase.FORCE_OUT_OF_BAND,
+            Phase.ABORTED,
+        )
+
+    def feed(self, event: Event) -> list[Output]:
+        """Apply one event; runs the analysis when the machine asks for it.
+
+        Force samples and frames are recorded (in time order; older ones are dropped by
+        the machine and not recorded) before the transition, so that the analysis sees
+        every sample up to the event that ended the recovery.
+        """
+        if isinstance(event, ForceSample):
+            if not self._force.t or event.t_s > self._force.t[-1]:
+                self._force.t.append(event.t_s)
+                self._force.v.append(event.force_n)
+        elif isinstance(event, FrameSample):
+            if not self._frames.t or event.t_s > self._frames.t[-1]:
+                self._frames.t.append(event.t_s)
+                self._frames.v.append(event.s_k)
+        self.state, outputs = transition(self.state, event, self.config)
+        out = list(outputs)
+        for o in outputs:
+            if isinstance(o, StartAnalysis):
+                out.extend(self._analyse(o))
+        return out
+
+    def arm(self, t_s: float) -> list[Output]:
+        """Arm the measurement (wait for contact)."""
+        return self.feed(Arm(t_s))
+
+    def force(self, t_s: float, force_n: float) -> list[Output]:
+        """Feed one force sample [s, N]."""
+        return self.feed(ForceSample(t_s, force_n))
+
+    def frame(self, t_s: float, s_k: float) -> list[Output]:
+        """Feed one frame's S_k [s, px]."""
+        return self.feed(FrameSample(t_s, s_k))
+
+    def close(self, t_s: float) -> list[Output]:
+        """Close the session: any non-terminal phase ends (see ``state_machine.close``)."""
+        self.state, outputs = close(self.state, t_s, self.config)
+        out = list(outputs)
+        for o in outputs:
+            if isinstance(o, StartAnalysis):
+                out.extend(self._analyse(o))
+        return out
+
+    # ------------------------------------------------------------------ results
+
+    def _refined_t0(self, t_release_s: float, t_pit_start_s: float) -> float:
+        if self.t0_refine_s <= 0.0:
+            return t_release_s
+        t, s = self._frames.arrays()
+        # From the start of pitting (S_k high while pressed) to shortly after the reported
+        # release: the release is the lowest S_k after the pitting peak. The force may have
+        # dropped before the machine's release phase began, so the search is not centred
+        # on the reported time.
+        sel = (t >= t_pit_start_s) & (t <= t_release_s + self.t0_refine_s)
+        try:
+            t0 = detect_recovery_start(t[sel], s[sel])
+        except AnalysisError as exc:
+            self.notes.append(f"T_0 kept at the reported release ({t_release_s:.3f} s): {exc}")
+            return t_release_s
+        if t0 != t_release_s:
+            self.notes.append(
+                f"T_0 refined on S_k from the reported release {t_release_s:.3f} s to {t0:.3f} s"
+            )
+        return t0
+
+    def _analyse(self, start: StartAnalysis) -> list[Output]:
+        self.start = start
+        t0 = self._refined_t0(start.t0_s, start.t_pit_start_s)
+        self.t0_s = t0
+        try:
+            if self.analysis.applied_force_n is not None:
+                f_a = self.analysis.applied_force_n
+            else:
+                ft, fv = self._force.arrays()
+                # The hold ends at the release at the latest: force after T_0 is the
+                # rebound, not the applied force of Eq. (7).
+                f_a = applied_force_n_from_samples(
+                    ft, fv, start.t_pit_start_s, min(start.t_pit_end_s, t0)
+                )
+            t, s = self._frames.arrays()
+            sel = t <= start.t_end_s
+            self.result = analyze_recovery(
+                t[sel], s[sel], t0, self.calibration, f_a, self.analysis, self.reference
+            )
+        except AnalysisError as exc:
+            self.analysis_error = str(exc)
+        self.state, outputs = transition(self.state, AnalysisDone(self.state.now_s), self.config)
+        return list(outputs)
+
+    def force_series(self) -> tuple[np.ndarray, np.ndarray]:
+        """Recorded force samples: times [s] and forces [N]."""
+        return self._force.arrays()
+
+    def frame_series(self) -> tuple[np.ndarray, np.ndarray]:
+        """Recorded frames: times [s] and S_k [px]."""
+        return self._frames.arrays()
+
+    def live(self) -> LiveParameters | None:
+        """Live parameters during (and after) the recovery; None before the release.
+
+        Costs one pass over the recovery series (and one fit once at least
+        :data:`LIVE_FIT_MIN_S` of recovery is recorded): call it at display rate, not per
+        frame.
+        """
+        t_rel = self.state.t_release_s
+        if t_rel is None:
+            return None
+        t, s = self._frames.arrays()
+        if t.size < 2 or t[-1] <= t_rel:
+            return None
+        if self.t0_s is None and self._live_t0 is None and t[-1] > t_rel + self.t0_refine_s:
+            pit_start = self.state.t_pit_start_s
+            self._live_t0 = self._refined_t0(t_rel, pit_start) if pit_start is not None else t_rel
+        t0 = self.t0_s if self.t0_s is not None else (self._live_t0 or t_rel)
+        elapsed = float(t[-1] - t0)
+        try:
+            params = compute_pitting_parameters(
+                t,
+                s,
+                t0,
+                self.calibration,
+                settle_fraction=self.analysis.settle_fraction,
+                window_s=max(elapsed, 1e-9),
+                persist_frames=self.analysis.persist_frames,
+                end_slope_fraction=0.0,
+            )
+        except AnalysisError:
+            return None
+        e_kpa: float | None = None
+        ft, fv = self._force.arrays()
+        pit_start, pit_end = self.state.t_pit_start_s, self.state.t_pit_end_s
+        if pit_start is not None and pit_end is not None and params.depth_mm > 0.0:
+            try:
+                f_a = self.analysis.applied_force_n or applied_force_n_from_samples(
+                    ft, fv, pit_start, pit_end
+                )
+                e_kpa = elasticity_kpa(f_a, params.depth_mm, self.analysis.indenter_radius_mm)
+            except AnalysisError:
+                e_kpa = None
+        tau = tau_se = eta = None
+        if elapsed >= LIVE_FIT_MIN_S:
+            fit = fit_recovery(t, s, t0, elapsed)
+            tau, tau_se = fit.tau_s, fit.tau_se_s
+            if tau is not None and e_kpa is not None and math.isfinite(tau):
+                try:
+                    eta = fit.viscosity_n_s_per_mm2(e_kpa)
+                except AnalysisError:
+                    eta = None
+        return LiveParameters(
+            t_s=float(t[-1]),
+            elapsed_s=elapsed,
+            depth_mm=params.depth_mm,
+            rebound_force_n=params.rebound_force_n,
+            recovery_time_s=params.recovery_time_s,
+            settled=Flag.NOT_SETTLED not in params.flags and Flag.NO_RECOVERY not in params.flags,
+            elasticity_kpa=e_kpa,
+            tau_s=tau,
+            tau_se_s=tau_se,
+            viscosity_n_s_per_mm2=eta,
+        )

@@ -1,0 +1,119 @@
+"""The live pipeline on simulated measurements: phases, T_0, live values and final results."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from stipi_daemon.analysis.calibration import Calibration
+from stipi_daemon.analysis.imaging import CircleROI, FrameProcessor
+from stipi_daemon.analysis.measurement import AnalysisSettings
+from stipi_daemon.analysis.severity import load_reference
+from stipi_daemon.measurement.pipeline import MeasurementPipeline
+from stipi_daemon.measurement.state_machine import MeasurementConfig, Phase, PhaseChanged
+from stipi_daemon.sim.physics import scaled_calibration
+from stipi_daemon.sim.pipeline import Pipeline
+from stipi_daemon.sim.scene import load_scene
+from stipi_daemon.sim.truth import ground_truth
+from tests.conftest import REPO_ROOT
+
+SCENES = REPO_ROOT / "configs" / "scenes"
+
+
+def _run(scene_name: str) -> tuple[MeasurementPipeline, object, list[PhaseChanged]]:
+    scene = load_scene(SCENES / f"{scene_name}.yaml")
+    truth = ground_truth(scene)
+    cal, _ = scaled_calibration(scene)
+    sim = Pipeline(scene)
+    frames = list(sim.frames())
+    proc = FrameProcessor(
+        frames[0].image.shape,
+        int(truth.frame["threshold_p"]),
+        CircleROI(kind="circle", **truth.roi),
+    )
+    mp = MeasurementPipeline(
+        measurement=MeasurementConfig(),
+        analysis=AnalysisSettings(indenter_radius_mm=scene.indenter.diameter_mm / 2),
+        calibration=cal,
+        reference=load_reference(),
+    )
+    batch = sim.force_batch()
+    changes: list[PhaseChanged] = []
+    changes += [o for o in mp.arm(0.0) if isinstance(o, PhaseChanged)]
+    fi = 0
+    lives = []
+    for fr in frames:
+        while fi < batch.index.size and batch.t_true_s[fi] <= fr.t_s:
+            out = mp.force(float(batch.t_true_s[fi]), float(batch.force_n[fi]))
+            changes += [o for o in out if isinstance(o, PhaseChanged)]
+            fi += 1
+        out = mp.frame(fr.t_s, float(proc.count(fr.image)))
+        changes += [o for o in out if isinstance(o, PhaseChanged)]
+        if fr.index % 300 == 0:
+            lives.append(mp.live())
+        if mp.finished:
+            break
+    return mp, truth, changes
+
+
+@pytest.fixture(scope="module")
+def grade3() -> tuple[MeasurementPipeline, object, list[PhaseChanged]]:
+    return _run("grade3")
+
+
+def test_grade3_runs_through_every_phase_and_matches_truth(
+    grade3: tuple[MeasurementPipeline, object, list[PhaseChanged]],
+) -> None:
+    mp, truth, changes = grade3
+    assert [c.new for c in changes] == [
+        Phase.ARMED,
+        Phase.PITTING,
+        Phase.RELEASE,
+        Phase.RECOVERY,
+        Phase.ANALYSIS,
+        Phase.DONE,
+    ]
+    assert mp.analysis_error is None
+    res = mp.result
+    assert res is not None
+    gt = truth  # GroundTruth
+    assert mp.t0_s == pytest.approx(gt.t0_s, abs=1 / 60)  # type: ignore[attr-defined]
+    assert res.pitting.depth_mm == pytest.approx(gt.depth_mm, rel=0.01)  # type: ignore[attr-defined]
+    assert res.pitting.rebound_force_n == pytest.approx(gt.rebound_force_n, rel=0.01)  # type: ignore[attr-defined]
+    assert res.fit.tau_s == pytest.approx(gt.time_constant_s, rel=0.02)  # type: ignore[attr-defined]
+    assert res.paper_model is not None
+    assert res.paper_model.elasticity_kpa == pytest.approx(gt.elasticity_kpa, rel=0.01)  # type: ignore[attr-defined]
+    assert res.severity_paper is not None and res.severity_paper.severity == "severe"
+    assert res.severity_paper.nearest_grade == "III"
+
+
+def test_live_parameters_converge_to_final(
+    grade3: tuple[MeasurementPipeline, object, list[PhaseChanged]],
+) -> None:
+    mp, _, _ = grade3
+    live = mp.live()
+    assert live is not None and mp.result is not None
+    assert live.depth_mm == pytest.approx(mp.result.pitting.depth_mm, rel=1e-9)
+    assert live.tau_s == pytest.approx(mp.result.fit.tau_s, rel=1e-3)
+    assert live.to_dict()["settled"] in (0.0, 1.0)
+
+
+def test_no_live_parameters_before_release() -> None:
+    cal = Calibration(
+        alpha1_mm_per_px2=1e-7, alpha2_mm_per_px=2.5e-3, c1_px=1500.0, c2_px_per_n=2500.0
+    )
+    mp = MeasurementPipeline(
+        measurement=MeasurementConfig(),
+        analysis=AnalysisSettings(),
+        calibration=cal,
+        reference=load_reference(),
+    )
+    mp.arm(0.0)
+    for t in np.arange(0.0, 5.0, 0.01):
+        mp.force(float(t), 16.0 * min(1.0, float(t)))
+        mp.frame(float(t), 1000.0)
+    assert mp.phase == Phase.PITTING
+    assert mp.live() is None
+    mp.close(5.0)
+    assert mp.finished and mp.phase == Phase.ABORTED
+    assert mp.result is None

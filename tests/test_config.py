@@ -1,0 +1,61 @@
+"""Daemon config loading: valid files load; every error names the file and the field."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from stipi_daemon.config import load_config
+from stipi_daemon.errors import ConfigError
+from tests.conftest import REPO_ROOT
+
+DEMO = REPO_ROOT / "configs" / "demo.yaml"
+
+
+def test_demo_config_loads_and_resolves_paths() -> None:
+    cfg = load_config(DEMO)
+    assert cfg.source.kind == "simulator"
+    assert cfg.source.scene == (REPO_ROOT / "configs" / "scenes" / "grade3.yaml").resolve()
+    assert cfg.source.scene.is_file()
+    assert cfg.storage.root.is_absolute()
+    assert cfg.measurement.target_force_n == 16.0
+
+
+def _write(tmp_path: Path, text: str) -> Path:
+    p = tmp_path / "probe.yaml"
+    p.write_text(text, encoding="utf-8")
+    return p
+
+
+MINIMAL = "source: {kind: simulator, scene: s.yaml}\n"
+
+
+@pytest.mark.parametrize(
+    ("text", "needle"),
+    [
+        (MINIMAL + "bogus: 1\n", "field 'bogus': unknown key"),
+        ("source: {kind: simulator}\n", "field 'source.scene': Field required"),
+        ("source: {kind: v4l3, scene: s.yaml}\n", "field 'source'"),
+        (MINIMAL + "measurement: {target_force_n: -1}\n", "field 'measurement.target_force_n'"),
+        (MINIMAL + "imaging: {threshold_p: 300}\n", "field 'imaging.threshold_p'"),
+        (MINIMAL + "storage: {commit_interval_s: 2}\n", "field 'storage.commit_interval_s'"),
+        (MINIMAL + "version: 2\n", "field 'version'"),
+        (MINIMAL + "analysis: {indenter_radius_mm: 0}\n", "field 'analysis.indenter_radius_mm'"),
+        ("source: [1, 2\n", "not valid YAML at line"),
+        ("- 1\n- 2\n", "the config must be a mapping"),
+    ],
+)
+def test_bad_config_names_file_and_field(tmp_path: Path, text: str, needle: str) -> None:
+    p = _write(tmp_path, text)
+    with pytest.raises(ConfigError) as info:
+        load_config(p)
+    msg = str(info.value)
+    assert str(p) in msg
+    assert needle in msg
+    assert "\n" not in msg
+
+
+def test_missing_config_file(tmp_path: Path) -> None:
+    with pytest.raises(ConfigError, match="cannot read config file"):
+        load_config(tmp_path / "nope.yaml")

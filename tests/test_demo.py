@@ -1,0 +1,85 @@
+"""The README's first command: the demo config, end to end, through the real CLI."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import yaml
+
+from stipi_daemon.storage.reader import SessionReader
+from tests.conftest import REPO_ROOT
+
+
+def test_demo_config_runs_a_whole_measurement(tmp_path: Path) -> None:
+    cfg = yaml.safe_load((REPO_ROOT / "configs" / "demo.yaml").read_text())
+    cfg["source"]["scene"] = str(REPO_ROOT / "configs" / "scenes" / "grade3.yaml")
+    cfg["storage"]["root"] = str(tmp_path / "sessions")
+    path = tmp_path / "demo.yaml"
+    path.write_text(yaml.safe_dump(cfg))
+    proc = subprocess.run(
+        [sys.executable, "-m", "stipi_daemon", "--config", str(path)],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert proc.returncode == 0, proc.stderr
+    out = proc.stdout
+    for needle in (
+        "D_p =",
+        "F_r =",
+        "T_r =",
+        "E   =",
+        "tau =",
+        "severity (paper estimator): SEVERE",
+    ):
+        assert needle in out
+    sessions = list((tmp_path / "sessions").iterdir())
+    assert len(sessions) == 1
+    with SessionReader(sessions[0]) as reader:
+        assert reader.integrity_check().ok
+        assert str(reader.status) == "complete"
+        counts = reader.counts()
+        assert counts["frames"] > 3000 and counts["force_samples"] > 5000
+        assert counts["transitions"] >= 6
+        assert counts["live_parameters"] > 10
+    summary = json.loads((sessions[0] / "summary.json").read_text())
+    res, gt = summary["results"], summary["ground_truth"]
+    assert res["pitting"]["depth_mm"] == pytest.approx(gt["depth_mm"], rel=0.01)
+    assert res["pitting"]["rebound_force_n"] == pytest.approx(gt["rebound_force_n"], rel=0.01)
+    assert res["fitted_recovery"]["tau_s"] == pytest.approx(gt["time_constant_s"], rel=0.02)
+    assert res["paper_estimator"]["elasticity_kpa"] == pytest.approx(gt["elasticity_kpa"], rel=0.01)
+
+
+def test_bad_config_is_one_line_and_nonzero(tmp_path: Path) -> None:
+    path = tmp_path / "bad.yaml"
+    path.write_text("source: {kind: simulator, scene: x.yaml}\nmeasurment: {}\n")
+    proc = subprocess.run(
+        [sys.executable, "-m", "stipi_daemon", "--config", str(path)],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert proc.returncode == 2
+    assert proc.stderr.count("\n") == 1
+    assert "field 'measurment': unknown key" in proc.stderr
+    assert "Traceback" not in proc.stderr
+
+
+def test_missing_scene_is_one_line(tmp_path: Path) -> None:
+    path = tmp_path / "c.yaml"
+    path.write_text(
+        f"source: {{kind: simulator, scene: nope.yaml}}\nstorage: {{root: {tmp_path}}}\n"
+    )
+    proc = subprocess.run(
+        [sys.executable, "-m", "stipi_daemon", "--config", str(path)],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert proc.returncode == 2
+    assert "nope.yaml" in proc.stderr and "Traceback" not in proc.stderr
+    assert not any(tmp_path.glob("*/session.sqlite"))
