@@ -1,0 +1,240 @@
+"""The operator's console: what phase the measurement is in and what to do next.
+
+Two renderings of the same information: a rich live view (phase, progress bar, force,
+S_k, live parameters, the current instruction) when standard output is a terminal, and
+plain timestamped lines otherwise (logs, tests, CI), where instructions are repeated at
+most every 5 s unless what they ask for changes. This module only formats; it owns no
+measurement state.
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+from typing import Any, TextIO
+
+from rich.console import Console, Group
+from rich.live import Live
+from rich.panel import Panel
+from rich.progress_bar import ProgressBar
+from rich.table import Table
+from rich.text import Text
+
+from stipi_daemon.measurement.pipeline import LiveParameters
+from stipi_daemon.measurement.state_machine import (
+    Advisory,
+    Fault,
+    MeasurementConfig,
+    OperatorPrompt,
+    Output,
+    Phase,
+    PhaseChanged,
+)
+
+__all__ = ["OperatorConsole", "format_results"]
+
+#: Plain mode repeats an unchanged instruction at most this often [s of session time].
+PROMPT_REPEAT_S = 5.0
+
+
+def _fmt(v: float | None, unit: str, digits: int = 3) -> str:
+    return "-" if v is None or not math.isfinite(v) else f"{v:.{digits}g} {unit}"
+
+
+class OperatorConsole:
+    """Shows the measurement to the operator.
+
+    Parameters
+    ----------
+    measurement : MeasurementConfig
+        For phase durations (progress bar).
+    out : TextIO
+        Where to write (default stdout).
+    live : bool or None
+        Rich live view; ``None`` chooses it when ``out`` is a terminal.
+    quiet : bool
+        Print nothing (results still go to the session).
+    """
+
+    def __init__(
+        self,
+        measurement: MeasurementConfig,
+        out: TextIO | None = None,
+        *,
+        live: bool | None = None,
+        quiet: bool = False,
+    ) -> None:
+        self.config = measurement
+        self.out = out if out is not None else sys.stdout
+        self.quiet = quiet
+        self.rich = Console(file=self.out)
+        self.use_live = (self.out.isatty() if live is None else live) and not quiet
+        self._live: Live | None = None
+        self.phase = Phase.IDLE
+        self.phase_since_s = 0.0
+        self.now_s = 0.0
+        self.prompt = ""
+        self.force_n: float | None = None
+        self.s_k: float | None = None
+        self.fps: float | None = None
+        self.params: LiveParameters | None = None
+        self.notes: list[str] = []
+        self._prompt_key = ""
+        self._prompt_t = -math.inf
+
+    # ---------------------------------------------------------------- lifecycle
+
+    def __enter__(self) -> OperatorConsole:
+        if self.use_live:
+            self._live = Live(self._render(), console=self.rich, refresh_per_second=4)
+            self._live.__enter__()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        if self._live is not None:
+            self._live.update(self._render())
+            self._live.__exit__(None, None, None)
+            self._live = None
+
+    def line(self, text: str) -> None:
+        """Print one line above the live view (or plainly)."""
+        if self.quiet:
+            return
+        if self._live is not None:
+            self._live.console.print(text, markup=False, highlight=False)
+        else:
+            print(text, file=self.out, flush=True)
+
+    # ---------------------------------------------------------------- updates
+
+    def update(
+        self,
+        now_s: float,
+        *,
+        force_n: float | None = None,
+        s_k: float | None = None,
+        fps: float | None = None,
+        params: LiveParameters | None = None,
+    ) -> None:
+        """New readings; refreshes the live view."""
+        self.now_s = now_s
+        if force_n is not None:
+            self.force_n = force_n
+        if s_k is not None:
+            self.s_k = s_k
+        if fps is not None:
+            self.fps = fps
+        if params is not None:
+            self.params = params
+            if not self.use_live and int(params.elapsed_s) % 5 == 0:
+                self.line(
+                    f"[{now_s:7.2f} s] recovery {params.elapsed_s:5.1f} s:"
+                    f" D_p {_fmt(params.depth_mm, 'mm')},"
+                    f" F_r {_fmt(params.rebound_force_n, 'N')},"
+                    f" T_r {'>=' if not params.settled else ''}"
+                    f"{_fmt(params.recovery_time_s, 's')},"
+                    f" E {_fmt(params.elasticity_kpa, 'kPa')}, tau {_fmt(params.tau_s, 's')}"
+                )
+        if self._live is not None:
+            self._live.update(self._render())
+
+    def outputs(self, outputs: list[Output], now_s: float) -> None:
+        """Show state-machine outputs (phase changes, instructions, notes, faults)."""
+        self.now_s = now_s
+        for o in outputs:
+            if isinstance(o, PhaseChanged):
+                self.phase, self.phase_since_s = o.new, o.t_s
+                self.line(f"[{o.t_s:7.2f} s] {o.old} -> {o.new}: {o.reason}")
+            elif isinstance(o, OperatorPrompt):
+                self.prompt = o.text
+                key = o.text.split(":", 1)[0]
+                if not self.use_live and (
+                    key != self._prompt_key or now_s - self._prompt_t >= PROMPT_REPEAT_S
+                ):
+                    self._prompt_key, self._prompt_t = key, now_s
+                    self.line(f"           >> {o.text}")
+            elif isinstance(o, Advisory):
+                self.line(f"[{o.t_s:7.2f} s] note: {o.kind}: {o.detail}")
+            elif isinstance(o, Fault):
+                self.line(f"[{o.t_s:7.2f} s] FAULT {o.kind}: {o.reason}")
+        if self._live is not None:
+            self._live.update(self._render())
+
+    # ---------------------------------------------------------------- rendering
+
+    def _progress(self) -> tuple[float, float]:
+        c = self.config
+        elapsed = max(0.0, self.now_s - self.phase_since_s)
+        total = {
+            Phase.PITTING: c.pitting_duration_s,
+            Phase.RECOVERY: c.recovery_max_s,
+        }.get(self.phase, 0.0)
+        return elapsed, total
+
+    def _render(self) -> Panel:
+        elapsed, total = self._progress()
+        head = Text.assemble(
+            ("phase ", "dim"),
+            (str(self.phase).upper(), "bold cyan"),
+            (f"   t = {self.now_s:6.1f} s", "dim"),
+        )
+        bar = ProgressBar(total=total or 1.0, completed=min(elapsed, total) if total else 0.0)
+        readings = Table.grid(padding=(0, 2))
+        readings.add_row(
+            f"force {_fmt(self.force_n, 'N', 3)}",
+            f"S_k {_fmt(self.s_k, 'px', 6)}",
+            f"camera {_fmt(self.fps, 'fps', 3)}",
+        )
+        params = Table(box=None, show_header=False, padding=(0, 2))
+        p = self.params
+        if p is not None:
+            params.add_row("D_p", _fmt(p.depth_mm, "mm", 4), "F_r", _fmt(p.rebound_force_n, "N", 4))
+            t_r = _fmt(p.recovery_time_s, "s", 4)
+            params.add_row(
+                "T_r", ("" if p.settled else ">= ") + t_r, "E", _fmt(p.elasticity_kpa, "kPa", 4)
+            )
+            params.add_row(
+                "tau", _fmt(p.tau_s, "s", 4), "eta", _fmt(p.viscosity_n_s_per_mm2, "N*s/mm^2", 3)
+            )
+        prompt = Text(self.prompt or " ", style="bold yellow")
+        return Panel(Group(head, bar, readings, params, prompt), title="STIP-I measurement")
+
+
+def format_results(summary: dict[str, Any]) -> list[str]:
+    """The final results as console lines (parameters, both estimators, severity)."""
+    res = summary.get("results")
+    if not res:
+        return [f"no results: {summary.get('analysis_error') or summary.get('end_reason')}"]
+    p = res["pitting"]
+    paper = res["paper_estimator"] or {}
+    fit = res["fitted_recovery"]
+    fm = fit["model"] or {}
+    tau_se = fit.get("tau_se_s")
+    lines = [
+        "",
+        "results",
+        f"  pitting depth      D_p = {_fmt(p['depth_mm'], 'mm', 4)}      (Eq. 3)",
+        f"  rebound force      F_r = {_fmt(p['rebound_force_n'], 'N', 4)}       (Eq. 5)",
+        f"  recovery time      T_r = {_fmt(p['recovery_time_s'], 's', 4)}       (Eq. 6)",
+        f"  applied force      F_a = {_fmt(res['applied_force_n'], 'N', 4)}",
+        f"  elasticity         E   = {_fmt(paper.get('elasticity_kpa'), 'kPa', 4)}  (Eq. 7)",
+        f"  viscosity (paper)  eta = {_fmt(paper.get('viscosity_n_s_per_mm2'), 'N*s/mm^2', 4)}"
+        " (Eq. 8, E*T_r)",
+        f"  time constant      tau = {_fmt(fit['tau_s'], 's', 4)}"
+        + (f" +- {tau_se:.2g} s" if tau_se is not None else "")
+        + "  (fitted Kelvin-Voigt recovery)",
+        f"  viscosity (fit)    eta = {_fmt(fm.get('viscosity_n_s_per_mm2'), 'N*s/mm^2', 4)}"
+        " (E*tau)",
+    ]
+    for name, sev in res["severity"].items():
+        if sev is None:
+            continue
+        lines.append(
+            f"  severity ({name.replace('_', ' ')}): {sev['severity'].upper()},"
+            f" nearest grade {sev['nearest_grade']}, recovered {sev['recovered_percent']:.1f} %"
+            f" in {sev['window_s'][0]:g}-{sev['window_s'][1]:g} s"
+            f" (threshold {sev['threshold_recovered_percent']:.1f} %)"
+        )
+    if res["flags"]:
+        lines.append(f"  flags: {', '.join(res['flags'])}")
+    return lines
