@@ -1,0 +1,79 @@
+// config.h -- every pin, rate, size and interval of the STIP-I probe firmware, with units.
+//
+// Plain constants only (no Arduino headers): the portable core in src/core/ includes this file
+// when it is compiled for the AVR and when it is compiled on the host for the unit tests.
+// Pin numbers are Arduino (Leonardo / Feather 32u4) digital pin numbers; the AVR glue checks
+// them against the Arduino names with static_assert.
+#ifndef STIPI_CONFIG_H
+#define STIPI_CONFIG_H
+
+#include <stdint.h>
+
+// ---- firmware identity (reported by GET_INFO) ---------------------------------------------
+#define STIPI_FW_MAJOR 1
+#define STIPI_FW_MINOR 0
+#define STIPI_FW_PATCH 0
+
+// ---- links --------------------------------------------------------------------------------
+// Every link that is compiled in and open receives every frame (same bytes, same seq);
+// commands are accepted from any of them. Set one to 0 with -D to leave it out of the build.
+#ifndef STIPI_LINK_USB
+#define STIPI_LINK_USB 1    // native USB CDC `Serial`
+#endif
+#ifndef STIPI_LINK_UART1
+#define STIPI_LINK_UART1 1  // hardware UART `Serial1` (pins 0 RX / 1 TX); simavr's UART1
+#endif
+#ifndef STIPI_LINK_BLE
+#define STIPI_LINK_BLE 1    // nRF51822 Bluefruit over SPI/SDEP (Nordic UART Service)
+#endif
+// Serial1 baud [bit/s]. 250000 is exact at F_CPU = 8 MHz (U2X, UBRR = 3, 0 % error), whereas
+// 115200 would run at 111111 bit/s (-3.5 %, outside UART tolerance). 25,000 B/s at 8N1.
+#define STIPI_UART1_BAUD 250000UL
+
+// ---- pins (Feather 32u4 Bluefruit LE) -----------------------------------------------------
+#define STIPI_PIN_BLE_CS 8    // nRF51822 SPI chip select (active low)
+#define STIPI_PIN_BLE_IRQ 7   // nRF51822 "packet waiting" line (active high)
+#define STIPI_PIN_BLE_RST 4   // nRF51822 reset (active low)
+#define STIPI_PIN_LOADCELL 18 // A0 = PF7 = ADC7: FC22 output through a 2:3 divider (docs/firmware.md)
+#define STIPI_PIN_VBAT 27     // A9 = D9 = PB5 = ADC12: Feather's on-board VBAT/2 divider
+// LED driver transistor gate/base. D5 = PC6 = OC3A: Timer3 is free (Timer1 samples, Timer0 is
+// millis/micros), so it runs 8-bit fast PWM with no prescaler = 31.25 kHz, far above any camera
+// frame rate (Arduino's analogWrite would give 245 Hz at 8 MHz, which bands in camera frames).
+#define STIPI_PIN_LED_PWM 5
+
+// ---- ADC ----------------------------------------------------------------------------------
+#define STIPI_ADC_BITS 10            // ATmega32u4 ADC resolution [bit]
+#define STIPI_ADC_REF_MV 3300UL      // AVcc reference on the 3.3 V Feather [mV]
+#define STIPI_VBAT_DIVIDER 2UL       // VBAT is read through a 1:2 divider on the Feather
+
+// ---- sampling -----------------------------------------------------------------------------
+#define STIPI_DEFAULT_RATE_HZ 100    // sample rate after boot [Hz]
+#define STIPI_MAX_RATE_HZ 1000       // SET_RATE upper limit [Hz] (protocol: 1..1000)
+// SET_RATE lower limit [Hz]: SAMPLES.period_us is a u16, so the period must be <= 65535 us,
+// i.e. rate >= 16 Hz (62500 us). Lower rates are refused with status 2 (docs/firmware.md).
+#define STIPI_MIN_RATE_HZ 16
+#define STIPI_BATCH_SIZE 10          // samples per SAMPLES frame (1..24); 10 -> 39 B on the wire
+#define STIPI_RING_CAPACITY 64       // ISR -> main ring buffer [samples], power of two
+#define STIPI_TARE_SAMPLES 16        // samples averaged by TARE (power of two)
+
+// ---- timing -------------------------------------------------------------------------------
+#define STIPI_HEARTBEAT_PERIOD_US 500000UL   // STATUS period [us]; protocol requires <= 1 s
+#define STIPI_LINK_READ_BUDGET 32            // bytes read per link per loop pass [B]
+
+// ---- BLE / SDEP ---------------------------------------------------------------------------
+#define STIPI_SDEP_CS_SETUP_US 100           // wait after asserting CS [us] (hardware.md)
+#define STIPI_SDEP_RETRY_DELAY_US 50         // wait before retrying a "not ready" module [us]
+#define STIPI_SDEP_TIMEOUT_US 250000UL       // max wait for IRQ / a ready module [us]; the
+                                             // module answers ERROR after 200 ms when full
+#define STIPI_BLE_RESET_PULSE_US 20000UL     // RST low time [us]
+#define STIPI_BLE_BOOT_US 1000000UL          // wait after reset before the first command [us]
+#define STIPI_BLE_PROBE_ATTEMPTS 2           // "AT" attempts before the module is declared absent
+#define STIPI_BLE_CONN_POLL_US 1000000UL     // AT+GAPGETCONN interval [us]
+#define STIPI_BLE_RX_POLL_US 20000UL         // BLE UART RX poll interval while connected [us]
+#define STIPI_BLE_RX_FIFO 64                 // received BLE bytes buffered [B]
+
+// ---- EEPROM -------------------------------------------------------------------------------
+#define STIPI_EEPROM_CAL_ADDR 0              // first byte of the two calibration slots
+#define STIPI_EEPROM_SIZE 1024               // ATmega32u4 EEPROM [B]
+
+#endif  // STIPI_CONFIG_H

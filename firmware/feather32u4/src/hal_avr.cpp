@@ -1,0 +1,218 @@
+// hal_avr.cpp -- ATmega32u4 glue (see hal_avr.h). Register names from the ATmega32u4 datasheet.
+#include "hal_avr.h"
+
+#include <avr/eeprom.h>
+#include <avr/interrupt.h>
+
+#include "../config.h"
+
+namespace stipi {
+
+static_assert(STIPI_PIN_LOADCELL == A0, "load cell pin must be A0 (config.h)");
+static_assert(STIPI_PIN_VBAT == A9, "VBAT pin must be A9 (config.h)");
+static_assert(STIPI_PIN_LED_PWM == 5, "LED PWM is wired to OC3A = D5 (config.h)");
+static_assert(F_CPU == 8000000L, "Timer1 setup assumes 8 MHz (prescaler 8 -> 1 us ticks)");
+
+Sampler g_sampler;
+
+namespace {
+
+enum AdcState : uint8_t { kAdcIdle = 0, kAdcSample = 1, kAdcSupply = 2 };
+
+volatile uint8_t g_adc_state = kAdcIdle;
+volatile uint32_t g_sample_t_us = 0;
+volatile bool g_supply_wanted = false;
+volatile uint16_t g_supply_raw = 0;
+uint8_t g_loadcell_channel = 0;
+uint8_t g_vbat_channel = 0;
+
+// Select an ADC channel (0..15: MUX5 lives in ADCSRB) with AVcc as reference.
+inline void adc_select(uint8_t channel) {
+  ADCSRB = static_cast<uint8_t>((ADCSRB & ~_BV(MUX5)) | (((channel >> 3) & 1) << MUX5));
+  ADMUX = static_cast<uint8_t>(_BV(REFS0) | (channel & 0x07));
+}
+
+inline void adc_start() { ADCSRA |= _BV(ADSC) | _BV(ADIE); }
+
+}  // namespace
+
+uint8_t irq_save() {
+  const uint8_t s = SREG;
+  cli();
+  return s;
+}
+
+void irq_restore(uint8_t state) { SREG = state; }
+
+}  // namespace stipi
+
+using namespace stipi;
+
+// Sample instant: note the time and start the conversion (ADC clock 125 kHz: 104 us).
+ISR(TIMER1_COMPA_vect) {
+  const uint32_t t = micros();
+  if (g_adc_state != kAdcIdle) {
+    g_sampler.isr_drop();  // previous conversion still running: this sample is lost, counted
+    return;
+  }
+  g_sample_t_us = t;
+  g_adc_state = kAdcSample;
+  adc_start();
+}
+
+ISR(ADC_vect) {
+  const uint16_t value = ADC;
+  if (g_adc_state == kAdcSample) {
+    g_sampler.isr_push(value, g_sample_t_us);
+    if (g_supply_wanted) {
+      adc_select(g_vbat_channel);  // chain the supply reading right after the sample
+      g_adc_state = kAdcSupply;
+      adc_start();
+      return;
+    }
+  } else if (g_adc_state == kAdcSupply) {
+    g_supply_raw = value;
+    g_supply_wanted = false;
+    adc_select(g_loadcell_channel);
+  }
+  g_adc_state = kAdcIdle;
+}
+
+namespace stipi {
+
+void AvrBoard::begin() {
+  g_loadcell_channel = analogPinToChannel(STIPI_PIN_LOADCELL - A0);
+  g_vbat_channel = analogPinToChannel(STIPI_PIN_VBAT - A0);
+  adc_select(g_loadcell_channel);  // init() already enabled the ADC at F_CPU/64 = 125 kHz
+  // LED: Timer3 fast PWM 8-bit (WGM3 = 0101), no prescaler -> 8 MHz / 256 = 31.25 kHz on OC3A.
+  pinMode(STIPI_PIN_LED_PWM, OUTPUT);
+  digitalWrite(STIPI_PIN_LED_PWM, LOW);
+  TCCR3A = _BV(WGM30);
+  TCCR3B = _BV(WGM32) | _BV(CS30);
+  OCR3A = 0;
+  // The first supply reading, taken now with the ADC otherwise idle.
+  g_supply_wanted = true;
+  request_supply_measurement();
+}
+
+void AvrBoard::start_sampling(uint16_t period_us) {
+  IrqGuard guard;
+  TCCR1A = 0;
+  TCCR1B = 0;
+  TCNT1 = 0;
+  OCR1A = static_cast<uint16_t>(period_us - 1);  // CTC: period = (OCR1A + 1) ticks of 1 us
+  TIFR1 = _BV(OCF1A);
+  TIMSK1 |= _BV(OCIE1A);
+  TCCR1B = _BV(WGM12) | _BV(CS11);  // CTC on OCR1A, clk/8 = 1 MHz
+}
+
+void AvrBoard::stop_sampling() {
+  {
+    IrqGuard guard;
+    TCCR1B = 0;
+    TIMSK1 &= static_cast<uint8_t>(~_BV(OCIE1A));
+  }
+  // Let an in-flight conversion land (at most two conversions, ~210 us), bounded.
+  const uint32_t start = micros();
+  while (g_adc_state != kAdcIdle && micros() - start < 1000) {
+  }
+}
+
+void AvrBoard::set_led(uint8_t level) {
+  IrqGuard guard;
+  if (level == 0 || level == 255) {
+    TCCR3A = _BV(WGM30);  // disconnect OC3A: a steady level, no 1-tick spikes
+    digitalWrite(STIPI_PIN_LED_PWM, level ? HIGH : LOW);
+  } else {
+    OCR3A = level;
+    TCCR3A = _BV(COM3A1) | _BV(WGM30);
+  }
+}
+
+void AvrBoard::request_supply_measurement() {
+  IrqGuard guard;
+  g_supply_wanted = true;
+  // While sampling, the ADC interrupt chains the reading after the next sample; otherwise
+  // start it now.
+  if ((TIMSK1 & _BV(OCIE1A)) == 0 && g_adc_state == kAdcIdle) {
+    adc_select(g_vbat_channel);
+    g_adc_state = kAdcSupply;
+    adc_start();
+  }
+}
+
+uint16_t AvrBoard::supply_mv() {
+  uint16_t raw;
+  {
+    IrqGuard guard;
+    raw = g_supply_raw;
+  }
+  return static_cast<uint16_t>((static_cast<uint32_t>(raw) * STIPI_VBAT_DIVIDER * STIPI_ADC_REF_MV) >>
+                               STIPI_ADC_BITS);
+}
+
+// ---- SPI to the nRF51822 ------------------------------------------------------------------
+
+void AvrSpiPort::begin() {
+  digitalWrite(STIPI_PIN_BLE_CS, HIGH);
+  pinMode(STIPI_PIN_BLE_CS, OUTPUT);
+  pinMode(STIPI_PIN_BLE_IRQ, INPUT);
+  digitalWrite(STIPI_PIN_BLE_RST, HIGH);
+  pinMode(STIPI_PIN_BLE_RST, OUTPUT);
+  // SS (PB0) must be an output for master mode; SCK (PB1) and MOSI (PB2) outputs.
+  DDRB |= _BV(PB0) | _BV(PB1) | _BV(PB2);
+  PORTB |= _BV(PB0);
+  // Master, mode 0, MSB first, F_CPU/4 = 2 MHz (module maximum is 4 MHz).
+  SPCR = _BV(SPE) | _BV(MSTR);
+  SPSR = 0;
+}
+
+void AvrSpiPort::select(bool active) { digitalWrite(STIPI_PIN_BLE_CS, active ? LOW : HIGH); }
+
+uint8_t AvrSpiPort::transfer(uint8_t out) {
+  SPDR = out;
+  // 8 bits at 2 MHz = 32 CPU cycles; bounded so a missing/odd SPI model cannot hang the loop.
+  for (uint16_t spin = 0; spin < 2000 && !(SPSR & _BV(SPIF)); ++spin) {
+  }
+  return SPDR;
+}
+
+bool AvrSpiPort::irq() { return digitalRead(STIPI_PIN_BLE_IRQ) == HIGH; }
+
+void AvrSpiPort::reset(bool asserted) { digitalWrite(STIPI_PIN_BLE_RST, asserted ? LOW : HIGH); }
+
+// ---- EEPROM -------------------------------------------------------------------------------
+
+uint8_t AvrEeprom::read(uint16_t addr) {
+  return eeprom_read_byte(reinterpret_cast<const uint8_t*>(addr));
+}
+
+void AvrEeprom::write(uint16_t addr, uint8_t value) {
+  eeprom_update_byte(reinterpret_cast<uint8_t*>(addr), value);
+}
+
+// ---- links --------------------------------------------------------------------------------
+
+// Not `(bool)Serial`: the Arduino core's Serial_::operator bool() calls delay(10) every time,
+// which stalled the main loop 20-30 ms per frame and overflowed the sample ring (seen in the
+// simavr HIL test: ~40 % of samples dropped at 1000 Hz). DTR is what it tests, minus the delay.
+bool UsbCdcLink::is_open() { return USBDevice.configured() && Serial.dtr(); }
+
+int16_t UsbCdcLink::read() { return static_cast<int16_t>(Serial.read()); }
+
+bool UsbCdcLink::write_frame(const uint8_t* data, uint8_t len) {
+  if (!is_open()) return false;
+  const int room = Serial.availableForWrite();
+  // A frame longer than one 64-byte bank is sent when the bank is empty (it then waits at most
+  // for one bank to drain, which the host does every 1 ms USB frame).
+  if (room < len && !(len > 64 && room >= 64)) return false;
+  return Serial.write(data, len) == len;
+}
+
+int16_t Uart1Link::read() { return static_cast<int16_t>(Serial1.read()); }
+
+bool Uart1Link::write_frame(const uint8_t* data, uint8_t len) {
+  return Serial1.write(data, len) == len;
+}
+
+}  // namespace stipi

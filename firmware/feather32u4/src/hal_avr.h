@@ -1,0 +1,71 @@
+// hal_avr.h -- ATmega32u4 implementations of the core's hardware interfaces (src/core/hal.h).
+//
+// Owns: Timer1 (CTC, 1 us ticks) triggering one ADC conversion per sample period, the ADC
+// interrupt chain (load cell, then VBAT when asked), Timer3 fast PWM for the LEDs, the SPI
+// master and nRF51822 pins, EEPROM access and the three links (USB CDC `Serial`, `Serial1`,
+// BLE). Does not own any protocol logic (src/core/).
+#ifndef STIPI_HAL_AVR_H
+#define STIPI_HAL_AVR_H
+
+#include <Arduino.h>
+
+#include "core/hal.h"
+#include "core/sampler.h"
+
+namespace stipi {
+
+// The sampler filled by the ADC interrupt (defined in hal_avr.cpp).
+extern Sampler g_sampler;
+
+class AvrClock : public Clock {
+ public:
+  uint32_t micros() override { return ::micros(); }
+  void delay_us(uint16_t us) override { delayMicroseconds(us); }
+};
+
+class AvrBoard : public Board {
+ public:
+  void begin();  // ADC channel, LED PWM, pins
+  void start_sampling(uint16_t period_us) override;
+  void stop_sampling() override;
+  void set_led(uint8_t level) override;
+  void request_supply_measurement() override;
+  uint16_t supply_mv() override;
+};
+
+class AvrSpiPort : public SpiPort {
+ public:
+  void begin();
+  void select(bool active) override;
+  uint8_t transfer(uint8_t out) override;
+  bool irq() override;
+  void reset(bool asserted) override;
+};
+
+class AvrEeprom : public Eeprom {
+ public:
+  uint8_t read(uint16_t addr) override;
+  void write(uint16_t addr, uint8_t value) override;
+};
+
+// USB CDC: open while the host holds DTR; never blocks (a frame that does not fit in the USB
+// endpoint bank is not sent and shows up on the host as a seq gap).
+class UsbCdcLink : public ByteLink {
+ public:
+  bool is_open() override;
+  int16_t read() override;
+  bool write_frame(const uint8_t* data, uint8_t len) override;
+};
+
+// Serial1 at STIPI_UART1_BAUD: always open; writes wait for TX buffer room, which is bounded by
+// the baud rate (a 76-byte frame takes 3 ms at 250 kbit/s).
+class Uart1Link : public ByteLink {
+ public:
+  bool is_open() override { return true; }
+  int16_t read() override;
+  bool write_frame(const uint8_t* data, uint8_t len) override;
+};
+
+}  // namespace stipi
+
+#endif
