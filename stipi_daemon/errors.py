@@ -30,3 +30,44 @@ class ConfigError(StipiError, ValueError):
 
 class ProtocolError(StipiError, ValueError):
     """A wire-protocol message cannot be encoded or decoded."""
+
+
+class SessionError(StipiError):
+    """A session directory cannot be created, written or read.
+
+    Raised for a bad session directory (missing, truncated or corrupt ``session.sqlite``,
+    missing or wrong-version ``manifest.json``, unknown schema version), for rows that do not
+    fit the session schema, and for too little free disk space; the message names the file
+    (or table, row and column) and the problem, on one line.
+    """
+
+
+class DataFileError(StipiError, ValueError):
+    """A recorded data file (CSV of samples or pairs, video) is missing, unreadable or malformed.
+
+    The message names the file and, where it applies, the line and column.
+    """
+
+
+class CameraError(StipiError):
+    """A camera or video source cannot be opened or stopped delivering frames.
+
+    Raised for a missing or unreadable device or video file, a device that refuses to
+    stream, and a camera that stays silent after every reopen attempt; the message names
+    the device (``/dev/video0``) or file, on one line.
+    """
+
+
+class DeviceNotFoundError(StipiError):
+    """A device the daemon was told to use is not there (serial port, BLE probe, camera).
+
+    The message is one line naming the device or path, e.g. ``serial port /dev/ttyACM0 not
+    found``.
+    """
+
+
+class LinkLostError(StipiError):
+    """An open link to a device stopped working (unplugged, disconnected, silent, no answer).
+
+    The message is one line naming the link and what was seen.
+    """

@@ -1,0 +1,119 @@
+"""Export of a session's tables to CSV or Parquet, one file per table.
+
+This module owns the conversion of the tables read by :class:`~.reader.SessionReader`
+into ``<out>/<table>.csv`` or ``<out>/<table>.parquet`` (via pyarrow), plus copies of
+``manifest.json`` and ``summary.json`` so that the export carries its configuration,
+calibration and results. All tables are read from one database snapshot. It does not
+open sessions or decide what to export (the ``sessions export`` command does).
+
+CSV: a header row of column names (which carry the units), integers in decimal, floats in
+Python's shortest round-trip form, NULL as an empty field. Parquet: int64, float64 (NULL
+as null) and string columns; each field's metadata holds its ``unit`` and ``doc``.
+"""
+
+from __future__ import annotations
+
+import csv
+import shutil
+from pathlib import Path
+from typing import Any, Final, Literal
+
+from stipi_daemon.errors import SessionError
+from stipi_daemon.storage import layout
+from stipi_daemon.storage.reader import SessionReader
+from stipi_daemon.storage.schema import TABLES, Table
+
+ExportFormat = Literal["csv", "parquet"]
+EXPORT_FORMATS: Final[tuple[ExportFormat, ...]] = ("csv", "parquet")
+
+
+def _csv_value(value: Any) -> str:
+    if value is None:
+        return ""
+    if isinstance(value, float):
+        return repr(value)
+    return str(value)
+
+
+def _write_csv(path: Path, table: Table, rows: list[tuple[Any, ...]]) -> None:
+    with open(path, "w", encoding="utf-8", newline="") as f:
+        writer = csv.writer(f, lineterminator="\n")
+        writer.writerow(table.column_names)
+        writer.writerows([_csv_value(v) for v in row] for row in rows)
+
+
+def _write_parquet(path: Path, table: Table, rows: list[tuple[Any, ...]]) -> None:
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    types = {"int": pa.int64(), "real": pa.float64(), "real_null": pa.float64()}
+    fields = []
+    arrays = []
+    for i, column in enumerate(table.columns):
+        pa_type = types.get(column.kind, pa.string())
+        fields.append(
+            pa.field(
+                column.name,
+                pa_type,
+                nullable=column.kind == "real_null",
+                metadata={"unit": column.unit, "doc": column.doc},
+            )
+        )
+        arrays.append(pa.array([row[i] for row in rows], type=pa_type))
+    schema = pa.schema(fields, metadata={"table": table.name, "doc": table.doc})
+    pq.write_table(pa.Table.from_arrays(arrays, schema=schema), path)
+
+
+def export_session(
+    reader: SessionReader, out_dir: Path | str, fmt: ExportFormat, *, overwrite: bool = False
+) -> list[Path]:
+    """Write every table of a session to ``out_dir``, one file per table.
+
+    Parameters
+    ----------
+    reader : SessionReader
+        The open session.
+    out_dir : Path or str
+        Target directory (created if missing).
+    fmt : {"csv", "parquet"}
+        File format.
+    overwrite : bool
+        Replace existing files; otherwise an existing target file raises.
+
+    Returns
+    -------
+    list of Path
+        The files written (tables in :data:`~.schema.TABLES` order, then the JSON files).
+
+    Raises
+    ------
+    SessionError
+        Unknown format, an existing target file without ``overwrite``, or a write error.
+    """
+    if fmt not in EXPORT_FORMATS:
+        raise SessionError(f"export format {fmt!r} is not one of {', '.join(EXPORT_FORMATS)}")
+    out = Path(out_dir)
+    targets = [out / f"{t.name}.{fmt}" for t in TABLES]
+    extras = [
+        src
+        for src in (reader.manifest_path, reader.summary_path)
+        if src.exists() and src.name in (layout.MANIFEST_NAME, layout.SUMMARY_NAME)
+    ]
+    if not overwrite:
+        for target in [*targets, *(out / src.name for src in extras)]:
+            if target.exists():
+                raise SessionError(f"{target}: exists already (use --force to overwrite)")
+    writer = _write_csv if fmt == "csv" else _write_parquet
+    written: list[Path] = []
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        with reader.snapshot():
+            for table, target in zip(TABLES, targets, strict=True):
+                writer(target, table, list(reader.iter_rows(table)))
+                written.append(target)
+        for src in extras:
+            shutil.copyfile(src, out / src.name)
+            written.append(out / src.name)
+    except OSError as exc:
+        raise SessionError(f"{out}: export failed: {exc}") from exc
+    return written

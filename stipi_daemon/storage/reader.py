@@ -1,0 +1,456 @@
+"""Reading sessions back: :class:`SessionReader`, status, integrity, listing.
+
+A reader opens a session directory read-only (``mode=ro``): it never changes a session,
+and it can read one that a writer in another process is still recording (SQLite WAL lets
+readers see every committed transaction while the writer goes on). On opening, the
+directory, the manifest (format and version) and the database schema (version, tables,
+columns) are validated; a bad directory raises :class:`~stipi_daemon.errors.SessionError`
+naming the file and the problem. Tables come back as numpy structured arrays or as row
+iterators. The status combines the stored state with the writer lock: ``recording`` with no
+live writer is ``interrupted``. Writing is :mod:`.writer`; export to CSV/Parquet is
+:mod:`.export`.
+"""
+
+from __future__ import annotations
+
+import json
+import sqlite3
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+from types import TracebackType
+from typing import Any, Final, Self
+
+import numpy as np
+import numpy.typing as npt
+
+from stipi_daemon.errors import SessionError
+from stipi_daemon.storage import layout
+from stipi_daemon.storage.lock import read_owner, writer_alive
+from stipi_daemon.storage.schema import (
+    CLOCK_PROBES,
+    EVENTS,
+    FORCE_SAMPLES,
+    FORMAT_NAME,
+    FRAMES,
+    GAPS,
+    LIVE_PARAMETERS,
+    SCHEMA_VERSION,
+    TABLES,
+    TABLES_BY_NAME,
+    TRANSITIONS,
+    Event,
+    SessionState,
+    Table,
+    Transition,
+    rows_to_array,
+)
+
+_MAX_INTEGRITY_MESSAGES: Final = 5
+
+
+@dataclass(frozen=True)
+class IntegrityReport:
+    """Result of :meth:`SessionReader.integrity_check`.
+
+    Attributes
+    ----------
+    directory : Path
+        The session directory checked.
+    problems : tuple of str
+        One line per problem found (empty when everything is sound).
+    """
+
+    directory: Path
+    problems: tuple[str, ...]
+
+    @property
+    def ok(self) -> bool:
+        return not self.problems
+
+    def raise_if_bad(self) -> None:
+        """Raise :class:`SessionError` (one line, every problem) unless the check passed."""
+        if self.problems:
+            raise SessionError("; ".join(self.problems))
+
+
+def _resolve_table(table: str | Table) -> Table:
+    if isinstance(table, Table):
+        return table
+    try:
+        return TABLES_BY_NAME[table]
+    except KeyError:
+        raise SessionError(
+            f"no session table {table!r} (tables: {', '.join(TABLES_BY_NAME)})"
+        ) from None
+
+
+class SessionReader:
+    """Read-only view of one session directory.
+
+    Parameters
+    ----------
+    directory : Path or str
+        The session directory (``<root>/<session_id>``).
+
+    Raises
+    ------
+    SessionError
+        The directory, manifest or database is missing, unreadable, of another format or
+        version, or not a session database.
+    """
+
+    def __init__(self, directory: Path | str) -> None:
+        self.directory = Path(directory)
+        if not self.directory.is_dir():
+            raise SessionError(f"{self.directory}: session directory does not exist")
+        self.manifest: dict[str, Any] = layout.load_manifest(self.manifest_path)
+        db = self.db_path
+        if not db.is_file():
+            raise SessionError(f"{db}: session database is missing")
+        if db.stat().st_size == 0:
+            raise SessionError(f"{db}: session database is empty (0 bytes)")
+        try:
+            self._conn = sqlite3.connect(
+                db.resolve().as_uri() + "?mode=ro",
+                uri=True,
+                isolation_level=None,
+                check_same_thread=False,
+            )
+        except sqlite3.Error as exc:
+            raise SessionError(f"{db}: cannot open database: {exc}") from None
+        try:
+            self._conn.execute("PRAGMA busy_timeout=5000")
+            problem = self._schema_problem()
+        except sqlite3.DatabaseError as exc:
+            self._conn.close()
+            raise SessionError(
+                f"{db}: not a readable SQLite database, truncated or corrupt ({exc})"
+            ) from None
+        if problem is not None:
+            self._conn.close()
+            raise SessionError(f"{db}: {problem}")
+
+    # ------------------------------------------------------------------ files
+    @property
+    def db_path(self) -> Path:
+        return self.directory / layout.DB_NAME
+
+    @property
+    def manifest_path(self) -> Path:
+        return self.directory / layout.MANIFEST_NAME
+
+    @property
+    def summary_path(self) -> Path:
+        return self.directory / layout.SUMMARY_NAME
+
+    @property
+    def lock_path(self) -> Path:
+        return self.directory / layout.LOCK_NAME
+
+    @property
+    def session_id(self) -> str:
+        return str(self.manifest["session_id"])
+
+    @property
+    def video_path(self) -> Path | None:
+        """Path of the reserved video file if the manifest reserves one, else None."""
+        name = self.manifest["files"].get("video")
+        return None if name is None else self.directory / str(name)
+
+    @property
+    def summary(self) -> dict[str, Any] | None:
+        """The final results (``summary.json``), or None if none was written (yet)."""
+        if not self.summary_path.exists():
+            return None
+        return layout.load_json_object(self.summary_path, "summary")
+
+    # ------------------------------------------------------------------ database
+    def _query(self, sql: str, params: tuple[Any, ...] = ()) -> list[Any]:
+        try:
+            return self._conn.execute(sql, params).fetchall()
+        except sqlite3.DatabaseError as exc:
+            raise SessionError(f"{self.db_path}: cannot read ({exc})") from None
+
+    def _schema_problem(self) -> str | None:
+        """A one-line description of what is wrong with the schema, or None."""
+        version = self._conn.execute("PRAGMA user_version").fetchone()[0]
+        names = {
+            r[0] for r in self._conn.execute("SELECT name FROM sqlite_master WHERE type='table'")
+        }
+        if version == 0 and "meta" not in names:
+            return "not a stipi session database (no schema version, no meta table)"
+        if version != SCHEMA_VERSION:
+            return (
+                f"schema version {version} is not supported "
+                f"(this stipi-daemon reads version {SCHEMA_VERSION})"
+            )
+        if "meta" not in names:
+            return "table 'meta' is missing"
+        meta = dict(self._conn.execute("SELECT key, value FROM meta").fetchall())
+        if meta.get("format") != FORMAT_NAME:
+            return f"meta format is {meta.get('format')!r}, expected {FORMAT_NAME!r}"
+        if meta.get("schema_version") != str(SCHEMA_VERSION):
+            return (
+                f"meta schema_version {meta.get('schema_version')!r} disagrees with "
+                f"PRAGMA user_version {version}"
+            )
+        if "state" not in meta:
+            return "meta row 'state' is missing"
+        for table in TABLES:
+            if table.name not in names:
+                return f"table {table.name!r} is missing"
+            have = {r[1] for r in self._conn.execute(f"PRAGMA table_info({table.name})")}
+            missing = [c for c in table.column_names if c not in have]
+            if missing:
+                return f"table {table.name!r} lacks column(s) {', '.join(missing)}"
+        return None
+
+    def meta(self) -> dict[str, str]:
+        """The ``meta`` key/value rows as stored now."""
+        return dict(self._query("SELECT key, value FROM meta"))
+
+    @property
+    def status(self) -> SessionState:
+        """``complete``/``aborted``/``fault`` as finished, ``recording`` while a live writer
+        holds the lock, ``interrupted`` when the writer died before finishing."""
+        # Probe the lock before reading the state: a writer that finishes in between is
+        # then seen as finished, never as interrupted (writers never restart).
+        alive = writer_alive(self.lock_path)
+        stored = self.meta().get("state", "")
+        try:
+            state = SessionState(stored)
+        except ValueError:
+            raise SessionError(f"{self.db_path}: unknown session state {stored!r}") from None
+        if state is SessionState.RECORDING and not alive:
+            return SessionState.INTERRUPTED
+        return state
+
+    @property
+    def writer_owner(self) -> dict[str, Any] | None:
+        """pid, host and start time of the writer recorded in the lock file, if any."""
+        return read_owner(self.lock_path)
+
+    @contextmanager
+    def snapshot(self) -> Iterator[Self]:
+        """Read several tables from one consistent database state.
+
+        Inside the ``with`` block every query sees the same committed state, even while
+        a writer keeps committing.
+        """
+        try:
+            self._conn.execute("BEGIN")
+        except sqlite3.DatabaseError as exc:
+            raise SessionError(f"{self.db_path}: cannot read ({exc})") from None
+        try:
+            yield self
+        finally:
+            self._conn.execute("COMMIT")
+
+    def count(self, table: str | Table) -> int:
+        """Number of rows in ``table``."""
+        t = _resolve_table(table)
+        return int(self._query(f"SELECT count(*) FROM {t.name}")[0][0])
+
+    def counts(self) -> dict[str, int]:
+        """Number of rows of every table."""
+        return {t.name: self.count(t) for t in TABLES}
+
+    def iter_rows(self, table: str | Table, batch_size: int = 10_000) -> Iterator[tuple[Any, ...]]:
+        """Rows of ``table`` in insertion order, as stored (NULL is None)."""
+        t = _resolve_table(table)
+        try:
+            cursor = self._conn.execute(t.select_sql)
+            while batch := cursor.fetchmany(batch_size):
+                yield from batch
+        except sqlite3.DatabaseError as exc:
+            raise SessionError(f"{self.db_path}: cannot read table {t.name} ({exc})") from None
+
+    def array(self, table: str | Table) -> npt.NDArray[np.void]:
+        """Whole ``table`` as a structured array (NULL reals are NaN, text is ``object``)."""
+        t = _resolve_table(table)
+        return rows_to_array(t, list(self.iter_rows(t)))
+
+    def force_samples(self) -> npt.NDArray[np.void]:
+        """Fields ``sample_index, adc_counts, t_mcu_raw_us [us], t_mcu_us [us],
+        t_host_s [s], force_n [N]``."""
+        return self.array(FORCE_SAMPLES)
+
+    def frames(self) -> npt.NDArray[np.void]:
+        """Fields ``seq, t_capture_host_s [s], t_host_s [s], s_k [px], flags``."""
+        return self.array(FRAMES)
+
+    def gaps(self) -> npt.NDArray[np.void]:
+        """Fields ``stream, start_index, count, t_host_s [s], cause``."""
+        return self.array(GAPS)
+
+    def clock_probes(self) -> npt.NDArray[np.void]:
+        """Fields ``t_mcu_raw_us [us], t_mcu_us [us], t_host_s [s]``."""
+        return self.array(CLOCK_PROBES)
+
+    def live_parameters(self) -> npt.NDArray[np.void]:
+        """Fields ``t_host_s [s], name, value`` (long format, one row per name and time)."""
+        return self.array(LIVE_PARAMETERS)
+
+    def events(self) -> list[Event]:
+        """Events with their ``detail`` decoded."""
+        return [Event(t, kind, json.loads(detail)) for t, kind, detail in self.iter_rows(EVENTS)]
+
+    def transitions(self) -> list[Transition]:
+        """State-machine transitions in order."""
+        return [Transition(*row) for row in self.iter_rows(TRANSITIONS)]
+
+    def time_span_s(self) -> tuple[float, float] | None:
+        """First and last host time of the force samples and frames [s], or None if empty."""
+        rows = self._query(
+            "SELECT min(t), max(t) FROM (SELECT min(t_host_s) AS t FROM force_samples "
+            "UNION ALL SELECT max(t_host_s) FROM force_samples "
+            "UNION ALL SELECT min(t_host_s) FROM frames UNION ALL SELECT max(t_host_s) FROM frames)"
+        )
+        first, last = rows[0]
+        return None if first is None else (float(first), float(last))
+
+    def duration_s(self) -> float | None:
+        """Span of the recorded force samples and frames [s], or None if there are none."""
+        span = self.time_span_s()
+        return None if span is None else span[1] - span[0]
+
+    # ------------------------------------------------------------------ integrity
+    def integrity_check(self) -> IntegrityReport:
+        """Check the whole directory: manifest, database pages, schema, summary.
+
+        Runs SQLite's ``PRAGMA integrity_check`` (reads every page: proportional to the
+        file size), re-validates the manifest and the schema version, checks that the
+        manifest and the database belong to the same session, and that ``summary.json``
+        (if present) parses.
+        """
+        problems: list[str] = []
+        try:
+            manifest = layout.load_manifest(self.manifest_path)
+        except SessionError as exc:
+            problems.append(str(exc))
+            manifest = None
+        try:
+            messages = [str(r[0]) for r in self._conn.execute("PRAGMA integrity_check")]
+            if messages != ["ok"]:
+                shown = messages[:_MAX_INTEGRITY_MESSAGES]
+                more = len(messages) - len(shown)
+                problems.append(
+                    f"{self.db_path}: integrity_check failed: "
+                    + " | ".join(m.replace("\n", " ") for m in shown)
+                    + (f" (+{more} more)" if more else "")
+                )
+            schema = self._schema_problem()
+            if schema is not None:
+                problems.append(f"{self.db_path}: {schema}")
+            else:
+                meta_id = self.meta().get("session_id")
+                if manifest is not None and meta_id != manifest["session_id"]:
+                    problems.append(
+                        f"{self.manifest_path}: session_id {manifest['session_id']!r} differs "
+                        f"from the database's {meta_id!r}"
+                    )
+        except (sqlite3.DatabaseError, SessionError) as exc:
+            problems.append(f"{self.db_path}: not readable ({exc})")
+        try:
+            self.summary  # noqa: B018 - parse it
+        except SessionError as exc:
+            problems.append(str(exc))
+        return IntegrityReport(self.directory, tuple(problems))
+
+    # ------------------------------------------------------------------ lifetime
+    def close(self) -> None:
+        self._conn.close()
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        self.close()
+
+
+@dataclass(frozen=True)
+class SessionListing:
+    """One line of :func:`list_sessions`; ``error`` is set (and the rest may be None) for a
+    directory that cannot be read."""
+
+    session_id: str
+    directory: Path
+    created_utc: str | None = None
+    status: str = "error"
+    duration_s: float | None = None
+    n_frames: int | None = None
+    n_samples: int | None = None
+    severity: str | None = None
+    error: str | None = None
+
+
+def severity_of(summary: dict[str, Any] | None) -> str | None:
+    """The severity shown for a summary, or None.
+
+    ``summary["severity"]`` may be a string, or an object such as a serialised
+    :class:`~stipi_daemon.analysis.severity.SeverityResult`: its class (``severity``,
+    ``label`` or ``class``) and grade (``nearest_grade`` or ``grade``) are shown as
+    ``"severe (3+)"``.
+    """
+    if summary is None:
+        return None
+    value = summary.get("severity")
+    if isinstance(value, dict):
+        label = next((value[k] for k in ("severity", "label", "class") if k in value), None)
+        grade = next((value[k] for k in ("nearest_grade", "grade") if k in value), None)
+        if label is not None and grade is not None:
+            return f"{label} ({grade})"
+        return None if label is None and grade is None else str(label or grade)
+    return None if value is None else str(value)
+
+
+def _is_session_dir(path: Path) -> bool:
+    return path.is_dir() and any(
+        (path / name).exists() for name in (layout.MANIFEST_NAME, layout.DB_NAME, layout.LOCK_NAME)
+    )
+
+
+def list_sessions(root: Path | str) -> list[SessionListing]:
+    """Every session directory under ``root``, sorted by id; unreadable ones carry ``error``.
+
+    Raises
+    ------
+    SessionError
+        ``root`` does not exist or is not a directory.
+    """
+    root = Path(root)
+    if not root.is_dir():
+        raise SessionError(f"{root}: sessions directory does not exist")
+    out: list[SessionListing] = []
+    for directory in sorted(p for p in root.iterdir() if _is_session_dir(p)):
+        try:
+            with SessionReader(directory) as reader:
+                counts = reader.counts()
+                try:
+                    severity = severity_of(reader.summary)
+                except SessionError:
+                    severity = "(bad summary)"
+                out.append(
+                    SessionListing(
+                        session_id=reader.session_id,
+                        directory=directory,
+                        created_utc=str(reader.manifest["created_utc"]),
+                        status=reader.status.value,
+                        duration_s=reader.duration_s(),
+                        n_frames=counts[FRAMES.name],
+                        n_samples=counts[FORCE_SAMPLES.name],
+                        severity=severity,
+                    )
+                )
+        except SessionError as exc:
+            out.append(
+                SessionListing(session_id=directory.name, directory=directory, error=str(exc))
+            )
+    return out

@@ -1,0 +1,103 @@
+from __future__ import annotations
+
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from stipi_daemon.cli import main
+from stipi_daemon.storage import TABLES, SessionReader
+from tests.storage.conftest import write_full_session
+from tests.storage.test_export import assert_equal_to_reader, read_csv_table, read_parquet_table
+
+REPO_ROOT = Path(__file__).resolve().parents[2]
+
+
+@pytest.fixture
+def root(tmp_path: Path) -> Path:
+    root = tmp_path / "sessions"
+    write_full_session(root, "a-complete")
+    write_full_session(root, "b-interrupted", finish=None)
+    bad = write_full_session(root, "c-bad").directory
+    (bad / "session.sqlite").write_bytes(b"garbage" * 1000)
+    return root
+
+
+def test_list(root: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["sessions", "list", "--root", str(root)]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0].split() == [
+        "ID",
+        "CREATED",
+        "(UTC)",
+        "STATUS",
+        "DURATION",
+        "FRAMES",
+        "SAMPLES",
+        "SEVERITY",
+    ]
+    a = lines[1].split()
+    assert a[0] == "a-complete" and a[2:] == ["complete", "0.1", "s", "3", "6", "severe", "(3+)"]
+    assert lines[2].split()[2] == "interrupted"
+    assert lines[3].split()[:3] == ["c-bad", "-", "error"]
+    assert lines[4].startswith("c-bad: ") and "file is not a database" in lines[4]
+
+
+def test_list_empty_and_missing_root(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["sessions", "list", "--root", str(tmp_path)]) == 0
+    assert capsys.readouterr().out.strip() == f"no sessions in {tmp_path}"
+    assert main(["sessions", "list", "--root", str(tmp_path / "none")]) == 2
+    err = capsys.readouterr().err
+    assert err == f"stipi-daemon: error: {tmp_path / 'none'}: sessions directory does not exist\n"
+
+
+def test_show(root: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["sessions", "show", "a-complete", "--root", str(root)]) == 0
+    out = capsys.readouterr().out
+    assert "status     complete" in out
+    assert "integrity  ok" in out
+    assert "video      video.avi (reserved, not present)" in out
+    assert re.search(r"^  force_samples +6$", out, re.MULTILINE)
+    assert re.search(r"^  frames +3$", out, re.MULTILINE)
+    assert '"alpha1": 1.2e-09' in out  # manifest calibration
+    assert '"nearest_grade": "3+"' in out  # summary
+    assert main(["sessions", "show", str(root / "b-interrupted")]) == 0
+    out = capsys.readouterr().out
+    assert "status     interrupted" in out and "summary: none" in out
+
+
+def test_show_errors(root: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["sessions", "show", "c-bad", "--root", str(root)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "c-bad/session.sqlite: not a readable SQLite database" in err
+    assert main(["sessions", "show", "zzz", "--root", str(root)]) == 2
+    assert "no such session" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("fmt", ["csv", "parquet"])
+def test_export(root: Path, tmp_path: Path, fmt: str, capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "out"
+    args = ["sessions", "export", "a-complete", "--root", str(root), "--format", fmt]
+    assert main([*args, "--out", str(out)]) == 0
+    printed = capsys.readouterr().out.splitlines()
+    assert len(printed) == len(TABLES) + 2
+    read = read_csv_table if fmt == "csv" else read_parquet_table
+    with SessionReader(root / "a-complete") as reader:
+        for table in TABLES:
+            assert_equal_to_reader(reader, table, read(out / f"{table.name}.{fmt}", table))
+    assert main([*args, "--out", str(out)]) == 2
+    assert "exists already (use --force" in capsys.readouterr().err
+    assert main([*args, "--out", str(out), "--force"]) == 0
+
+
+def test_sessions_help_via_entry_point() -> None:
+    proc = subprocess.run(
+        [sys.executable, "-m", "stipi_daemon", "sessions", "--help"],
+        capture_output=True,
+        text=True,
+        cwd=REPO_ROOT,
+    )
+    assert proc.returncode == 0
+    assert "list" in proc.stdout and "export" in proc.stdout
