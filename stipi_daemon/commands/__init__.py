@@ -1,0 +1,27 @@
+"""Subcommands of ``stipi-daemon``.
+
+Each subcommand is one module here with a ``register(subparsers)`` function that adds its
+parser and sets ``handler`` (a function taking the parsed namespace and returning an exit
+status). :data:`COMMAND_MODULES` lists them in the order ``--help`` shows them.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+from typing import Protocol
+
+
+class _Registrar(Protocol):
+    def register(self, subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None: ...
+
+
+#: Modules (relative to this package) that provide a ``register`` function.
+COMMAND_MODULES: tuple[str, ...] = ("analyze", "calibrate", "sessions", "simulate")
+
+
+def register_all(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+    """Add every subcommand in :data:`COMMAND_MODULES` to ``subparsers``."""
+    for name in COMMAND_MODULES:
+        module: _Registrar = importlib.import_module(f"{__name__}.{name}")
+        module.register(subparsers)

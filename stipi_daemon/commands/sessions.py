@@ -1,0 +1,174 @@
+"""``stipi-daemon sessions``: list, show and export recorded sessions.
+
+Thin shell over :mod:`stipi_daemon.storage`: ``list`` prints one line per session under
+the root, ``show`` prints a session's manifest, summary, row counts and integrity, and
+``export`` writes its tables to CSV or Parquet. The default root is ``./sessions`` (the
+daemon's configuration may record elsewhere; pass ``--root`` then). A session ``ID`` may
+also be given as a path to its directory (anything containing a ``/``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from collections.abc import Sequence
+from pathlib import Path
+
+from stipi_daemon.errors import SessionError
+from stipi_daemon.storage import (
+    DEFAULT_ROOT,
+    EXPORT_FORMATS,
+    SessionReader,
+    export_session,
+    list_sessions,
+)
+
+
+def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+    parser = subparsers.add_parser(
+        "sessions",
+        help="list, show and export recorded sessions",
+        description="List, inspect and export recorded sessions (one directory each).",
+    )
+
+    def show_help(_args: argparse.Namespace) -> int:
+        parser.print_help()
+        return 0
+
+    parser.set_defaults(handler=show_help)
+    sub = parser.add_subparsers(title="subcommands", metavar="SUBCOMMAND")
+
+    def add_root(p: argparse.ArgumentParser) -> None:
+        p.add_argument(
+            "--root",
+            type=Path,
+            default=DEFAULT_ROOT,
+            help=f"directory holding the sessions (default: ./{DEFAULT_ROOT})",
+        )
+
+    p_list = sub.add_parser("list", help="one line per session: id, created, status, counts")
+    add_root(p_list)
+    p_list.set_defaults(handler=_cmd_list)
+
+    p_show = sub.add_parser("show", help="manifest, summary, row counts and integrity")
+    p_show.add_argument("session_id", metavar="ID", help="session id or directory path")
+    add_root(p_show)
+    p_show.set_defaults(handler=_cmd_show)
+
+    p_export = sub.add_parser("export", help="write every table to CSV or Parquet")
+    p_export.add_argument("session_id", metavar="ID", help="session id or directory path")
+    add_root(p_export)
+    p_export.add_argument("--format", choices=EXPORT_FORMATS, required=True, dest="fmt")
+    p_export.add_argument("--out", type=Path, required=True, help="output directory")
+    p_export.add_argument("--force", action="store_true", help="overwrite existing files")
+    p_export.set_defaults(handler=_cmd_export)
+
+
+def _session_dir(root: Path, session_id: str) -> Path:
+    if "/" in session_id:
+        return Path(session_id)
+    directory = root / session_id
+    if not directory.is_dir():
+        raise SessionError(f"{directory}: no such session (list them: stipi-daemon sessions list)")
+    return directory
+
+
+def _fmt_optional(value: object, fmt: str = "{}") -> str:
+    return "-" if value is None else fmt.format(value)
+
+
+def format_table(header: Sequence[str], rows: Sequence[Sequence[str]]) -> str:
+    """Left-aligned text table with two spaces between columns."""
+    widths = [max(len(str(x)) for x in col) for col in zip(header, *rows, strict=True)]
+    lines = [header, *rows]
+    return "\n".join(
+        "  ".join(str(cell).ljust(w) for cell, w in zip(line, widths, strict=True)).rstrip()
+        for line in lines
+    )
+
+
+def _cmd_list(args: argparse.Namespace) -> int:
+    listings = list_sessions(args.root)
+    if not listings:
+        print(f"no sessions in {args.root}")
+        return 0
+    rows = [
+        [
+            s.session_id,
+            s.created_utc or "-",
+            s.status,
+            _fmt_optional(s.duration_s, "{:.1f} s"),
+            _fmt_optional(s.n_frames),
+            _fmt_optional(s.n_samples),
+            s.severity or "-",
+        ]
+        for s in listings
+    ]
+    print(
+        format_table(
+            ["ID", "CREATED (UTC)", "STATUS", "DURATION", "FRAMES", "SAMPLES", "SEVERITY"], rows
+        )
+    )
+    for s in listings:
+        if s.error is not None:
+            print(f"{s.session_id}: {s.error}")
+    return 0
+
+
+def _cmd_show(args: argparse.Namespace) -> int:
+    with SessionReader(_session_dir(args.root, args.session_id)) as reader:
+        status = reader.status
+        meta = reader.meta()
+        counts = reader.counts()
+        report = reader.integrity_check()
+        video = reader.video_path
+        if video is None:
+            video_text = "none"
+        elif video.exists():
+            video_text = f"{video.name} ({video.stat().st_size} B)"
+        else:
+            video_text = f"{video.name} (reserved, not present)"
+        facts = [
+            ("session", reader.session_id),
+            ("directory", str(reader.directory)),
+            ("status", status.value),
+            ("created", str(reader.manifest["created_utc"])),
+            ("finished", meta.get("finished_utc", "-")),
+            ("duration", _fmt_optional(reader.duration_s(), "{:.3f} s")),
+            ("video", video_text),
+            ("integrity", "ok" if report.ok else "FAILED: " + "; ".join(report.problems)),
+        ]
+        if status.value == "recording" and reader.writer_owner is not None:
+            facts.append(("writer", json.dumps(reader.writer_owner)))
+        width = max(len(k) for k, _ in facts)
+        for key, value in facts:
+            print(f"{key.ljust(width)}  {value}")
+        print("rows:")
+        name_width = max(len(name) for name in counts)
+        for name, n in counts.items():
+            print(f"  {name.ljust(name_width)}  {n:>9}")
+        print("manifest:")
+        print(_indent(json.dumps(reader.manifest, indent=2)))
+        try:
+            summary = reader.summary
+        except SessionError as exc:
+            print(f"summary: unreadable: {exc}")
+            return 1
+        if summary is None:
+            print("summary: none")
+        else:
+            print("summary:")
+            print(_indent(json.dumps(summary, indent=2)))
+        return 0 if report.ok else 1
+
+
+def _indent(text: str) -> str:
+    return "\n".join("  " + line for line in text.splitlines())
+
+
+def _cmd_export(args: argparse.Namespace) -> int:
+    with SessionReader(_session_dir(args.root, args.session_id)) as reader:
+        written = export_session(reader, args.out, args.fmt, overwrite=args.force)
+    for path in written:
+        print(path)
+    return 0
