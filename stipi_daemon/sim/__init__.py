@@ -1,0 +1,52 @@
+"""Scene simulator: a simulated STIP-I measurement that is a real backend for the daemon.
+
+A scene file (``configs/scenes/*.yaml``) describes tissue, indenter, force profile, probe,
+camera, load cell and a list of effects. The package turns it into frames, load-cell
+samples and a ground truth: :mod:`.scene` (typed scene files), :mod:`.physics` (closed-form
+mechanics), :mod:`.render` (frames), :mod:`.loadcell` (ADC), :mod:`.pipeline` (streams and
+effects), :mod:`.truth` (ground truth), :mod:`.output` (files), :mod:`.effects` (one
+module per effect, imported only when a scene lists it). Runtime code outside ``sim``
+must not depend on it. See docs/simulator.md.
+"""
+
+from __future__ import annotations
+
+from stipi_daemon.sim.loadcell import LoadCellModel
+from stipi_daemon.sim.output import OutputPaths, write_outputs
+from stipi_daemon.sim.physics import SceneModel, scaled_calibration
+from stipi_daemon.sim.pipeline import (
+    ForceBatch,
+    ForceSample,
+    Pipeline,
+    SimFrame,
+    force_samples,
+    frame_count,
+    iter_force_samples,
+    iter_frames,
+)
+from stipi_daemon.sim.render import Renderer, render_frame
+from stipi_daemon.sim.scene import Scene, load_scene, parse_scene
+from stipi_daemon.sim.truth import GroundTruth, ground_truth
+
+__all__ = [
+    "ForceBatch",
+    "ForceSample",
+    "GroundTruth",
+    "LoadCellModel",
+    "OutputPaths",
+    "Pipeline",
+    "Renderer",
+    "Scene",
+    "SceneModel",
+    "SimFrame",
+    "force_samples",
+    "frame_count",
+    "ground_truth",
+    "iter_force_samples",
+    "iter_frames",
+    "load_scene",
+    "parse_scene",
+    "render_frame",
+    "scaled_calibration",
+    "write_outputs",
+]

@@ -1,0 +1,277 @@
+"""The simulator's streams: frames with timestamps and load-cell samples, with effects.
+
+This module owns the schedule of frames (k / fps) and samples (i / rate on the MCU's
+clock), the seeding (one ``SeedSequence`` per scene seed, one child per effect and
+stream, so that frames and samples are reproducible and independent of each other) and
+the application of the scene's effects in registry order. A scene without effects builds
+an empty effect list and runs no effect code. It does not write files (:mod:`.output`).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterator
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from stipi_daemon.sim.effects import EFFECT_MODULES, effect_module
+from stipi_daemon.sim.effects.base import (
+    EffectContext,
+    ForceEffect,
+    FrameDropEffect,
+    FrameEffect,
+    RenderEffect,
+    SampleClockEffect,
+)
+from stipi_daemon.sim.loadcell import LoadCellModel
+from stipi_daemon.sim.physics import SceneModel
+from stipi_daemon.sim.render import Renderer
+from stipi_daemon.sim.scene import Scene
+
+__all__ = [
+    "ForceBatch",
+    "ForceSample",
+    "Pipeline",
+    "SimFrame",
+    "force_samples",
+    "frame_count",
+    "iter_force_samples",
+    "iter_frames",
+]
+
+
+@dataclass(frozen=True)
+class SimFrame:
+    """One frame: its camera index, timestamp [s], image and the true S at that time [px]."""
+
+    index: int
+    t_s: float
+    image: NDArray[np.uint8]
+    true_area_px: float
+
+
+@dataclass(frozen=True)
+class ForceSample:
+    """One load-cell sample.
+
+    Attributes
+    ----------
+    index : int
+        Sample counter since boot (gaps: lost samples).
+    t_mcu_us : int
+        MCU clock when the sample was taken, 64-bit, unwrapped [us].
+    t_true_s : float
+        True time of the sample on the scene's clock [s].
+    adc_counts : int
+        Raw ADC code.
+    force_n : float
+        The host's conversion of ``adc_counts`` (nominal zero and span) [N].
+    true_force_n : float
+        The model's force at ``t_true_s`` before effects and quantisation [N].
+    """
+
+    index: int
+    t_mcu_us: int
+    t_true_s: float
+    adc_counts: int
+    force_n: float
+    true_force_n: float
+
+
+@dataclass(frozen=True)
+class ForceBatch:
+    """All delivered samples of a scene as arrays (fields as :class:`ForceSample`)."""
+
+    index: NDArray[np.int64]
+    t_mcu_us: NDArray[np.int64]
+    t_true_s: NDArray[np.float64]
+    adc_counts: NDArray[np.int64]
+    force_n: NDArray[np.float64]
+    true_force_n: NDArray[np.float64]
+
+    def __len__(self) -> int:
+        return int(self.index.size)
+
+    def samples(self) -> Iterator[ForceSample]:
+        """The samples one by one."""
+        for i in range(self.index.size):
+            yield ForceSample(
+                index=int(self.index[i]),
+                t_mcu_us=int(self.t_mcu_us[i]),
+                t_true_s=float(self.t_true_s[i]),
+                adc_counts=int(self.adc_counts[i]),
+                force_n=float(self.force_n[i]),
+                true_force_n=float(self.true_force_n[i]),
+            )
+
+
+def frame_count(scene: Scene) -> int:
+    """Number of frames: every k / fps in [0, duration] [-]."""
+    return math.floor(scene.force_profile.duration_s * scene.camera.fps + 1e-9) + 1
+
+
+class Pipeline:
+    """A scene's renderer, physics and instantiated effects, seeded.
+
+    Parameters
+    ----------
+    scene : Scene
+        The scene.
+    seed : int, optional
+        Random seed (default: the scene's ``seed``).
+    renderer : Renderer, optional
+        Reuse an existing renderer of the same scene.
+    """
+
+    def __init__(self, scene: Scene, seed: int | None = None, renderer: Renderer | None = None):
+        self.scene = scene
+        self.seed = scene.seed if seed is None else seed
+        self.renderer = renderer if renderer is not None else Renderer(scene)
+        self.model: SceneModel = self.renderer.model
+        self.load_cell = LoadCellModel(scene.load_cell)
+        ctx = EffectContext(
+            width_px=scene.camera.width,
+            height_px=scene.camera.height,
+            fps=scene.camera.fps,
+            exposure_s=scene.camera.exposure_s,
+            threshold=scene.probe.threshold,
+            sample_rate_hz=scene.load_cell.sample_rate_hz,
+            range_n=scene.load_cell.range_n,
+            px_per_mm=self.renderer.px_per_mm,
+        )
+        order = list(EFFECT_MODULES)
+        params = sorted(scene.effects, key=lambda p: order.index(p.name))
+        #: Instantiated effects, in order of application (empty for a clean scene).
+        self.effects: list[object] = [effect_module(p.name).Effect(p, ctx) for p in params]
+        children = np.random.SeedSequence(self.seed).spawn(len(self.effects))
+        self._seeds = [c.spawn(2) for c in children]
+
+    def _of(self, kind: type[Any], stream: int) -> list[tuple[Any, np.random.SeedSequence]]:
+        return [
+            (e, s[stream])
+            for e, s in zip(self.effects, self._seeds, strict=True)
+            if isinstance(e, kind)
+        ]
+
+    def frames(self, start_s: float = 0.0, end_s: float | None = None) -> Iterator[SimFrame]:
+        """Frames with k / fps in [start_s, end_s] (default: the whole scene).
+
+        A frame's image does not depend on the window: random effects draw per frame from
+        generators seeded by (seed, effect, frame index).
+        """
+        fps = self.scene.camera.fps
+        n = frame_count(self.scene)
+        k0 = max(0, math.ceil(start_s * fps - 1e-9))
+        k1 = n - 1 if end_s is None else min(n - 1, math.floor(end_s * fps + 1e-9))
+        render_fx: list[tuple[RenderEffect, np.random.SeedSequence]] = self._of(RenderEffect, 0)
+        frame_fx: list[tuple[FrameEffect, np.random.SeedSequence]] = self._of(FrameEffect, 0)
+        drop_fx: list[tuple[FrameDropEffect, np.random.SeedSequence]] = self._of(FrameDropEffect, 0)
+        model, renderer = self.model, self.renderer
+        if not (render_fx or frame_fx or drop_fx):
+            times = np.arange(k0, k1 + 1, dtype=np.float64) / fps
+            areas = model.occluded_area_px(times)
+            for j, k in enumerate(range(k0, k1 + 1)):
+                s = float(areas[j])
+                yield SimFrame(k, float(times[j]), renderer.render_area(s), s)
+            return
+        for k in range(k0, k1 + 1):
+            t = k / fps
+            rngs: dict[int, np.random.Generator] = {}
+            for group in (render_fx, frame_fx, drop_fx):
+                for e, ss in group:
+                    rngs[id(e)] = _frame_rng(ss, k)
+            if any(not e.keep(k, t, rngs[id(e)]) for e, _ in drop_fx):
+                continue
+            s = float(model.occluded_area_px(np.asarray([t]))[0])
+            image = self._render(t, render_fx, rngs)
+            for e, _ in frame_fx:
+                image = e.apply_frame(image, t, rngs[id(e)])
+            yield SimFrame(k, t, image, s)
+
+    def _render(
+        self,
+        t: float,
+        render_fx: list[tuple[RenderEffect, np.random.SeedSequence]],
+        rngs: dict[int, np.random.Generator],
+    ) -> NDArray[np.uint8]:
+        if not render_fx:
+            return self.renderer.render(t)
+        sub_times: tuple[float, ...] = (t,)
+        for e, _ in render_fx:
+            st = e.sub_times_s(t)
+            if len(st) > 1:
+                sub_times = st
+        acc: NDArray[np.float64] | None = None
+        for ts in sub_times:
+            dx, dy = 0.0, 0.0
+            for e, _ in render_fx:
+                ox, oy = e.offset_px(ts, rngs[id(e)])
+                dx, dy = dx + ox, dy + oy
+            img = self.renderer.render(ts, (dx, dy))
+            if len(sub_times) == 1:
+                return img
+            acc = img.astype(np.float64) if acc is None else acc + img
+        assert acc is not None
+        out: NDArray[np.uint8] = np.clip(np.rint(acc / len(sub_times)), 0, 255).astype(np.uint8)
+        return out
+
+    def force_batch(self) -> ForceBatch:
+        """All load-cell samples the host receives, as arrays."""
+        spec = self.scene.load_cell
+        n = math.floor(self.scene.force_profile.duration_s * spec.sample_rate_hz + 1e-9) + 1
+        index = np.arange(n, dtype=np.int64)
+        t_nominal = index / spec.sample_rate_hz
+        t_true = t_nominal
+        delivered = np.ones(n, dtype=np.bool_)
+        clock_fx: list[tuple[SampleClockEffect, np.random.SeedSequence]] = self._of(
+            SampleClockEffect, 1
+        )
+        for ce, ss in clock_fx:
+            g = np.random.default_rng(ss)
+            t_true = ce.true_time_s(t_true, g)
+            delivered &= ce.delivered(index, g)
+        true_force = self.model.force_n(t_true)
+        force = true_force
+        force_fx: list[tuple[ForceEffect, np.random.Generator]] = [
+            (fe, np.random.default_rng(ss)) for fe, ss in self._of(ForceEffect, 1)
+        ]
+        for fe, fg in force_fx:
+            force = fe.apply_force(t_true, force, fg)
+        counts = self.load_cell.counts(force)
+        for fe, fg in force_fx:
+            counts = fe.apply_counts(counts, fg)
+        t_mcu = spec.mcu_boot_offset_us + np.rint(t_nominal * 1e6).astype(np.int64)
+        return ForceBatch(
+            index=index[delivered],
+            t_mcu_us=t_mcu[delivered],
+            t_true_s=t_true[delivered],
+            adc_counts=counts[delivered],
+            force_n=self.load_cell.force_n(counts[delivered]),
+            true_force_n=true_force[delivered],
+        )
+
+
+def _frame_rng(ss: np.random.SeedSequence, k: int) -> np.random.Generator:
+    # A per-frame generator derived from the effect's seed and the frame index, so a
+    # frame's noise does not depend on which frames were rendered before it.
+    return np.random.default_rng(np.random.SeedSequence(ss.entropy, spawn_key=(*ss.spawn_key, k)))
+
+
+def iter_frames(
+    scene: Scene, seed: int | None = None, *, start_s: float = 0.0, end_s: float | None = None
+) -> Iterator[SimFrame]:
+    """Frames of ``scene`` with timestamps, effects applied, deterministic for ``seed``."""
+    return Pipeline(scene, seed).frames(start_s, end_s)
+
+
+def force_samples(scene: Scene, seed: int | None = None) -> ForceBatch:
+    """All delivered load-cell samples of ``scene`` as arrays."""
+    return Pipeline(scene, seed).force_batch()
+
+
+def iter_force_samples(scene: Scene, seed: int | None = None) -> Iterator[ForceSample]:
+    """Load-cell samples of ``scene`` one by one."""
+    return force_samples(scene, seed).samples()
