@@ -16,7 +16,7 @@ DEMO = REPO_ROOT / "configs" / "demo.yaml"
 def test_demo_config_loads_and_resolves_paths() -> None:
     cfg = load_config(DEMO)
     assert cfg.source.kind == "simulator"
-    assert cfg.source.scene == (REPO_ROOT / "configs" / "scenes" / "grade3.yaml").resolve()
+    assert cfg.source.scene == (REPO_ROOT / "configs" / "scenes" / "demo_grade3.yaml").resolve()
     assert cfg.source.scene.is_file()
     assert cfg.storage.root.is_absolute()
     assert cfg.measurement.target_force_n == 16.0

@@ -16,7 +16,7 @@ from tests.conftest import REPO_ROOT
 
 def test_demo_config_runs_a_whole_measurement(tmp_path: Path) -> None:
     cfg = yaml.safe_load((REPO_ROOT / "configs" / "demo.yaml").read_text())
-    cfg["source"]["scene"] = str(REPO_ROOT / "configs" / "scenes" / "grade3.yaml")
+    cfg["source"]["scene"] = str(REPO_ROOT / "configs" / "scenes" / "demo_grade3.yaml")
     cfg["storage"]["root"] = str(tmp_path / "sessions")
     path = tmp_path / "demo.yaml"
     path.write_text(yaml.safe_dump(cfg))

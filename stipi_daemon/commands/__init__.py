@@ -17,7 +17,13 @@ class _Registrar(Protocol):
 
 
 #: Modules (relative to this package) that provide a ``register`` function.
-COMMAND_MODULES: tuple[str, ...] = ("analyze", "calibrate", "sessions", "simulate")
+COMMAND_MODULES: tuple[str, ...] = (
+    "analyze",
+    "calibrate",
+    "mock_peripheral",
+    "sessions",
+    "simulate",
+)
 
 
 def register_all(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:

@@ -33,7 +33,7 @@ def _series(tau_s: float, depth_mm: float, f_inf_n: float, fps: float = 60.0, t0
 
 
 def test_recovers_known_parameters() -> None:
-    t, s, _, s_inf = _series(tau_s=7.5, depth_mm=3.0, f_inf_n=6.5)
+    t, s, _, _ = _series(tau_s=7.5, depth_mm=3.0, f_inf_n=6.5)
     settings = AnalysisSettings(indenter_radius_mm=7.5)
     res = analyze_recovery(t, s, 15.0, CAL, 16.0, settings, load_reference())
     assert res.pitting.depth_mm == pytest.approx(3.0, rel=1e-6)

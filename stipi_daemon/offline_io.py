@@ -1,0 +1,520 @@
+"""Reading recorded measurements from disk for the offline commands (``analyze``, ``calibrate``).
+
+This module owns the file side of offline analysis: numeric CSV files (sample series,
+calibration pairs) with errors naming file, line and column; videos decoded with OpenCV
+and counted into S_k (Eqs. 1-2) with :class:`~stipi_daemon.analysis.imaging.FrameProcessor`;
+a stored session's frames, force samples and arm time read through
+:class:`~stipi_daemon.storage.SessionReader`; a simulator's ``ground_truth.json``. It turns
+them into :class:`~stipi_daemon.offline.Recording` values and does no analysis itself
+(:mod:`stipi_daemon.offline`).
+
+CSV conventions: a header row of column names (units in the names), comma separated,
+lines starting with ``#`` and blank lines ignored, extra columns ignored. Numbers in any
+form Python's ``float`` reads; an empty field is a missing value (NaN) only where a column
+allows it (a force sample lost by the probe).
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from stipi_daemon.analysis.flags import Flag
+from stipi_daemon.analysis.imaging import CircleROI, FrameProcessor, RectROI
+from stipi_daemon.errors import DataFileError
+from stipi_daemon.measurement.state_machine import (
+    CameraRecovered,
+    CameraStalled,
+    Event,
+    LinkLost,
+    LinkRestored,
+)
+from stipi_daemon.offline import Recording
+from stipi_daemon.storage import SessionReader, SessionState
+
+__all__ = [
+    "FORCE_TIME_COLUMNS",
+    "FRAME_TIME_COLUMNS",
+    "CsvTable",
+    "SessionData",
+    "VideoCount",
+    "count_video",
+    "load_ground_truth",
+    "match_frame_times",
+    "parse_roi",
+    "read_csv_table",
+    "read_force_csv",
+    "read_frame_times_csv",
+    "read_session",
+]
+
+FloatArray = npt.NDArray[np.float64]
+
+#: Accepted time columns of a frame-times CSV, in order of preference: the simulator's
+#: ``frames.csv`` (``t_s``), a session export's ``frames.csv`` (capture time first).
+FRAME_TIME_COLUMNS: tuple[str, ...] = ("t_s", "t_capture_host_s", "t_host_s")
+#: Accepted time columns of a force CSV: plain ``t_s``, the simulator's ``force.csv``
+#: (``t_true_s``), a session export's ``force_samples.csv`` (``t_host_s``).
+FORCE_TIME_COLUMNS: tuple[str, ...] = ("t_s", "t_true_s", "t_host_s")
+
+
+# --------------------------------------------------------------------------------------------
+# CSV
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class CsvTable:
+    """Numeric columns read from a CSV file.
+
+    Attributes
+    ----------
+    path : Path
+        The file.
+    columns : dict of str to numpy.ndarray
+        Requested columns (key: the name as found in the file), float64.
+    lines : numpy.ndarray
+        1-based file line of every row (for messages about a row).
+    """
+
+    path: Path
+    columns: dict[str, FloatArray]
+    lines: npt.NDArray[np.int64]
+
+    def __len__(self) -> int:
+        return int(self.lines.size)
+
+
+def read_csv_table(
+    path: str | Path,
+    required: Sequence[str | Sequence[str]],
+    *,
+    optional: Sequence[str] = (),
+    nullable: Sequence[str] = (),
+) -> CsvTable:
+    """Read numeric columns of a CSV file.
+
+    Parameters
+    ----------
+    path : str or Path
+        The CSV file.
+    required : sequence of str or of alternatives
+        Columns that must be present. An entry that is a sequence of names is satisfied by
+        the first of them present in the header.
+    optional : sequence of str
+        Columns read when present.
+    nullable : sequence of str
+        Columns where an empty field is allowed (read as NaN).
+
+    Returns
+    -------
+    CsvTable
+
+    Raises
+    ------
+    DataFileError
+        The file is missing or unreadable, has no header, lacks a required column (named,
+        with the header's line), has a row with too few fields or a value that is not a
+        number (file, line and column named), or holds no data row.
+    """
+    p = Path(path)
+    try:
+        text = p.read_text(encoding="utf-8-sig")
+    except FileNotFoundError:
+        raise DataFileError(f"{p}: no such file") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise DataFileError(f"{p}: cannot read: {exc}") from None
+    rows = [
+        (n, row)
+        for n, row in enumerate(csv.reader(text.splitlines()), start=1)
+        if row and any(c.strip() for c in row) and not row[0].lstrip().startswith("#")
+    ]
+    if not rows:
+        raise DataFileError(f"{p}: empty file (expected a header row of column names)")
+    header_line, header = rows[0]
+    names = [h.strip() for h in header]
+    chosen: list[str] = []
+    for entry in required:
+        alternatives = (entry,) if isinstance(entry, str) else tuple(entry)
+        found = next((a for a in alternatives if a in names), None)
+        if found is None:
+            want = " or ".join(f"'{a}'" for a in alternatives)
+            raise DataFileError(
+                f"{p}: line {header_line}: missing column {want} (header has: {', '.join(names)})"
+            )
+        chosen.append(found)
+    chosen.extend(o for o in optional if o in names and o not in chosen)
+    index = {name: names.index(name) for name in chosen}
+    values: dict[str, list[float]] = {name: [] for name in chosen}
+    lines: list[int] = []
+    for n, row in rows[1:]:
+        for name, i in index.items():
+            if i >= len(row):
+                raise DataFileError(
+                    f"{p}: line {n}: {len(row)} fields, column '{name}' (field {i + 1}) missing"
+                )
+            field = row[i].strip()
+            if field == "" and name in nullable:
+                values[name].append(math.nan)
+                continue
+            try:
+                v = float(field)
+            except ValueError:
+                raise DataFileError(
+                    f"{p}: line {n}: column '{name}': {field!r} is not a number"
+                ) from None
+            if math.isinf(v) or (math.isnan(v) and name not in nullable):
+                raise DataFileError(f"{p}: line {n}: column '{name}': {field!r} is not finite")
+            values[name].append(v)
+        lines.append(n)
+    if not lines:
+        raise DataFileError(f"{p}: no data rows after the header (line {header_line})")
+    return CsvTable(
+        path=p,
+        columns={k: np.asarray(v, dtype=np.float64) for k, v in values.items()},
+        lines=np.asarray(lines, dtype=np.int64),
+    )
+
+
+def _check_increasing(table: CsvTable, column: str) -> None:
+    t = table.columns[column]
+    bad = np.flatnonzero(np.diff(t) <= 0.0)
+    if bad.size:
+        i = int(bad[0]) + 1
+        raise DataFileError(
+            f"{table.path}: line {int(table.lines[i])}: column '{column}': time {float(t[i])!r} "
+            f"does not increase (previous row: {float(t[i - 1])!r})"
+        )
+
+
+def read_force_csv(path: str | Path) -> tuple[FloatArray, FloatArray, str]:
+    """Force samples: times [s], forces [N] (NaN where empty) and the time column used.
+
+    Accepts a time column from :data:`FORCE_TIME_COLUMNS` and ``force_n``; times must
+    increase strictly.
+    """
+    table = read_csv_table(path, [FORCE_TIME_COLUMNS, "force_n"], nullable=["force_n"])
+    time_col = next(c for c in FORCE_TIME_COLUMNS if c in table.columns)
+    _check_increasing(table, time_col)
+    return table.columns[time_col], table.columns["force_n"], time_col
+
+
+def read_frame_times_csv(path: str | Path) -> tuple[FloatArray, str]:
+    """Frame times [s] in video order and the column used (:data:`FRAME_TIME_COLUMNS`)."""
+    table = read_csv_table(path, [FRAME_TIME_COLUMNS])
+    time_col = next(c for c in FRAME_TIME_COLUMNS if c in table.columns)
+    _check_increasing(table, time_col)
+    return table.columns[time_col], time_col
+
+
+# --------------------------------------------------------------------------------------------
+# ROI, video
+# --------------------------------------------------------------------------------------------
+
+
+def parse_roi(text: str) -> CircleROI | RectROI | None:
+    """Parse an ROI given on the command line.
+
+    Forms: ``circle:CX,CY,R`` (centre and radius [px]), ``rect:X,Y,W,H`` (top-left corner,
+    width and height [px]), ``full`` (the whole frame, None).
+
+    Raises
+    ------
+    DataFileError
+        The text is not one of these forms.
+    """
+    t = text.strip()
+    if t == "full":
+        return None
+    kind, _, rest = t.partition(":")
+    parts = [x.strip() for x in rest.split(",")] if rest else []
+    try:
+        if kind == "circle" and len(parts) == 3:
+            cx, cy, r = (float(x) for x in parts)
+            return CircleROI(kind="circle", cx_px=cx, cy_px=cy, radius_px=r)
+        if kind == "rect" and len(parts) == 4:
+            x, y, w, h = (int(x) for x in parts)
+            return RectROI(kind="rect", x_px=x, y_px=y, width_px=w, height_px=h)
+    except ValueError as exc:
+        first = str(exc).splitlines()
+        detail = first[-1].strip() if first else str(exc)
+        raise DataFileError(f"--roi {text!r}: {detail}") from None
+    raise DataFileError(f"--roi {text!r}: expected circle:CX,CY,R or rect:X,Y,W,H (pixels) or full")
+
+
+@dataclass(frozen=True)
+class VideoCount:
+    """S_k of every decoded frame of a video.
+
+    Attributes
+    ----------
+    path : Path
+        The video.
+    s_k_px : numpy.ndarray
+        S_k per frame, Eq. (2) [px].
+    flags : tuple of frozenset of Flag
+        Quality flags per frame (saturated frame, ROI clipped or empty).
+    fps : float
+        Frame rate the container declares [1/s] (0 when unknown).
+    frame_shape : tuple of int
+        Decoded frame shape.
+    threshold_p : int
+        Threshold used [8-bit intensity].
+    roi : CircleROI or RectROI or None
+        ROI used.
+    """
+
+    path: Path
+    s_k_px: FloatArray
+    flags: tuple[frozenset[Flag], ...]
+    fps: float
+    frame_shape: tuple[int, ...]
+    threshold_p: int
+    roi: CircleROI | RectROI | None
+
+    @property
+    def saturated_frames(self) -> int:
+        """Number of frames flagged saturated."""
+        return sum(1 for f in self.flags if Flag.SATURATED_FRAME in f)
+
+
+def count_video(
+    path: str | Path,
+    threshold_p: int,
+    roi: CircleROI | RectROI | None,
+    *,
+    saturation_limit_fraction: float = 0.01,
+    max_frames: int | None = None,
+) -> VideoCount:
+    """Decode a video with OpenCV and count S_k on every frame (Eqs. 1-2).
+
+    Frames are decoded as 8-bit BGR and converted to gray inside the ROI by
+    :class:`~stipi_daemon.analysis.imaging.FrameProcessor`.
+
+    Raises
+    ------
+    DataFileError
+        The file is missing, OpenCV cannot open it, it holds no decodable frame, or a
+        frame's size differs from the first one's (frame number named).
+    AnalysisError
+        Bad threshold or frame layout (from the frame processor).
+    """
+    import cv2
+
+    p = Path(path)
+    if not p.is_file():
+        raise DataFileError(f"{p}: no such video file")
+    cap = cv2.VideoCapture(str(p))
+    try:
+        if not cap.isOpened():
+            raise DataFileError(f"{p}: OpenCV cannot open this video (unsupported or corrupt)")
+        fps = float(cap.get(cv2.CAP_PROP_FPS) or 0.0)
+        processor: FrameProcessor | None = None
+        counts: list[int] = []
+        flags: list[frozenset[Flag]] = []
+        while max_frames is None or len(counts) < max_frames:
+            ok, frame = cap.read()
+            if not ok or frame is None:
+                break
+            if processor is None:
+                processor = FrameProcessor(
+                    frame.shape,
+                    threshold_p,
+                    roi,
+                    saturation_limit_fraction=saturation_limit_fraction,
+                )
+            elif frame.shape != processor.frame_shape:
+                raise DataFileError(
+                    f"{p}: frame {len(counts)} has shape {frame.shape}, the first frame "
+                    f"{processor.frame_shape}"
+                )
+            m = processor.measure(frame)
+            counts.append(m.s_k_px)
+            flags.append(m.flags)
+    finally:
+        cap.release()
+    if processor is None:
+        raise DataFileError(f"{p}: the video holds no decodable frame")
+    return VideoCount(
+        path=p,
+        s_k_px=np.asarray(counts, dtype=np.float64),
+        flags=tuple(flags),
+        fps=fps if math.isfinite(fps) and fps > 0.0 else 0.0,
+        frame_shape=tuple(processor.frame_shape),
+        threshold_p=processor.p,
+        roi=roi,
+    )
+
+
+def match_frame_times(
+    video: VideoCount, times_s: FloatArray | None, source: str
+) -> tuple[FloatArray, FloatArray, list[str]]:
+    """Pair a video's S_k with frame times; returns times, S_k and notes.
+
+    Without times, frame k is at ``k / fps``. With more times than frames (a video cut
+    short) the first ones are used; with fewer, :class:`DataFileError`.
+    """
+    n = video.s_k_px.size
+    notes: list[str] = []
+    if times_s is None:
+        if video.fps <= 0.0:
+            raise DataFileError(
+                f"{video.path}: the video declares no frame rate; give --frame-times FILE.csv"
+            )
+        notes.append(
+            f"frame times from the video's frame rate ({video.fps:g} fps), starting at 0 s: "
+            "give --frame-times for the recorded capture times"
+        )
+        return np.arange(n, dtype=np.float64) / video.fps, video.s_k_px, notes
+    if times_s.size < n:
+        raise DataFileError(
+            f"{source}: {times_s.size} frame times but the video {video.path.name} has {n} frames"
+        )
+    if times_s.size > n:
+        notes.append(
+            f"{source} lists {times_s.size} frames, the video {video.path.name} decodes {n}: "
+            f"the last {times_s.size - n} frame(s) are missing from the video (cut short?)"
+        )
+    return times_s[:n], video.s_k_px, notes
+
+
+# --------------------------------------------------------------------------------------------
+# Sessions, ground truth
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class SessionData:
+    """What a stored session holds for offline analysis.
+
+    Attributes
+    ----------
+    directory : Path
+        The session directory.
+    session_id : str
+    status : SessionState
+        ``complete``, ``fault``, ``aborted``, ``interrupted`` or ``recording``.
+    manifest : dict
+        ``manifest.json``.
+    summary : dict or None
+        ``summary.json`` if it was written.
+    frame_times_s, s_k_px : numpy.ndarray
+        Frame capture times [s] and stored S_k [px], in storage order.
+    force_times_s, force_n : numpy.ndarray
+        Force sample times [s] and forces [N] (NaN where NULL).
+    t_arm_s : float or None
+        Time of the ``idle -> armed`` transition, if recorded.
+    link_events : tuple of Event
+        The watchdog events the daemon recorded (``link_down``, ``link_up``,
+        ``camera_stalled``, ``camera_recovered``) as state-machine events.
+    video_path : Path or None
+        The session's video if the file exists.
+    """
+
+    directory: Path
+    session_id: str
+    status: SessionState
+    manifest: dict[str, Any]
+    summary: dict[str, Any] | None
+    frame_times_s: FloatArray
+    s_k_px: FloatArray
+    force_times_s: FloatArray
+    force_n: FloatArray
+    t_arm_s: float | None
+    video_path: Path | None
+    link_events: tuple[Event, ...] = ()
+
+    def recording(self, s_k_px: FloatArray | None = None) -> Recording:
+        """The session's samples as a :class:`Recording` (optionally with new S_k)."""
+        return Recording(
+            frame_times_s=self.frame_times_s,
+            s_k_px=self.s_k_px if s_k_px is None else s_k_px,
+            force_times_s=self.force_times_s,
+            force_n=self.force_n,
+            t_arm_s=self.t_arm_s,
+            link_events=self.link_events,
+        )
+
+
+def read_session(directory: str | Path) -> SessionData:
+    """Read a session's samples, arm time, manifest and summary (one database snapshot).
+
+    Frames are timed by their capture time (``t_capture_host_s``), the time the live
+    shell feeds the pipeline. The arm time is the first ``idle -> armed`` transition.
+
+    Raises
+    ------
+    SessionError
+        The directory is not a readable session (see :class:`SessionReader`).
+    """
+    with SessionReader(directory) as reader:
+        status = reader.status
+        with reader.snapshot():
+            frames = reader.frames()
+            force = reader.force_samples()
+            transitions = reader.transitions()
+            events = reader.events()
+        summary = reader.summary
+        video = reader.video_path
+        manifest = reader.manifest
+        session_id = reader.session_id
+        path = reader.directory
+    watchdog: dict[str, type[LinkLost | LinkRestored | CameraStalled | CameraRecovered]] = {
+        "link_down": LinkLost,
+        "link_up": LinkRestored,
+        "camera_stalled": CameraStalled,
+        "camera_recovered": CameraRecovered,
+    }
+    link_events: tuple[Event, ...] = tuple(
+        watchdog[e.kind](float(e.t_host_s)) for e in events if e.kind in watchdog
+    )
+    arms = [t.t_host_s for t in transitions if (t.old_state, t.new_state) == ("idle", "armed")]
+    t_arm = float(arms[0]) if arms else None
+    return SessionData(
+        directory=path,
+        session_id=session_id,
+        status=status,
+        manifest=manifest,
+        summary=summary,
+        frame_times_s=np.asarray(frames["t_capture_host_s"], dtype=np.float64),
+        s_k_px=np.asarray(frames["s_k"], dtype=np.float64),
+        force_times_s=np.asarray(force["t_host_s"], dtype=np.float64),
+        force_n=np.asarray(force["force_n"], dtype=np.float64),
+        t_arm_s=t_arm,
+        video_path=video if video is not None and video.is_file() else None,
+        link_events=link_events,
+    )
+
+
+def load_ground_truth(path: str | Path) -> dict[str, Any]:
+    """Read a simulator's ``ground_truth.json``.
+
+    Raises
+    ------
+    DataFileError
+        Unreadable, not JSON, or not a ``stipi-sim-ground-truth`` document.
+    """
+    p = Path(path)
+    try:
+        doc = json.loads(p.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise DataFileError(f"{p}: no such file") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise DataFileError(f"{p}: cannot read: {exc}") from None
+    except json.JSONDecodeError as exc:
+        raise DataFileError(
+            f"{p}: not valid JSON ({exc.msg} at line {exc.lineno}, column {exc.colno})"
+        ) from None
+    if not isinstance(doc, dict) or not str(doc.get("format", "")).startswith(
+        "stipi-sim-ground-truth"
+    ):
+        raise DataFileError(f"{p}: not a simulator ground truth (format stipi-sim-ground-truth)")
+    return doc

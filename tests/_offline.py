@@ -1,0 +1,70 @@
+"""Recorded inputs for the offline-analysis tests: real sessions, simulator output, truncation.
+
+Sessions are recorded by the real runner (simulated grade-I scene, accelerated, a few
+seconds); an interrupted session is a real :class:`SessionWriter` that stops before
+``finish`` (as a killed recorder leaves it: state ``recording``, no live writer).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import yaml
+
+from stipi_daemon.config import load_config
+from stipi_daemon.runner import run_measurement
+from stipi_daemon.storage import SessionReader, SessionWriter, StorageOptions
+
+REPO_ROOT = Path(__file__).resolve().parent.parent
+SCENES = REPO_ROOT / "configs" / "scenes"
+
+
+def short_scene(directory: Path, name: str = "grade1", recovery_s: float = 14.0) -> Path:
+    """A copy of a grade scene with a shorter recovery (grade I settles within ~3 s)."""
+    doc = yaml.safe_load((SCENES / f"{name}.yaml").read_text())
+    doc["force_profile"]["recovery_s"] = recovery_s
+    doc["name"] = f"{name}_short"
+    path = directory / f"{name}_short.yaml"
+    path.write_text(yaml.safe_dump(doc))
+    return path
+
+
+def record_session(directory: Path, scene: Path | None = None) -> Path:
+    """Record one simulated measurement with the live runner; returns the session dir."""
+    cfg = {
+        "source": {"kind": "simulator", "scene": str(scene or SCENES / "grade1.yaml")},
+        "storage": {"root": str(directory / "sessions"), "min_free_mb": 0},
+    }
+    path = directory / "config.yaml"
+    path.write_text(yaml.safe_dump(cfg))
+    outcome = run_measurement(load_config(path), quiet=True)
+    return outcome.session_dir
+
+
+def interrupted_copy(source: Path, root: Path, session_id: str, until_s: float) -> Path:
+    """Copy a session's rows up to ``until_s`` into a new session left unfinished."""
+    with SessionReader(source) as reader:
+        manifest = reader.manifest
+        force = reader.force_samples()
+        frames = reader.frames()
+        transitions = reader.transitions()
+    with SessionWriter.create(
+        root,
+        manifest["config"],
+        manifest["calibration"],
+        manifest["firmware"],
+        session_id=session_id,
+        options=StorageOptions(min_free_bytes=0),
+    ) as writer:
+        writer.add_force_samples([r for r in force.tolist() if r[4] <= until_s])
+        writer.add_frames(
+            [
+                (seq, tc, th, sk, [f for f in flags.split(",") if f])
+                for seq, tc, th, sk, flags in frames.tolist()
+                if tc <= until_s
+            ]
+        )
+        for t in transitions:
+            if t.t_host_s <= until_s:
+                writer.add_transition(t.t_host_s, t.old_state, t.new_state, t.reason)
+    return root / session_id

@@ -1,0 +1,255 @@
+"""``stipi-daemon analyze``: sessions reproduce their summary, simulator files their truth."""
+
+from __future__ import annotations
+
+import csv
+import json
+from pathlib import Path
+
+import pytest
+
+from stipi_daemon.analysis.calibration import save_calibration
+from stipi_daemon.cli import main
+from stipi_daemon.offline_io import SessionData, read_session
+from stipi_daemon.sim import load_scene
+from stipi_daemon.sim.physics import scaled_calibration
+from stipi_daemon.storage import SessionWriter, StorageOptions
+from tests._offline import interrupted_copy, record_session, short_scene
+
+
+@pytest.fixture(scope="module")
+def session_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return record_session(tmp_path_factory.mktemp("analyze-session"))
+
+
+@pytest.fixture(scope="module")
+def sim_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """``stipi-daemon simulate`` output of grade I at 640x480, 60 fps, 14 s of recovery."""
+    base = tmp_path_factory.mktemp("analyze-sim")
+    out = base / "out"
+    assert main(["simulate", str(short_scene(base)), "--out", str(out), "--quiet"]) == 0
+    return out
+
+
+def _error(capsys: pytest.CaptureFixture[str], argv: list[str]) -> str:
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "Traceback" not in err, err
+    assert err.startswith("stipi-daemon: error: ")
+    return err.strip()
+
+
+def test_session_replay_reproduces_the_recorded_summary(
+    session_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    before = {p.name: p.read_bytes() for p in session_dir.iterdir() if p.is_file()}
+    out = tmp_path / "a.json"
+    assert main(["analyze", str(session_dir), "--out", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "recorded summary: identical results" in text
+    assert "D_p =" in text and "ground truth (simulator)" in text
+    doc = json.loads(out.read_text())
+    assert doc["format"] == "stipi-offline-analysis" and doc["version"] == 1
+    assert doc["comparison"]["stored_summary"] == {"identical": True, "differences": []}
+    stored = json.loads((session_dir / "summary.json").read_text())
+    assert doc["summary"]["results"] == stored["results"]
+    assert doc["input"]["status"] == "complete"
+    # Nothing recorded was changed.
+    assert {p.name: p.read_bytes() for p in session_dir.iterdir() if p.name in before} == before
+
+
+def test_default_output_goes_next_to_the_session_never_over_it(
+    session_dir: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    summary = (session_dir / "summary.json").read_bytes()
+    assert main(["analyze", str(session_dir), "--quiet"]) == 0
+    written = Path(capsys.readouterr().out.strip())
+    assert written.parent == session_dir and written.name.startswith("analysis-")
+    assert json.loads(written.read_text())["summary"]["phase"] == "done"
+    assert (session_dir / "summary.json").read_bytes() == summary
+    err = _error(capsys, ["analyze", str(session_dir), "--out", str(session_dir / "summary.json")])
+    assert "refusing to overwrite the recorded file" in err
+    written.unlink()
+
+
+def test_session_by_id_under_root(session_dir: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out = session_dir.parent.parent / "by-id.json"
+    argv = ["analyze", session_dir.name, "--root", str(session_dir.parent), "--out", str(out)]
+    assert main(argv) == 0
+    assert json.loads(out.read_text())["input"]["session_id"] == session_dir.name
+
+
+def _check_truth(doc: dict[str, object]) -> None:
+    rows = {r["name"]: r for r in doc["comparison"]["ground_truth"]}  # type: ignore[index]
+    tolerances = {"depth_mm": 1.0, "rebound_force_n": 1.0, "time_constant_s": 2.0}
+    tolerances["elasticity_kpa"] = 1.0
+    for name, tol in tolerances.items():
+        assert rows[name]["tolerance_percent"] == tol
+        assert abs(rows[name]["error_percent"]) <= tol, rows[name]
+        assert rows[name]["within_tolerance"] is True
+
+
+def test_simulator_files_match_ground_truth(
+    sim_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    truth = json.loads((sim_dir / "ground_truth.json").read_text())
+    assert truth["scene"] == "grade1_short"
+    out = tmp_path / "sim.json"
+    argv = ["analyze", "--video", str(sim_dir / "video.avi"), "--force", str(sim_dir / "force.csv")]
+    assert main([*argv, "--out", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "(ok, tolerance 1 %)" in text and "OUTSIDE" not in text
+    doc = json.loads(out.read_text())
+    _check_truth(doc)
+    assert doc["summary"]["status"] == "complete"
+    assert doc["settings"]["imaging"]["threshold_p"] == 128
+    assert doc["input"]["frame_times"] == str(sim_dir / "frames.csv")
+    assert any("calibration: the scene's" in n for n in doc["notes"])
+
+
+def test_simulator_files_with_explicit_calibration_and_options(
+    sim_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    base = short_scene(tmp_path)
+    cal, _ = scaled_calibration(load_scene(base))
+    cal_path = save_calibration(tmp_path / "cal.json", cal)
+    truth = json.loads((sim_dir / "ground_truth.json").read_text())
+    roi = truth["roi"]
+    out = tmp_path / "x.json"
+    argv = [
+        "analyze",
+        "--video",
+        str(sim_dir / "video.avi"),
+        "--force",
+        str(sim_dir / "force.csv"),
+        "--frame-times",
+        str(sim_dir / "frames.csv"),
+        "--calibration",
+        str(cal_path),
+        "--threshold",
+        "128",
+        "--roi",
+        f"circle:{roi['cx_px']},{roi['cy_px']},{roi['radius_px']}",
+        "--out",
+        str(out),
+    ]
+    assert main(argv) == 0
+    doc = json.loads(out.read_text())
+    _check_truth(doc)
+    assert doc["settings"]["calibration"]["source"] == str(cal_path)
+    assert doc["settings"]["imaging"]["threshold_source"] == "--threshold"
+    capsys.readouterr()
+
+
+def test_interrupted_session_is_analysed_with_a_note(
+    session_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    stored = json.loads((session_dir / "summary.json").read_text())
+    t0 = stored["measurement"]["t0_refined_s"]
+    cut = interrupted_copy(session_dir, tmp_path / "sessions", "cut", t0 + 8.0)
+    out = tmp_path / "cut.json"
+    assert main(["analyze", str(cut), "--out", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "session cut (interrupted)" in text
+    assert "note: session interrupted" in text
+    doc = json.loads(out.read_text())
+    assert doc["input"]["status"] == "interrupted"
+    assert doc["summary"]["status"] == "partial" and doc["replay"]["partial_recovery"]
+    assert doc["comparison"]["stored_summary"] is None  # no summary.json was written
+    got = doc["summary"]["results"]["pitting"]
+    assert got["depth_mm"] == stored["results"]["pitting"]["depth_mm"]
+    assert got["recovery_time_s"] == stored["results"]["pitting"]["recovery_time_s"]
+
+    early = interrupted_copy(session_dir, tmp_path / "sessions", "early", 5.0)
+    assert main(["analyze", str(early), "--out", str(tmp_path / "early.json")]) == 1
+    text = capsys.readouterr().out
+    assert "no results: no recovery recorded (recording ends in phase pitting)" in text
+
+
+def _session_with_video(sim_dir: Path, root: Path) -> Path:
+    """A session whose stored S_k were lost (all 0) but whose video was kept."""
+    truth = json.loads((sim_dir / "ground_truth.json").read_text())
+    with (sim_dir / "frames.csv").open() as f:
+        frames = [(int(r["index"]), float(r["t_s"])) for r in csv.DictReader(f)]
+    with (sim_dir / "force.csv").open() as f:
+        force = [
+            (int(r["index"]), int(r["adc_counts"]), int(r["t_mcu_us"]) % 2**32, int(r["t_mcu_us"]),
+             float(r["t_true_s"]), float(r["force_n"]))
+            for r in csv.DictReader(f)
+        ]  # fmt: skip
+    config = {"measurement": {}, "analysis": {}, "imaging": {"threshold_p": None, "roi": None}}
+    calibration = {k: truth["calibration"][k] for k in ("alpha1_mm_per_px2", "alpha2_mm_per_px")}
+    calibration |= {k: truth["calibration"][k] for k in ("c1_px", "c2_px_per_n", "threshold_p")}
+    with SessionWriter.create(
+        root,
+        config,
+        calibration,
+        None,
+        session_id="with-video",
+        video=True,
+        options=StorageOptions(min_free_bytes=0),
+    ) as writer:
+        writer.add_force_samples(force)
+        writer.add_frames([(i, t, t, 0, "") for i, t in frames])
+        writer.add_transition(0.0, "idle", "armed", "armed by the operator")
+        (root / "with-video" / "video.avi").write_bytes((sim_dir / "video.avi").read_bytes())
+        writer.finish("complete", {"ground_truth": truth})
+    return root / "with-video"
+
+
+def test_recompute_sk_from_the_session_video(
+    sim_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    directory = _session_with_video(sim_dir, tmp_path / "sessions")
+    data: SessionData = read_session(directory)
+    assert data.video_path is not None and not data.s_k_px.any()
+    assert main(["analyze", str(directory), "--out", str(tmp_path / "stored.json")]) == 0
+    stored = json.loads((tmp_path / "stored.json").read_text())["summary"]["results"]
+    assert "no_recovery" in stored["flags"]  # S_k all 0: nothing to see
+    out = tmp_path / "re.json"
+    argv = ["analyze", str(directory), "--recompute-sk", "--out", str(out)]
+    assert main(argv) == 0
+    doc = json.loads(out.read_text())
+    assert doc["settings"]["imaging"]["threshold_p"] == 128
+    assert doc["settings"]["imaging"]["threshold_source"] == "session manifest calibration"
+    assert "ROI: the simulator's waveguide disc (ground truth)" in doc["notes"]
+    _check_truth(doc)
+    capsys.readouterr()
+
+
+def test_refusals_are_one_line(
+    session_dir: Path, sim_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    video, force = str(sim_dir / "video.avi"), str(sim_dir / "force.csv")
+    gt = str(sim_dir / "ground_truth.json")
+    bad_force = tmp_path / "force.csv"
+    bad_force.write_text("t_s,newtons\n0,1\n")
+    err = _error(capsys, ["analyze", "--video", video, "--force", str(bad_force)])
+    assert f"{bad_force}: line 1: missing column 'force_n' (header has: t_s, newtons)" in err
+    bad_force.write_text("t_s,force_n\n0,1\n0.01,x\n")
+    err = _error(capsys, ["analyze", "--video", video, "--force", str(bad_force)])
+    assert "line 3: column 'force_n': 'x' is not a number" in err
+    bad_video = tmp_path / "v.avi"
+    bad_video.write_bytes(b"\x00garbage" * 500)
+    err = _error(
+        capsys,
+        ["analyze", "--video", str(bad_video), "--force", force, "--ground-truth", gt],
+    )
+    assert str(bad_video) in err
+    err = _error(capsys, ["analyze", "--video", str(tmp_path / "no.avi"), "--force", force])
+    assert f"{tmp_path / 'no.avi'}: no such video file" in err
+    assert "not both" in _error(capsys, ["analyze", str(session_dir), "--video", video])
+    assert "nothing to analyse" in _error(capsys, ["analyze"])
+    assert "--video needs --force" in _error(capsys, ["analyze", "--video", video])
+    err = _error(capsys, ["analyze", str(session_dir), "--recompute-sk"])
+    assert "the session has no video file" in err
+    err = _error(capsys, ["analyze", "--video", video, "--force", force, "--roi", "oval:1"])
+    assert "--roi 'oval:1': expected circle:CX,CY,R" in err
+    err = _error(capsys, ["analyze", "nope", "--root", str(tmp_path)])
+    assert "no such session" in err
+    # No ground truth, no calibration: the user must give one.
+    lone = tmp_path / "lone"
+    lone.mkdir()
+    (lone / "video.avi").write_bytes((sim_dir / "video.avi").read_bytes())
+    err = _error(capsys, ["analyze", "--video", str(lone / "video.avi"), "--force", force])
+    assert "no calibration: give --calibration CAL.json" in err
