@@ -36,7 +36,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument(
         "--realtime",
         action="store_true",
-        help="with a simulated source: pace the run to the wall clock instead of accelerating",
+        help="run simulated devices at real speed instead of the config's run.speed",
     )
     parser.add_argument("--quiet", action="store_true", help="print only the results' path")
     subparsers = parser.add_subparsers(title="commands", metavar="COMMAND")
@@ -46,10 +46,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 def _run(args: argparse.Namespace) -> int:
     from stipi_daemon.config import load_config
-    from stipi_daemon.runner import run_measurement
+    from stipi_daemon.daemon import run_measurement
 
     config = load_config(args.config)
-    outcome = run_measurement(config, realtime=args.realtime, quiet=args.quiet)
+    outcome = run_measurement(config, speed=1.0 if args.realtime else None, quiet=args.quiet)
     if args.quiet:
         print(outcome.session_dir)
     return outcome.exit_code

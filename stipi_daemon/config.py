@@ -1,37 +1,39 @@
 """The daemon's configuration file (``stipi-daemon --config FILE``), loaded once, typed.
 
-This module owns the schema of the YAML file a lab edits: where measurements come from
-(``source``), imaging settings (threshold and ROI of Eqs. 1-2), the calibration file, the
-state machine's thresholds (``measurement``), the analysis settings and storage. It
-validates everything with pydantic (unknown keys are errors) and reports problems as one
-:class:`~stipi_daemon.errors.ConfigError` line naming the file and the field path. Paths
-inside the file are resolved relative to the file. It does not open devices or files
-other than the config itself.
-
-Sources: ``simulator`` (a scene of :mod:`stipi_daemon.sim` rendered and analysed in
-process, no hardware). The probe transports (serial, BLE) and cameras (V4L2, video file)
-arrive as further ``kind`` values of ``source``.
+This module owns the schema of the YAML file a lab edits: the probe (``probe.transport``:
+serial, BLE or an emulated probe on a pty, plus rate and LED level), the camera (V4L2, a
+video file or the simulator), imaging settings (threshold and ROI of Eqs. 1-2), the
+calibration file, the state machine's thresholds (``measurement``), the analysis
+settings, storage and the run speed. It validates everything with pydantic (unknown keys
+are errors) and reports problems as one :class:`~stipi_daemon.errors.ConfigError` line
+naming the file and the field path. Paths inside the file are resolved relative to the
+file. It does not open devices or files other than the config itself. Each transport's
+and camera's own options live in their modules (:mod:`stipi_daemon.transports`,
+:mod:`stipi_daemon.cameras`).
 """
 
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated, Any, Literal
+from typing import Any, Literal
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from stipi_daemon.analysis.imaging import ROI
 from stipi_daemon.analysis.measurement import AnalysisSettings
+from stipi_daemon.cameras import CameraConfig
 from stipi_daemon.errors import ConfigError
 from stipi_daemon.measurement.state_machine import MeasurementConfig
+from stipi_daemon.transports import TransportConfig
 
 __all__ = [
     "CONFIG_FORMAT",
     "CONFIG_VERSION",
     "DaemonConfig",
     "ImagingSettings",
-    "SimulatorSource",
+    "ProbeSettings",
+    "RunSettings",
     "StorageSettings",
     "load_config",
 ]
@@ -44,24 +46,45 @@ class _Model(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
 
-class SimulatorSource(_Model):
-    """Measure a simulated scene in process: frames and force samples from the simulator.
+class ProbeSettings(_Model):
+    """The probe: its link and what to configure on it.
 
     Attributes
     ----------
-    kind : "simulator"
-    scene : Path
-        Scene YAML file (relative paths are relative to the config file).
-    seed : int or None
-        Random seed; ``None`` uses the scene's own.
+    transport : TransportConfig
+        ``serial``, ``ble`` or ``emulated`` (see :mod:`stipi_daemon.transports`).
+    rate_hz : int
+        Load-cell sample rate to configure [Hz], 16..1000.
+    led_level : int
+        LED PWM duty to configure, 0..255 (kept constant for the run).
+    heartbeat_timeout_s : float
+        No frame for this long means the link is lost [s].
+    reconnect_total_s : float
+        Give up reconnecting after this long [s].
+    zero_counts, span_un_per_count : int or None
+        Load-cell calibration [counts], [uN/count] used when the probe has none stored.
     """
 
-    kind: Literal["simulator"]
-    scene: Path
-    seed: int | None = None
+    transport: TransportConfig
+    rate_hz: int = Field(100, ge=16, le=1000)
+    led_level: int = Field(255, ge=0, le=255)
+    heartbeat_timeout_s: float = Field(2.5, gt=0.0, allow_inf_nan=False)
+    reconnect_total_s: float = Field(30.0, gt=0.0, allow_inf_nan=False)
+    zero_counts: int | None = Field(None, ge=0, le=65535)
+    span_un_per_count: int | None = None
 
 
-Source = Annotated[SimulatorSource, Field(discriminator="kind")]
+class RunSettings(_Model):
+    """How the run is paced.
+
+    Attributes
+    ----------
+    speed : float
+        Session seconds per wall second. 1 for real devices; simulated devices (emulated
+        probe, simulator camera) may run faster (the demo uses 4). ``--realtime`` forces 1.
+    """
+
+    speed: float = Field(1.0, gt=0.0, le=1000.0, allow_inf_nan=False)
 
 
 class ImagingSettings(_Model):
@@ -71,10 +94,10 @@ class ImagingSettings(_Model):
     ----------
     threshold_p : int or None
         Threshold level p of Eq. (1), 0..255. ``None``: the calibration's ``threshold_p``
-        or, for a simulated source, the scene's.
+        or, for the simulator camera, the scene's.
     roi : ROI or None
-        Region of interest; ``None``: for a simulated source, the scene's waveguide disc,
-        otherwise the whole frame.
+        Region of interest; ``None``: for the simulator camera, the scene's waveguide
+        disc, otherwise the whole frame.
     saturation_limit_fraction : float
         Fraction of ROI pixels at 255 above which a frame is flagged saturated [-].
     """
@@ -108,12 +131,14 @@ class DaemonConfig(_Model):
 
     format: Literal["stipi-daemon-config"] = "stipi-daemon-config"
     version: Literal[1] = 1
-    source: Source
+    probe: ProbeSettings
+    camera: CameraConfig
     calibration: Path | None = None
     imaging: ImagingSettings = ImagingSettings()
     measurement: MeasurementConfig = MeasurementConfig()
     analysis: AnalysisSettings = AnalysisSettings()
     storage: StorageSettings = StorageSettings()
+    run: RunSettings = RunSettings()
 
     def resolved(self, base: Path) -> DaemonConfig:
         """The same config with relative paths made absolute against ``base``."""
@@ -121,10 +146,25 @@ class DaemonConfig(_Model):
         def fix(p: Path) -> Path:
             return p if p.is_absolute() else (base / p).resolve()
 
-        source = self.source.model_copy(update={"scene": fix(self.source.scene)})
+        def fix_paths(model: BaseModel) -> Any:
+            update = {
+                name: fix(value)
+                for name in ("scene", "path")
+                if isinstance(value := getattr(model, name, None), Path)
+            }
+            return model.model_copy(update=update) if update else model
+
+        probe = self.probe.model_copy(update={"transport": fix_paths(self.probe.transport)})
         storage = self.storage.model_copy(update={"root": fix(self.storage.root)})
         cal = None if self.calibration is None else fix(self.calibration)
-        return self.model_copy(update={"source": source, "storage": storage, "calibration": cal})
+        return self.model_copy(
+            update={
+                "probe": probe,
+                "camera": fix_paths(self.camera),
+                "storage": storage,
+                "calibration": cal,
+            }
+        )
 
 
 def _loc(loc: tuple[int | str, ...]) -> str:
@@ -145,7 +185,9 @@ def parse_config(data: Any, source: str) -> DaemonConfig:
         return DaemonConfig.model_validate(data)
     except ValidationError as exc:
         err = exc.errors()[0]
-        loc = tuple(p for p in err["loc"] if p not in ("simulator",))
+        # Drop the discriminator tags pydantic inserts into union locations.
+        tags = {"serial", "ble", "emulated", "v4l2", "file", "simulator", "rect", "circle"}
+        loc = tuple(p for p in err["loc"] if p not in tags)
         more = f" (and {exc.error_count() - 1} more)" if exc.error_count() > 1 else ""
         msg = err["msg"]
         if err["type"] == "extra_forbidden":

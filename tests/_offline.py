@@ -12,7 +12,7 @@ from pathlib import Path
 import yaml
 
 from stipi_daemon.config import load_config
-from stipi_daemon.runner import run_measurement
+from stipi_daemon.daemon import run_measurement
 from stipi_daemon.storage import SessionReader, SessionWriter, StorageOptions
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
@@ -30,10 +30,17 @@ def short_scene(directory: Path, name: str = "grade1", recovery_s: float = 14.0)
 
 
 def record_session(directory: Path, scene: Path | None = None) -> Path:
-    """Record one simulated measurement with the live runner; returns the session dir."""
+    """Record one simulated measurement with the live daemon; returns the session dir.
+
+    The probe is the emulated Feather on a pty (real pyserial path), the camera the
+    simulator; both accelerated.
+    """
+    scene_path = str(scene or SCENES / "grade1.yaml")
     cfg = {
-        "source": {"kind": "simulator", "scene": str(scene or SCENES / "grade1.yaml")},
+        "probe": {"transport": {"kind": "emulated", "scene": scene_path}},
+        "camera": {"kind": "simulator", "scene": scene_path},
         "storage": {"root": str(directory / "sessions"), "min_free_mb": 0},
+        "run": {"speed": 8.0},
     }
     path = directory / "config.yaml"
     path.write_text(yaml.safe_dump(cfg))

@@ -36,3 +36,17 @@ def require_path(path: Path, what: str) -> None:
     if os.environ.get("STIPI_REQUIRE_TOOLCHAIN") == "1":
         pytest.fail(msg + " (STIPI_REQUIRE_TOOLCHAIN=1)")
     pytest.skip(msg)
+
+
+def pytest_addoption(parser: pytest.Parser) -> None:
+    """Opt-in hardware tests: they run only when a device is named on the command line."""
+    parser.addoption(
+        "--camera-device",
+        default=None,
+        help="V4L2 camera (e.g. /dev/video0) for the opt-in camera hardware test",
+    )
+    parser.addoption(
+        "--probe-port",
+        default=None,
+        help="serial port of a real probe (e.g. /dev/ttyACM0) for the opt-in probe hardware test",
+    )

@@ -15,9 +15,13 @@ DEMO = REPO_ROOT / "configs" / "demo.yaml"
 
 def test_demo_config_loads_and_resolves_paths() -> None:
     cfg = load_config(DEMO)
-    assert cfg.source.kind == "simulator"
-    assert cfg.source.scene == (REPO_ROOT / "configs" / "scenes" / "demo_grade3.yaml").resolve()
-    assert cfg.source.scene.is_file()
+    scene = (REPO_ROOT / "configs" / "scenes" / "demo_grade3.yaml").resolve()
+    assert cfg.probe.transport.kind == "emulated"
+    assert cfg.probe.transport.scene == scene  # type: ignore[union-attr]
+    assert cfg.camera.kind == "simulator"
+    assert cfg.camera.scene == scene  # type: ignore[union-attr]
+    assert scene.is_file()
+    assert cfg.run.speed > 1.0
     assert cfg.storage.root.is_absolute()
     assert cfg.measurement.target_force_n == 16.0
 
@@ -28,21 +32,34 @@ def _write(tmp_path: Path, text: str) -> Path:
     return p
 
 
-MINIMAL = "source: {kind: simulator, scene: s.yaml}\n"
+MINIMAL = (
+    "probe: {transport: {kind: emulated, scene: s.yaml}}\n"
+    "camera: {kind: simulator, scene: s.yaml}\n"
+)
 
 
 @pytest.mark.parametrize(
     ("text", "needle"),
     [
         (MINIMAL + "bogus: 1\n", "field 'bogus': unknown key"),
-        ("source: {kind: simulator}\n", "field 'source.scene': Field required"),
-        ("source: {kind: v4l3, scene: s.yaml}\n", "field 'source'"),
+        (
+            "probe: {transport: {kind: emulated, scene: s.yaml}}\ncamera: {kind: simulator}\n",
+            "field 'camera.scene': Field required",
+        ),
+        (
+            "probe: {transport: {kind: emulated, scene: s.yaml}}\ncamera: {kind: v4l3}\n",
+            "field 'camera'",
+        ),
+        (MINIMAL.replace("emulated", "serail"), "field 'probe.transport'"),
+        ("camera: {kind: simulator, scene: s.yaml}\n", "field 'probe': Field required"),
+        (MINIMAL + "probe: {rate_hz: 5}\n", "field"),
+        (MINIMAL + "run: {speed: 0}\n", "field 'run.speed'"),
         (MINIMAL + "measurement: {target_force_n: -1}\n", "field 'measurement.target_force_n'"),
         (MINIMAL + "imaging: {threshold_p: 300}\n", "field 'imaging.threshold_p'"),
         (MINIMAL + "storage: {commit_interval_s: 2}\n", "field 'storage.commit_interval_s'"),
         (MINIMAL + "version: 2\n", "field 'version'"),
         (MINIMAL + "analysis: {indenter_radius_mm: 0}\n", "field 'analysis.indenter_radius_mm'"),
-        ("source: [1, 2\n", "not valid YAML at line"),
+        ("probe: [1, 2\n", "not valid YAML at line"),
         ("- 1\n- 2\n", "the config must be a mapping"),
     ],
 )

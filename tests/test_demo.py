@@ -16,7 +16,9 @@ from tests.conftest import REPO_ROOT
 
 def test_demo_config_runs_a_whole_measurement(tmp_path: Path) -> None:
     cfg = yaml.safe_load((REPO_ROOT / "configs" / "demo.yaml").read_text())
-    cfg["source"]["scene"] = str(REPO_ROOT / "configs" / "scenes" / "demo_grade3.yaml")
+    scene = str(REPO_ROOT / "configs" / "scenes" / "demo_grade3.yaml")
+    cfg["probe"]["transport"]["scene"] = scene
+    cfg["camera"]["scene"] = scene
     cfg["storage"]["root"] = str(tmp_path / "sessions")
     path = tmp_path / "demo.yaml"
     path.write_text(yaml.safe_dump(cfg))
@@ -56,7 +58,10 @@ def test_demo_config_runs_a_whole_measurement(tmp_path: Path) -> None:
 
 def test_bad_config_is_one_line_and_nonzero(tmp_path: Path) -> None:
     path = tmp_path / "bad.yaml"
-    path.write_text("source: {kind: simulator, scene: x.yaml}\nmeasurment: {}\n")
+    path.write_text(
+        "probe: {transport: {kind: emulated, scene: x.yaml}}\n"
+        "camera: {kind: simulator, scene: x.yaml}\nmeasurment: {}\n"
+    )
     proc = subprocess.run(
         [sys.executable, "-m", "stipi_daemon", "--config", str(path)],
         capture_output=True,
@@ -72,7 +77,8 @@ def test_bad_config_is_one_line_and_nonzero(tmp_path: Path) -> None:
 def test_missing_scene_is_one_line(tmp_path: Path) -> None:
     path = tmp_path / "c.yaml"
     path.write_text(
-        f"source: {{kind: simulator, scene: nope.yaml}}\nstorage: {{root: {tmp_path}}}\n"
+        "probe: {transport: {kind: emulated, scene: nope.yaml}}\n"
+        f"camera: {{kind: simulator, scene: nope.yaml}}\nstorage: {{root: {tmp_path}}}\n"
     )
     proc = subprocess.run(
         [sys.executable, "-m", "stipi_daemon", "--config", str(path)],

@@ -64,8 +64,11 @@ def test_replay_reproduces_the_live_summary_exactly(session: SessionData) -> Non
     stored = {k: session.summary[k] for k in mine}
     assert diff_results(stored, mine, "summary") == []
     assert outcome.phase == Phase.DONE and not outcome.partial
-    assert outcome.frames_fed == session.frame_times_s.size
-    assert outcome.force_samples_fed == session.force_times_s.size
+    # The live run stops at the event that ends the recovery; rows that had already
+    # arrived after it are stored but not fed, live and on replay alike.
+    assert outcome.frames_fed <= session.frame_times_s.size
+    assert session.frame_times_s.size - outcome.frames_fed < 30
+    assert outcome.force_samples_fed <= session.force_times_s.size
     # The live parameters were shown during the recovery, as live.
     assert len(outcome.live) >= 5
 
@@ -106,11 +109,13 @@ def test_recording_cut_during_recovery_is_analysed_as_partial(session: SessionDa
 
 
 def test_recording_cut_before_the_release_has_no_results(session: SessionData) -> None:
+    # Cut 5 s into the scene: during the pitting.
+    cut = session.frame_times_s[0] + 5.0
     rec = Recording(
-        session.frame_times_s[session.frame_times_s <= 5.0],
-        session.s_k_px[session.frame_times_s <= 5.0],
-        session.force_times_s[session.force_times_s <= 5.0],
-        session.force_n[session.force_times_s <= 5.0],
+        session.frame_times_s[session.frame_times_s <= cut],
+        session.s_k_px[session.frame_times_s <= cut],
+        session.force_times_s[session.force_times_s <= cut],
+        session.force_n[session.force_times_s <= cut],
     )
     outcome = replay(rec, _setup(session), partial_recovery=True)
     assert outcome.result is None and not outcome.partial
@@ -226,10 +231,15 @@ def test_compare_ground_truth_errors_and_tolerances() -> None:
 
 
 def test_session_fixture_is_real(session: SessionData, tmp_path: Path) -> None:
-    """The fixture comes from the live runner: frames at 60 fps, load cell at 100 Hz."""
-    assert np.median(np.diff(session.frame_times_s)) == pytest.approx(1 / 60)
-    assert np.median(np.diff(session.force_times_s)) == pytest.approx(0.01)
-    assert session.t_arm_s == 0.0
+    """The fixture comes from the live daemon: frames at 60 fps, load cell at 100 Hz.
+
+    Force times are the probe's clock mapped onto the session clock (clock sync), so their
+    spacing is 10 ms up to the fitted drift.
+    """
+    assert np.median(np.diff(session.frame_times_s)) == pytest.approx(1 / 60, rel=1e-6)
+    assert np.median(np.diff(session.force_times_s)) == pytest.approx(0.01, rel=1e-3)
+    assert session.t_arm_s is not None
+    assert 0.0 <= session.t_arm_s < session.frame_times_s[0]  # armed before the scene starts
 
 
 def test_watchdog_events_are_replayed(session: SessionData) -> None:

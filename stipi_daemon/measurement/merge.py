@@ -64,21 +64,27 @@ class TimeOrderedMerger(Generic[T]):
         """``stream`` delivers again after :meth:`close`."""
         self._closed.discard(stream)
 
-    def _watermark(self) -> float:
-        open_streams = [s for s in self._rank if s not in self._closed]
-        if not open_streams:
-            return float("inf")
-        if any(s not in self._last for s in open_streams):
-            return float("-inf")
-        return min(self._last[s] for s in open_streams)
+    def _ready(self, t_s: float, rank: int) -> bool:
+        """Whether no open stream can still deliver an item that sorts before (t_s, rank).
+
+        A stream ranked before this item must have delivered something strictly later
+        (it may send more items at ``t_s``, which sort first); one ranked after it needs
+        only to have reached ``t_s``.
+        """
+        for name, r in self._rank.items():
+            if name in self._closed or r == rank:
+                continue
+            last = self._last.get(name)
+            if last is None or last < t_s or (last == t_s and r < rank):
+                return False
+        return True
 
     def pop_ready(self, now_s: float) -> list[tuple[str, T]]:
         """Items that may be released at session time ``now_s``, in time order."""
         out: list[tuple[str, T]] = []
-        mark = self._watermark()
         while self._heap:
-            t, _, _, received, stream, item = self._heap[0]
-            if t <= mark:
+            t, rank, _, received, stream, item = self._heap[0]
+            if self._ready(t, rank):
                 pass
             elif now_s - received >= self.max_hold_s:
                 self.released_by_timeout += 1
@@ -87,6 +93,10 @@ class TimeOrderedMerger(Generic[T]):
             heapq.heappop(self._heap)
             out.append((stream, item))
         return out
+
+    def oldest_pending_s(self) -> float | None:
+        """Timestamp of the oldest item still held [s], or None."""
+        return self._heap[0][0] if self._heap else None
 
     def drain(self) -> list[tuple[str, T]]:
         """Every item still held, in time order (at the end of a run)."""

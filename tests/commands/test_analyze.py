@@ -14,6 +14,7 @@ from stipi_daemon.offline_io import SessionData, read_session
 from stipi_daemon.sim import load_scene
 from stipi_daemon.sim.physics import scaled_calibration
 from stipi_daemon.storage import SessionWriter, StorageOptions
+from stipi_daemon.storage.reader import SessionReader
 from tests._offline import interrupted_copy, record_session, short_scene
 
 
@@ -160,7 +161,10 @@ def test_interrupted_session_is_analysed_with_a_note(
     assert got["depth_mm"] == stored["results"]["pitting"]["depth_mm"]
     assert got["recovery_time_s"] == stored["results"]["pitting"]["recovery_time_s"]
 
-    early = interrupted_copy(session_dir, tmp_path / "sessions", "early", 5.0)
+    with SessionReader(session_dir) as reader:
+        first_frame_s = float(reader.frames()["t_capture_host_s"][0])
+    # 5 s into the scene: during the pitting.
+    early = interrupted_copy(session_dir, tmp_path / "sessions", "early", first_frame_s + 5.0)
     assert main(["analyze", str(early), "--out", str(tmp_path / "early.json")]) == 1
     text = capsys.readouterr().out
     assert "no results: no recovery recorded (recording ends in phase pitting)" in text

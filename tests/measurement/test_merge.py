@@ -16,8 +16,12 @@ def test_releases_in_time_order_once_every_stream_passed() -> None:
     m.push("force", 1.5, "s1", now_s=2.1)
     assert m.pop_ready(2.1) == [("frame", "f1"), ("force", "s1")]
     m.push("force", 2.0, "s2", now_s=2.2)
-    assert m.pop_ready(2.2) == [("force", "s2"), ("frame", "f2")]  # force first at equal times
-    assert len(m) == 0
+    # Force first at equal times; the frame waits until force has passed 2.0 (more force
+    # samples stamped 2.0 could still come).
+    assert m.pop_ready(2.2) == [("force", "s2")]
+    m.push("force", 2.01, "s3", now_s=2.3)
+    assert m.pop_ready(2.3) == [("frame", "f2")]
+    assert m.drain() == [("force", "s3")]
 
 
 def test_stalled_stream_holds_at_most_max_hold() -> None:
@@ -26,8 +30,10 @@ def test_stalled_stream_holds_at_most_max_hold() -> None:
     m.push("frame", 0.1, 1, now_s=0.1)
     assert m.pop_ready(0.1) == [("force", 0)]
     assert m.pop_ready(0.59) == []
+    assert m.oldest_pending_s() == 0.1
     assert m.pop_ready(0.6) == [("frame", 1)]
     assert m.released_by_timeout == 1
+    assert m.oldest_pending_s() is None
 
 
 def test_closed_stream_does_not_hold() -> None:
@@ -41,6 +47,9 @@ def test_closed_stream_does_not_hold() -> None:
     assert m.drain() == [("frame", 2)]
 
 
+PER_RANK = {"force": 0, "frame": 1}
+
+
 @settings(max_examples=100, deadline=None)
 @given(
     st.lists(st.tuples(st.sampled_from(["force", "frame"]), st.floats(0, 100)), max_size=60),
@@ -49,18 +58,21 @@ def test_closed_stream_does_not_hold() -> None:
 def test_output_is_a_time_ordered_permutation(
     items: list[tuple[str, float]], delays: list[float]
 ) -> None:
-    # Each stream is monotonic in itself (as force batches and frames are).
+    # Each stream delivers its own items in time order (as force batches and frames do),
+    # with a random delivery delay.
     per: dict[str, list[float]] = {"force": [], "frame": []}
     for s, t in items:
         per[s].append(t)
     events = []
     for s, ts in per.items():
+        arrival = 0.0
         for i, t in enumerate(sorted(ts)):
-            events.append((sorted(ts)[i] + delays[i % len(delays)], s, t))
+            arrival = max(arrival, t + delays[i % len(delays)])
+            events.append((arrival, PER_RANK[s], i, s, t))
     events.sort()
     m: TimeOrderedMerger[float] = TimeOrderedMerger(["force", "frame"], max_hold_s=1e9)
     out: list[tuple[str, float]] = []
-    for now, s, t in events:
+    for now, _, _, s, t in events:
         m.push(s, t, t, now_s=now)
         out += m.pop_ready(now)
     out += m.drain()

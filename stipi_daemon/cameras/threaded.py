@@ -1,0 +1,333 @@
+"""The capture-thread machinery shared by every camera source.
+
+OpenCV's ``VideoCapture.read`` and the simulator's renderer block, so each open camera runs
+one dedicated capture thread that reads frames and hands them to asyncio through a bounded
+:class:`FrameHandoff`. This module owns that hand-off (drop-oldest for live sources, with
+counting; back-pressure for sources that must not lose frames), the thread's life cycle
+(open in an executor, stop and join with a bounded wait on close), pacing on the session
+clock, the fault injection :meth:`ThreadedCamera.stall`, and the conversion of source frame
+numbers into ``dropped_before`` and :class:`~.base.CameraStats`. It does not know any
+particular source: subclasses implement ``_open_source``, ``_read`` and ``_close_source``.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import threading
+from abc import ABC, abstractmethod
+from collections import deque
+from collections.abc import AsyncIterator
+from dataclasses import dataclass
+from typing import Any, Generic, TypeVar
+
+import numpy as np
+import numpy.typing as npt
+
+from stipi_daemon.cameras.base import CameraFrame, CameraStats
+from stipi_daemon.clock import SessionClock
+from stipi_daemon.errors import CameraError
+
+__all__ = ["FrameHandoff", "RawFrame", "ThreadedCamera"]
+
+_log = logging.getLogger(__name__)
+
+T = TypeVar("T")
+H = TypeVar("H")
+
+#: Longest wall time :meth:`ThreadedCamera.close` waits for the capture thread [s].
+JOIN_TIMEOUT_S = 2.0
+
+
+@dataclass(frozen=True, slots=True)
+class RawFrame:
+    """A frame as the capture thread produces it (before drop accounting)."""
+
+    seq: int
+    t_capture_s: float
+    image: npt.NDArray[np.uint8]
+
+
+@dataclass(frozen=True, slots=True)
+class _End:
+    """End of the stream: the source ended (``error`` None) or failed."""
+
+    error: CameraError | None
+
+
+class FrameHandoff(Generic[T]):
+    """Bounded queue from one producer thread to one asyncio consumer.
+
+    Parameters
+    ----------
+    loop : asyncio.AbstractEventLoop
+        The consumer's event loop.
+    capacity : int
+        Items held at most, >= 1.
+    drop_oldest : bool
+        When full, ``put`` discards the oldest item and counts it in :attr:`dropped`
+        (a live camera: the newest frame matters); otherwise ``put`` blocks until the
+        consumer takes one (a file or simulator: no frame may be lost).
+    """
+
+    def __init__(self, loop: asyncio.AbstractEventLoop, capacity: int, drop_oldest: bool) -> None:
+        if capacity < 1:
+            raise ValueError(f"capacity must be >= 1, got {capacity}")
+        self._loop = loop
+        self._capacity = capacity
+        self._drop_oldest = drop_oldest
+        self._items: deque[T] = deque()
+        self._cond = threading.Condition()
+        self._closed = False
+        self._waiter: asyncio.Future[None] | None = None
+        #: Items discarded by the drop-oldest policy [-].
+        self.dropped = 0
+
+    @property
+    def closed(self) -> bool:
+        return self._closed
+
+    def put(self, item: T, *, force: bool = False) -> bool:
+        """Producer side (any thread): add ``item``; False once the hand-off is closed.
+
+        ``force`` appends even when full (used for the end-of-stream marker under the
+        drop-oldest policy, so that it is never the item discarded).
+        """
+        with self._cond:
+            if self._drop_oldest or force:
+                while len(self._items) >= self._capacity and not force:
+                    self._items.popleft()
+                    self.dropped += 1
+            else:
+                while len(self._items) >= self._capacity and not self._closed:
+                    self._cond.wait()
+            if self._closed:
+                return False
+            self._items.append(item)
+            waiter = self._waiter
+            self._waiter = None
+        if waiter is not None:
+            self._loop.call_soon_threadsafe(_wake, waiter)
+        return True
+
+    def close(self) -> None:
+        """Stop both sides: a blocked ``put`` returns False, ``get`` returns what is left."""
+        with self._cond:
+            self._closed = True
+            self._cond.notify_all()
+            waiter = self._waiter
+            self._waiter = None
+        if waiter is not None:
+            self._loop.call_soon_threadsafe(_wake, waiter)
+
+    async def get(self) -> T | None:
+        """Consumer side: the next item; None once closed and empty."""
+        while True:
+            with self._cond:
+                if self._items:
+                    item = self._items.popleft()
+                    self._cond.notify()
+                    return item
+                if self._closed:
+                    return None
+                waiter: asyncio.Future[None] = self._loop.create_future()
+                self._waiter = waiter
+            await waiter
+
+
+def _wake(fut: asyncio.Future[None]) -> None:
+    if not fut.done():
+        fut.set_result(None)
+
+
+class ThreadedCamera(ABC, Generic[H]):
+    """A camera whose frames come from a blocking reader run in a capture thread.
+
+    Subclasses implement three blocking hooks, each given the handle returned by
+    ``_open_source`` (so a thread still stuck in an old handle never touches a new one):
+
+    * ``_open_source() -> H``: open the device or file (run in an executor); raise
+      :class:`CameraError` with one line naming it.
+    * ``_read(handle) -> RawFrame | None``: the next frame (capture thread); None at the
+      end of a finite source; raise ``CameraError`` on failure.
+    * ``_close_source(handle)``: release it (capture thread, when it exits).
+
+    Parameters
+    ----------
+    clock : SessionClock
+        The session clock: pacing, delivery times and stall injection use it.
+    capacity : int
+        Hand-off capacity [frames].
+    drop_oldest : bool
+        Hand-off policy (see :class:`FrameHandoff`).
+    paced : bool
+        Deliver each frame no earlier than its ``t_capture_s`` on the session clock
+        (the producer thread reads ahead, up to ``capacity`` frames).
+    """
+
+    def __init__(
+        self, clock: SessionClock, *, capacity: int, drop_oldest: bool, paced: bool
+    ) -> None:
+        self._clock = clock
+        self._capacity = capacity
+        self._drop_oldest = drop_oldest
+        self._paced = paced
+        self._stats = CameraStats()
+        self._notes: list[str] = []
+        self._thread: threading.Thread | None = None
+        self._stop: threading.Event | None = None
+        self._handoff: FrameHandoff[RawFrame | _End] | None = None
+        self._queue_dropped_closed = 0
+        self._last_seq: int | None = None
+        self._stall_from_s = self._stall_until_s = float("-inf")
+
+    # -- hooks ------------------------------------------------------------------------------
+
+    @property
+    @abstractmethod
+    def name(self) -> str: ...
+
+    @property
+    @abstractmethod
+    def nominal_fps(self) -> float: ...
+
+    @abstractmethod
+    def _open_source(self) -> H: ...
+
+    @abstractmethod
+    def _read(self, handle: H) -> RawFrame | None: ...
+
+    @abstractmethod
+    def _close_source(self, handle: H) -> None: ...
+
+    def _first_seq(self) -> int:
+        """``seq`` the very first frame would have (gaps before it count as dropped)."""
+        return 0
+
+    def _metadata(self) -> dict[str, Any]:
+        """Source-specific settings for :meth:`metadata`."""
+        return {}
+
+    # -- public API -------------------------------------------------------------------------
+
+    @property
+    def stats(self) -> CameraStats:
+        return self._stats
+
+    @property
+    def is_open(self) -> bool:
+        return self._thread is not None
+
+    @property
+    def notes(self) -> list[str]:
+        """Things the user should know about this run (truncation, settings refused)."""
+        return list(self._notes)
+
+    def metadata(self) -> dict[str, Any]:
+        return {"name": self.name, **self._metadata(), "notes": list(self._notes)}
+
+    def _note(self, text: str) -> None:
+        if text not in self._notes:
+            self._notes.append(text)
+            _log.warning("%s", text)
+
+    def stall(self, duration_s: float) -> None:
+        """Fault injection: deliver nothing for ``duration_s`` of session time [s].
+
+        Frames captured or due for delivery meanwhile are lost (they show up as
+        ``dropped_before`` on the first frame after the stall), exactly as when a real camera
+        freezes; reopening does not end the stall early. Meant for reliability tests of
+        the stream's stall handling.
+        """
+        if not duration_s >= 0.0:
+            raise ValueError(f"stall duration must be >= 0 s, got {duration_s}")
+        now = self._clock.now()
+        self._stall_from_s, self._stall_until_s = now, now + duration_s
+
+    async def open(self) -> None:
+        if self._thread is not None:
+            return
+        loop = asyncio.get_running_loop()
+        handle = await loop.run_in_executor(None, self._open_source)
+        handoff: FrameHandoff[RawFrame | _End] = FrameHandoff(
+            loop, self._capacity, self._drop_oldest
+        )
+        stop = threading.Event()
+        thread = threading.Thread(
+            target=self._run, args=(handle, handoff, stop), name=f"capture {self.name}", daemon=True
+        )
+        self._handoff, self._stop, self._thread = handoff, stop, thread
+        if self._last_seq is None:
+            self._last_seq = self._first_seq() - 1
+        thread.start()
+
+    async def close(self) -> None:
+        thread, stop, handoff = self._thread, self._stop, self._handoff
+        self._thread = self._stop = None
+        if thread is None or stop is None or handoff is None:
+            return
+        stop.set()
+        handoff.close()
+        self._queue_dropped_closed += handoff.dropped
+        await asyncio.get_running_loop().run_in_executor(None, thread.join, JOIN_TIMEOUT_S)
+        if thread.is_alive():
+            self._note(
+                f"{self.name}: capture thread still blocked in the driver {JOIN_TIMEOUT_S:g} s "
+                "after close; it releases the device when the driver returns"
+            )
+
+    async def frames(self) -> AsyncIterator[CameraFrame]:
+        handoff = self._handoff
+        if handoff is None or self._thread is None:
+            raise CameraError(f"{self.name}: frames() called on a camera that is not open")
+        clock = self._clock
+        while True:
+            item = await handoff.get()
+            if item is None:  # closed by close()
+                return
+            if isinstance(item, _End):
+                if item.error is not None:
+                    raise item.error
+                return
+            if self._paced:
+                await clock.sleep_until(item.t_capture_s)
+            now = clock.now()
+            self._stats.queue_dropped = self._queue_dropped_closed + handoff.dropped
+            if now < self._stall_until_s or (
+                self._stall_from_s <= item.t_capture_s < self._stall_until_s
+            ):
+                continue  # injected stall: delivered nothing, or captured while frozen
+            last = self._last_seq if self._last_seq is not None else item.seq - 1
+            frame = CameraFrame(
+                seq=item.seq,
+                t_capture_s=item.t_capture_s,
+                image=item.image,
+                dropped_before=max(0, item.seq - last - 1),
+            )
+            self._last_seq = item.seq
+            self._stats.record(frame, now)
+            yield frame
+
+    # -- capture thread ---------------------------------------------------------------------
+
+    def _run(
+        self, handle: H, handoff: FrameHandoff[RawFrame | _End], stop: threading.Event
+    ) -> None:
+        end = _End(None)
+        try:
+            while not stop.is_set():
+                raw = self._read(handle)
+                if raw is None:
+                    break
+                if not handoff.put(raw):
+                    return
+        except CameraError as exc:
+            end = _End(exc)
+        except Exception as exc:  # a bug or an OpenCV failure: report it, do not hang
+            end = _End(CameraError(f"{self.name}: capture failed: {type(exc).__name__}: {exc}"))
+        finally:
+            try:
+                self._close_source(handle)
+            finally:
+                if not stop.is_set():
+                    handoff.put(end, force=True)

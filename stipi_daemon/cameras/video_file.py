@@ -1,0 +1,303 @@
+"""A recorded video replayed as a camera (the simulator's MJPG AVI, a saved session video).
+
+This module owns reading a video file with OpenCV's FFmpeg backend in a capture thread,
+timestamping frame k at ``t0 + (k - k0) / fps`` on the session clock (k0 the first frame
+read, t0 the session time of the first open), pacing delivery at the file's frame rate or
+not at all, looping, and the end of a truncated file. It does not analyse frames.
+
+Decoding. For Motion-JPEG files (``MJPG``: every frame an independent JPEG) the capture is
+switched to raw packets (``CAP_PROP_FORMAT = -1``) and each JPEG is decoded with
+``cv2.imdecode``: straight to gray with ``IMREAD_GRAYSCALE`` when ``gray`` is set (the
+JPEG's luma plane, no colour conversion: the fastest route, docs/bench_camera_decode.md),
+else to BGR. Raw packets also tell a complete JPEG (ending in the EOI marker ``FF D9``)
+from the cut-off last frame of a truncated file, which FFmpeg's own decoder would return
+half grey. Other codecs are decoded by FFmpeg and converted with ``cv2.cvtColor`` when
+``gray`` is set.
+
+Truncated and damaged files. The replay ends cleanly after the last complete frame and
+records a note (:meth:`VideoFileCamera.notes`); a damaged frame inside the file is skipped
+(a ``seq`` gap, counted as dropped) and noted. A missing or unreadable file raises
+:class:`~stipi_daemon.errors.CameraError` naming it.
+
+Frames are never dropped by this source (the hand-off applies back-pressure); late delivery
+when the consumer lags shows in ``stats.max_lag_s``. After a close and reopen the replay
+resumes at the frame after the last one delivered.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import numpy.typing as npt
+
+from stipi_daemon.cameras.base import VideoFileCameraConfig
+from stipi_daemon.cameras.threaded import RawFrame, ThreadedCamera
+from stipi_daemon.clock import SessionClock
+from stipi_daemon.errors import CameraError
+
+__all__ = ["VideoFileCamera", "fourcc_string"]
+
+#: Frames the capture thread decodes ahead of delivery [-].
+PREFETCH_FRAMES = 8
+
+_JPEG_FOURCCS = frozenset({"MJPG", "JPEG", "AVRN", "LJPG", "MJLS"})
+_EOI = b"\xff\xd9"
+
+
+def fourcc_string(code: float) -> str:
+    """The four characters of an OpenCV FOURCC code (``cap.get(CAP_PROP_FOURCC)``)."""
+    c = int(code) & 0xFFFFFFFF
+    return "".join(chr((c >> (8 * i)) & 0xFF) for i in range(4))
+
+
+def _complete_jpeg(packet: npt.NDArray[np.uint8]) -> bool:
+    """True if the packet ends with the JPEG end-of-image marker (allowing padding)."""
+    tail = packet.reshape(-1)[-16:].tobytes()
+    return _EOI in tail
+
+
+@dataclass
+class _Handle:
+    cap: cv2.VideoCapture
+    raw_jpeg: bool
+    pos: int  # index in the file of the next frame read
+    bad_frames: list[int] = field(default_factory=list)
+
+
+class VideoFileCamera(ThreadedCamera[_Handle]):
+    """Replays a video file as a camera.
+
+    Parameters
+    ----------
+    path : str or Path
+        Video file.
+    clock : SessionClock
+        Session clock.
+    loop : bool
+        Restart at ``start_s`` when the file ends; ``seq`` and times keep increasing.
+    pace : bool
+        Deliver frame k at its capture time on the session clock (the file's frame rate);
+        ``False``: as fast as it decodes (same timestamps).
+    start_s : float
+        Start position in the file [s], >= 0.
+    gray : bool
+        Deliver ``(H, W)`` gray frames.
+    t0_s : float, optional
+        Session time [s] of the first frame; default: the session time of the first open.
+    """
+
+    def __init__(
+        self,
+        path: str | Path,
+        clock: SessionClock,
+        *,
+        loop: bool = False,
+        pace: bool = True,
+        start_s: float = 0.0,
+        gray: bool = True,
+        t0_s: float | None = None,
+    ) -> None:
+        super().__init__(clock, capacity=PREFETCH_FRAMES, drop_oldest=False, paced=pace)
+        if not (start_s >= 0.0 and math.isfinite(start_s)):
+            raise ValueError(f"start_s must be a finite number >= 0, got {start_s}")
+        self.path = Path(path)
+        self.loop = loop
+        self.pace = pace
+        self.start_s = start_s
+        self.gray = gray
+        self._t0_s = t0_s
+        self._fps = float("nan")
+        self._size: tuple[int, int] | None = None
+        self._fourcc = ""
+        self._declared_frames = -1
+        self._k0 = 0
+        self._pass_base_seq = [0]  # seq of the first frame of each pass (loop)
+        self._seq_next = 0
+
+    @classmethod
+    def from_config(
+        cls, config: VideoFileCameraConfig, clock: SessionClock, *, t0_s: float | None = None
+    ) -> VideoFileCamera:
+        """Build from a :class:`~.base.VideoFileCameraConfig`."""
+        return cls(
+            config.path,
+            clock,
+            loop=config.loop,
+            pace=config.pace,
+            start_s=config.start_s,
+            gray=config.gray,
+            t0_s=t0_s,
+        )
+
+    @property
+    def name(self) -> str:
+        return f"video file {self.path}"
+
+    @property
+    def nominal_fps(self) -> float:
+        return self._fps
+
+    @property
+    def declared_frames(self) -> int:
+        """Frame count in the file's header (-1 unknown; a truncated file has fewer)."""
+        return self._declared_frames
+
+    def _first_seq(self) -> int:
+        return self._k0
+
+    def _metadata(self) -> dict[str, Any]:
+        return {
+            "kind": "file",
+            "path": str(self.path),
+            "fps": self._fps,
+            "size": list(self._size) if self._size else None,
+            "fourcc": self._fourcc,
+            "declared_frames": self._declared_frames,
+            "start_s": self.start_s,
+            "loop": self.loop,
+            "pace": self.pace,
+            "gray": self.gray,
+            "decoder": "imdecode (raw MJPG packets)" if self._raw_possible() else "ffmpeg",
+        }
+
+    def _raw_possible(self) -> bool:
+        return self._fourcc.upper() in _JPEG_FOURCCS
+
+    # -- source hooks -----------------------------------------------------------------------
+
+    def _open_source(self) -> _Handle:
+        p = self.path
+        if not p.exists():
+            raise CameraError(f"video file {p}: not found")
+        if not p.is_file():
+            raise CameraError(f"video file {p}: not a regular file")
+        if not os.access(p, os.R_OK):
+            raise CameraError(f"video file {p}: permission denied")
+        cap = cv2.VideoCapture(str(p), cv2.CAP_FFMPEG)
+        if not cap.isOpened():
+            cap.release()
+            raise CameraError(f"video file {p}: not a video OpenCV/FFmpeg can read")
+        fps = float(cap.get(cv2.CAP_PROP_FPS))
+        if not (math.isfinite(fps) and fps > 0.0):
+            cap.release()
+            raise CameraError(f"video file {p}: no frame rate in the file (got {fps})")
+        first_open = self._size is None
+        self._fps = fps
+        self._fourcc = fourcc_string(cap.get(cv2.CAP_PROP_FOURCC))
+        self._size = (
+            int(cap.get(cv2.CAP_PROP_FRAME_WIDTH)),
+            int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT)),
+        )
+        self._declared_frames = int(cap.get(cv2.CAP_PROP_FRAME_COUNT))
+        raw = self._raw_possible() and bool(cap.set(cv2.CAP_PROP_FORMAT, -1))
+        if first_open:
+            self._k0 = round(self.start_s * fps)
+            self._seq_next = self._k0
+            self._pass_base_seq = [self._k0]
+            if self._t0_s is None:
+                self._t0_s = self._clock.now()
+            if self._declared_frames > 0 and self._k0 >= self._declared_frames:
+                cap.release()
+                raise CameraError(
+                    f"video file {p}: start_s {self.start_s:g} s is past its end "
+                    f"({self._declared_frames} frames at {fps:g} fps)"
+                )
+        # Resume after the last frame delivered (the first open: at k0).
+        last = self._last_seq
+        resume_seq = self._k0 if last is None else last + 1
+        base = max(b for b in self._pass_base_seq if b <= resume_seq)
+        self._seq_next = resume_seq
+        pos = self._k0 + (resume_seq - base)
+        handle = _Handle(cap, raw, 0)
+        self._skip_to(handle, pos)
+        return handle
+
+    def _skip_to(self, h: _Handle, pos: int) -> None:
+        """Advance to file frame ``pos`` by grabbing (no decode in raw mode; works on
+        truncated files, whose index is gone)."""
+        while h.pos < pos:
+            if not h.cap.grab():
+                break
+            h.pos += 1
+
+    def _read(self, h: _Handle) -> RawFrame | None:
+        while True:
+            image = self._read_image(h)
+            if image is None:
+                if self.loop and h.pos > self._k0 and self._seq_next > self._pass_base_seq[-1]:
+                    h.cap.release()
+                    fresh = self._reopen_for_loop()
+                    h.cap, h.pos = fresh.cap, fresh.pos
+                    self._pass_base_seq.append(self._seq_next)
+                    continue
+                return None
+            if isinstance(image, int):  # damaged frame inside the file: skip it
+                self._seq_next += 1
+                continue
+            seq = self._seq_next
+            self._seq_next += 1
+            t0 = self._t0_s if self._t0_s is not None else 0.0
+            return RawFrame(seq, t0 + (seq - self._k0) / self._fps, image)
+
+    def _reopen_for_loop(self) -> _Handle:
+        cap = cv2.VideoCapture(str(self.path), cv2.CAP_FFMPEG)
+        if not cap.isOpened():
+            raise CameraError(f"video file {self.path}: cannot be reopened to loop")
+        raw = self._raw_possible() and bool(cap.set(cv2.CAP_PROP_FORMAT, -1))
+        h = _Handle(cap, raw, 0)
+        self._skip_to(h, self._k0)
+        return h
+
+    def _read_image(self, h: _Handle) -> npt.NDArray[np.uint8] | int | None:
+        """The next frame's image; an int (its file index) for a damaged frame that is
+        followed by more; None at the end (after noting a truncated last frame)."""
+        ok, data = h.cap.read()
+        if not ok or data is None:
+            self._note_short_end(h)
+            return None
+        index = h.pos
+        h.pos += 1
+        for k in h.bad_frames:  # followed by more data: damaged, not the truncated end
+            self._note(f"video file {self.path}: frame {k} is damaged and was skipped")
+        h.bad_frames.clear()
+        if not h.raw_jpeg:
+            img = np.asarray(data, dtype=np.uint8)
+            if self.gray and img.ndim == 3:
+                img = np.asarray(cv2.cvtColor(img, cv2.COLOR_BGR2GRAY), dtype=np.uint8)
+            return img
+        packet = np.asarray(data, dtype=np.uint8)
+        decoded = None
+        if packet.size > 0 and _complete_jpeg(packet):
+            flag = cv2.IMREAD_GRAYSCALE if self.gray else cv2.IMREAD_COLOR
+            decoded = cv2.imdecode(packet.reshape(-1), flag)
+        if decoded is not None and self._size is not None and decoded.shape[1::-1] == self._size:
+            return np.asarray(decoded, dtype=np.uint8)
+        h.bad_frames.append(index)
+        return index
+
+    def _note_short_end(self, h: _Handle) -> None:
+        if h.bad_frames and h.bad_frames[-1] == h.pos - 1:
+            last_bad = h.bad_frames.pop()
+            self._note(
+                f"video file {self.path}: truncated: frame {last_bad} is incomplete; the replay "
+                f"ended at frame {last_bad - 1}, the last complete one"
+                + (
+                    f" ({self._declared_frames} frames declared)"
+                    if self._declared_frames > 0
+                    else ""
+                )
+            )
+        elif 0 < h.pos < self._declared_frames:
+            self._note(
+                f"video file {self.path}: ended after {h.pos} of the {self._declared_frames} "
+                "frames its header declares (truncated?)"
+            )
+
+    def _close_source(self, h: _Handle) -> None:
+        h.cap.release()

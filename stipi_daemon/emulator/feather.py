@@ -1,0 +1,931 @@
+"""An emulated Feather 32u4 probe that speaks the real wire protocol over a pseudo-terminal.
+
+This module owns three pure parts and one thin I/O shell:
+
+* :class:`FeatherCore` mirrors the firmware's behaviour (``firmware/feather32u4/src/core/``:
+  ``probe.cpp``, ``sampler.cpp``, ``heartbeat.h``, ``config.h``) as a discrete-event model
+  in MCU time: fed host bytes and advanced to an MCU time, it produces the exact frames
+  the firmware would send - command handling and ACK status codes, STREAM_START/STOP,
+  SET_RATE (the timer restarts, samples taken at the old period leave first), SET_LED,
+  TARE over the next 16 samples, WRITE_CAL (with an optional EEPROM failure), GET_INFO,
+  the STATUS heartbeat every 500 ms, SAMPLES batches of 10, ``first_index`` counting every
+  sample taken, the 64-sample ring with its drop-until-empty overflow and the ``dropped``
+  counter. No I/O, no clock: tested directly.
+* :class:`McuClock` maps session time onto the MCU's ``micros()`` with a boot offset and a
+  rate error [ppm] (clock drift).
+* :class:`SceneAdc` gives the ADC reading at each MCU sample time from a simulator scene
+  (:mod:`stipi_daemon.sim`): the scene's own samples (effects included) where the MCU
+  samples fall on the scene's sample grid, the scene's force model through the load cell
+  model otherwise (another rate, clock drift, times outside the scene).
+* :class:`EmulatedFeather` runs a core on a :class:`~stipi_daemon.clock.SessionClock` behind a
+  pty pair: the slave is what a serial transport opens (through pyserial, the real path),
+  reached through a stable symlink that disappears while the probe is "unplugged". It
+  injects link faults: unplug and return, garbage bursts, bit flips, silence, main-loop
+  stalls (probe-side drops), and MCU clock drift.
+
+It does not decode what the host does with the frames (that is :mod:`stipi_daemon.probe`),
+and it does not model BLE.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import math
+import os
+import tempfile
+import termios
+import tty
+from collections import deque
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Final, Protocol
+
+import numpy as np
+from numpy.typing import NDArray
+
+from stipi_daemon.clock import SessionClock
+from stipi_daemon.protocol.cobs import cobs_decode
+from stipi_daemon.protocol.errors import FrameError
+from stipi_daemon.protocol.messages import (
+    MAX_ENCODED_SIZE,
+    PROTOCOL_VERSION,
+    RATE_MAX_HZ,
+    RATE_MIN_HZ,
+    Ack,
+    AckStatus,
+    CmdId,
+    Command,
+    GetInfo,
+    InfoResult,
+    Message,
+    RawCommand,
+    Samples,
+    SetLed,
+    SetRate,
+    Status,
+    StatusFlags,
+    StreamStart,
+    StreamStop,
+    Tare,
+    TareResult,
+    WriteCal,
+    encode_frame,
+    unpack_frame,
+)
+
+__all__ = [
+    "ADC_BITS",
+    "BATCH_SIZE",
+    "DEFAULT_RATE_HZ",
+    "HEARTBEAT_PERIOD_US",
+    "RING_CAPACITY",
+    "TARE_SAMPLES",
+    "AdcSource",
+    "ConstantAdc",
+    "EmulatedFeather",
+    "FeatherCore",
+    "McuClock",
+    "SceneAdc",
+    "flip_bits",
+    "period_for_rate",
+]
+
+# ---- firmware constants (firmware/feather32u4/config.h) -----------------------------------
+FW_VERSION: Final = (1, 0, 0)
+"""STIPI_FW_MAJOR/MINOR/PATCH."""
+ADC_BITS: Final = 10
+"""STIPI_ADC_BITS [bit]."""
+DEFAULT_RATE_HZ: Final = 100
+"""STIPI_DEFAULT_RATE_HZ [Hz]."""
+BATCH_SIZE: Final = 10
+"""STIPI_BATCH_SIZE: samples per SAMPLES frame while streaming."""
+RING_CAPACITY: Final = 64
+"""STIPI_RING_CAPACITY: ISR -> main loop ring [samples]."""
+TARE_SAMPLES: Final = 16
+"""STIPI_TARE_SAMPLES: samples averaged by TARE."""
+HEARTBEAT_PERIOD_US: Final = 500_000
+"""STIPI_HEARTBEAT_PERIOD_US: STATUS period [µs]."""
+MAX_POPS_PER_PASS: Final = 4
+"""Batches the main loop sends per pass (probe.cpp ``service_samples``)."""
+SUPPLY_MV: Final = 4200
+"""Default supply voltage the emulated probe reports [mV] (LiPo charging on USB)."""
+
+_ADC_MAX: Final = (1 << ADC_BITS) - 1
+_U32: Final = 1 << 32
+_CACHE_SAMPLES: Final = 256
+
+
+def period_for_rate(rate_hz: int) -> int:
+    """Sampling period for ``rate_hz``, rounded to the nearest microsecond (probe.cpp) [µs]."""
+    return (1_000_000 + rate_hz // 2) // rate_hz
+
+
+class AdcSource(Protocol):
+    """The voltage on the load-cell pin, as ADC counts, at given MCU times."""
+
+    def counts(self, t_mcu_us: NDArray[np.int64]) -> NDArray[np.int64]:
+        """ADC counts (0..1023) of samples taken at unwrapped MCU times ``t_mcu_us`` [µs]."""
+        ...
+
+
+@dataclass(frozen=True)
+class ConstantAdc:
+    """A constant ADC reading (a fixed voltage on the pin) [counts]."""
+
+    value: int
+
+    def counts(self, t_mcu_us: NDArray[np.int64]) -> NDArray[np.int64]:
+        return np.full(t_mcu_us.shape, self.value, dtype=np.int64)
+
+
+@dataclass(frozen=True)
+class McuClock:
+    """The MCU's ``micros()`` against session time.
+
+    ``mcu_us(t) = boot_offset_us + floor((t - boot_session_s) * 1e6 * (1 + rate_error_ppm * 1e-6))``
+
+    Parameters
+    ----------
+    boot_session_s : float
+        Session time at which the MCU booted [s].
+    boot_offset_us : int
+        ``micros()`` at boot [µs] (0 on a real chip; large values test the 2^32 wrap).
+    rate_error_ppm : float
+        How fast the MCU's resonator runs against the session clock [ppm] (+: fast).
+    """
+
+    boot_session_s: float = 0.0
+    boot_offset_us: int = 0
+    rate_error_ppm: float = 0.0
+
+    @property
+    def _k(self) -> float:
+        return 1.0 + self.rate_error_ppm * 1e-6
+
+    def mcu_us(self, session_s: float) -> int:
+        """Unwrapped MCU time at session time ``session_s`` [µs]."""
+        return self.boot_offset_us + math.floor((session_s - self.boot_session_s) * 1e6 * self._k)
+
+    def session_s(self, mcu_us: int) -> float:
+        """Session time at which the MCU clock reads ``mcu_us`` (unwrapped) [s]."""
+        return self.boot_session_s + (mcu_us - self.boot_offset_us) * 1e-6 / self._k
+
+
+class SceneAdc:
+    """ADC counts from a simulator scene at the MCU's sample times.
+
+    The scene's time 0 is the MCU time ``start_mcu_us`` (by default the first sample the
+    probe takes); scene time is true time, so an MCU clock that runs ``rate_error_ppm``
+    fast takes its samples at ``(t_mcu - start) / (1 + rate_error_ppm * 1e-6)`` scene
+    seconds. A sample within 1 µs of the scene's sample grid (``index / sample_rate_hz``,
+    inside the scene) reads the scene's own ADC count (``Pipeline.force_batch``, effects
+    included); any other sample reads ``LoadCellModel.counts(model.force_n(t))`` (the
+    force model through the load cell and ADC, without random effects).
+
+    Parameters
+    ----------
+    scene : stipi_daemon.sim.Scene
+        The scene.
+    seed : int, optional
+        Random seed of the scene's effects (default: the scene's).
+    start_mcu_us : int, optional
+        MCU time of scene time 0 [µs]; default: the first sample asked for.
+    rate_error_ppm : float
+        MCU clock rate error [ppm] (as :class:`McuClock`).
+    """
+
+    def __init__(
+        self,
+        scene: object,
+        seed: int | None = None,
+        *,
+        start_mcu_us: int | None = None,
+        rate_error_ppm: float = 0.0,
+    ) -> None:
+        from stipi_daemon.sim import Pipeline, Scene
+
+        if not isinstance(scene, Scene):
+            raise TypeError(f"scene must be a stipi_daemon.sim.Scene, got {type(scene).__name__}")
+        pipeline = Pipeline(scene, seed)
+        batch = pipeline.force_batch()
+        self.scene = scene
+        self.rate_hz = float(scene.load_cell.sample_rate_hz)
+        n = int(batch.index.max()) + 1 if len(batch) else 0
+        grid = np.full(n, -1, dtype=np.int64)
+        grid[batch.index] = batch.adc_counts
+        self._grid = grid
+        self._model = pipeline.model
+        self._load_cell = pipeline.load_cell
+        self.start_mcu_us = start_mcu_us
+        self._k = 1.0 + rate_error_ppm * 1e-6
+        self.zero_counts = round(self._load_cell.zero_counts)
+        """Tare of the scene's load cell, rounded as GET_INFO reports it [counts]."""
+        self.span_un_per_count = self._load_cell.span_un_per_count
+        """Span of the scene's load cell as GET_INFO reports it [µN/count]."""
+
+    def scene_time_s(self, t_mcu_us: NDArray[np.int64]) -> NDArray[np.float64]:
+        """Scene time of samples taken at MCU times ``t_mcu_us`` [s]."""
+        if self.start_mcu_us is None:
+            raise ValueError("scene start unknown before the first sample")
+        t: NDArray[np.float64] = (t_mcu_us - self.start_mcu_us).astype(np.float64) * 1e-6 / self._k
+        return t
+
+    def counts(self, t_mcu_us: NDArray[np.int64]) -> NDArray[np.int64]:
+        if self.start_mcu_us is None and t_mcu_us.size:
+            self.start_mcu_us = int(t_mcu_us[0])
+        t_s = self.scene_time_s(t_mcu_us)
+        k = np.rint(t_s * self.rate_hz).astype(np.int64)
+        on_grid = (np.abs(t_s - k / self.rate_hz) <= 1e-6) & (k >= 0) & (k < self._grid.size)
+        out = np.empty(t_s.shape, dtype=np.int64)
+        out[on_grid] = self._grid[k[on_grid]]
+        need = ~on_grid | (out < 0)
+        if need.any():
+            out[need] = self._load_cell.counts(self._model.force_n(t_s[need]))
+        return out
+
+
+def flip_bits(data: bytes, bit_error_rate: float, rng: np.random.Generator) -> tuple[bytes, int]:
+    """Flip each bit of ``data`` independently with probability ``bit_error_rate``.
+
+    Returns
+    -------
+    bytes, int
+        The damaged bytes and the number of bits flipped.
+    """
+    if not 0.0 <= bit_error_rate <= 1.0:
+        raise ValueError(f"bit_error_rate={bit_error_rate} outside 0..1")
+    if bit_error_rate == 0.0 or not data:
+        return data, 0
+    bits = np.unpackbits(np.frombuffer(data, dtype=np.uint8))
+    flips = rng.random(bits.size) < bit_error_rate
+    n = int(flips.sum())
+    if n == 0:
+        return data, 0
+    return np.packbits(bits ^ flips.astype(np.uint8)).tobytes(), n
+
+
+class _Heartbeat:
+    """heartbeat.h on unwrapped times: due at boot, then every period, no drift."""
+
+    def __init__(self, period_us: int) -> None:
+        self.period_us = period_us
+        self.last_us = 0
+        self.started = False
+
+    def due_at(self, boot_us: int) -> int:
+        return boot_us if not self.started else self.last_us + self.period_us
+
+    def due(self, now_us: int) -> bool:
+        return not self.started or now_us - self.last_us >= self.period_us
+
+    def sent(self, now_us: int) -> None:
+        if self.started and now_us - self.last_us < 2 * self.period_us:
+            self.last_us += self.period_us
+        else:
+            self.last_us = now_us
+        self.started = True
+
+
+@dataclass(frozen=True)
+class _Batch:
+    first_index: int
+    t_us: int
+    period_us: int
+    adc: tuple[int, ...]
+
+
+class FeatherCore:
+    """The probe firmware's behaviour as a pure discrete-event model in MCU time.
+
+    Every time is the MCU's unwrapped ``micros()`` [µs]; frames carry it mod 2^32. The main
+    loop is modelled as running continuously (it reacts at the instant of each event)
+    except while :meth:`stall` holds it, when, as on the chip, the sampling interrupt
+    keeps filling the 64-sample ring and overflows it.
+
+    Parameters
+    ----------
+    adc : AdcSource
+        The ADC reading at each sample time.
+    boot_us : int
+        MCU time at boot [µs]: the first STATUS is sent then, after a lone 0x00.
+    zero_counts, span_un_per_count : int
+        Calibration in EEPROM at boot [counts], [µN/count]; span 0 = not calibrated.
+    supply_mv : int
+        Supply voltage STATUS reports [mV].
+    fw_version : tuple of int
+        Firmware version GET_INFO reports.
+    """
+
+    def __init__(
+        self,
+        adc: AdcSource,
+        *,
+        boot_us: int = 0,
+        zero_counts: int = 0,
+        span_un_per_count: int = 0,
+        supply_mv: int = SUPPLY_MV,
+        fw_version: tuple[int, int, int] = FW_VERSION,
+    ) -> None:
+        self._adc = adc
+        self._boot_us = boot_us
+        self._now = boot_us
+        self.supply_mv = supply_mv
+        self.fw_version = fw_version
+        self.seq = 0
+        """Sequence number of the next frame sent (settable, e.g. to test vectors)."""
+        self.rx_errors = 0
+        """Received runs that were not a valid COMMAND frame."""
+        self.frames_sent = 0
+        self.eeprom_fails = False
+        """Fault: EEPROM writes fail their readback (WRITE_CAL and TARE answer status 4)."""
+        self.zero_counts = zero_counts
+        self.span_un_per_count = span_un_per_count
+        self.cal_valid = span_un_per_count != 0
+        self.streaming = False
+        self.rate_hz = DEFAULT_RATE_HZ
+        self.led_level = 0
+        # sampler (sampler.cpp)
+        self._period_us = period_for_rate(self.rate_hz)
+        self._sampling = False
+        self._next_sample_us = 0
+        self._ring: deque[int] = deque()
+        self._overflow = False
+        self.taken = 0
+        """Samples taken since boot (the next sample's index)."""
+        self.dropped = 0
+        """Samples the probe could not queue since boot."""
+        self._first_index = 0
+        self._first_t_us = 0
+        self._cache_t0 = 0
+        self._cache: NDArray[np.int64] = np.zeros(0, dtype=np.int64)
+        # tare
+        self.tare_pending = False
+        self._tare_owns_timer = False
+        self._tare_ref_seq = 0
+        self._tare_from_index = 0
+        self._tare_count = 0
+        self._tare_sum = 0
+        # main loop
+        self._stall_until = boot_us
+        self._heartbeat = _Heartbeat(HEARTBEAT_PERIOD_US)
+        self._rx = bytearray()
+        self._rx_overlong = False
+        self._rx_pending = b""
+        self._out: list[bytes] = [b"\x00"]  # begin(): flush the host's receiver
+        self._main_passes()  # the first loop pass: STATUS at boot
+
+    # ------------------------------------------------------------------ public
+
+    @property
+    def now_us(self) -> int:
+        """MCU time the model has reached [µs]."""
+        return self._now
+
+    @property
+    def period_us(self) -> int:
+        """Current sampling period [µs]."""
+        return self._period_us
+
+    @property
+    def stalled(self) -> bool:
+        """Whether the main loop is held by :meth:`stall`."""
+        return self._now < self._stall_until
+
+    def take_output(self) -> list[bytes]:
+        """Wire frames (COBS + 0x00; the boot flush is a lone 0x00) sent since the last call."""
+        out, self._out = self._out, []
+        return out
+
+    def feed(self, data: bytes, now_us: int) -> None:
+        """Host bytes received at MCU time ``now_us``: advance, then handle any commands.
+
+        While the main loop is stalled the bytes wait (in the UART buffer) and are handled
+        when it resumes.
+        """
+        self.advance(now_us)
+        self._rx_pending += bytes(data)
+        if not self.stalled:
+            self._read_link()
+
+    def advance(self, now_us: int) -> None:
+        """Run the model up to MCU time ``now_us`` [µs] (earlier times are ignored)."""
+        if now_us < self._now:
+            return
+        while True:
+            t_sample = self._next_sample_us if self._sampling else math.inf
+            t_loop = self._loop_event_us()
+            t = min(t_sample, t_loop)
+            if t > now_us:
+                break
+            self._now = int(t)
+            if self._sampling and self._next_sample_us == t:
+                self._isr_sample()
+            if not self.stalled:
+                self._read_link()
+                self._main_passes()
+        self._now = now_us
+
+    def next_event_us(self) -> int:
+        """Earliest MCU time after :attr:`now_us` at which the model sends a frame [µs].
+
+        A conservative bound: a batch (when the ring will hold a whole one), the heartbeat,
+        the end of a stall, or the next sample while a TARE is waiting for samples.
+        """
+        candidates = [self._loop_event_us()]
+        if self._sampling:
+            need = BATCH_SIZE if self.streaming and not self._overflow else 1
+            missing = max(1, need - len(self._ring))
+            candidates.append(self._next_sample_us + (missing - 1) * self._period_us)
+        return int(max(min(candidates), self._now))
+
+    def stall(self, duration_us: int) -> None:
+        """Fault: hold the main loop for ``duration_us`` from now (interrupts keep sampling)."""
+        if duration_us < 0:
+            raise ValueError(f"duration_us={duration_us} must not be negative")
+        self._stall_until = max(self._stall_until, self._now + duration_us)
+
+    def status_flags(self) -> StatusFlags:
+        """STATUS flags: streaming, USB CDC open (the emulated link), calibration valid."""
+        flags = StatusFlags.USB_OPEN
+        if self.streaming:
+            flags |= StatusFlags.STREAMING
+        if self.cal_valid:
+            flags |= StatusFlags.CAL_VALID
+        return flags
+
+    # ------------------------------------------------------------------ main loop
+
+    def _loop_event_us(self) -> float:
+        # A stalled loop does nothing until the stall ends, then catches up at once.
+        if self._now < self._stall_until:
+            return self._stall_until
+        return self._heartbeat.due_at(self._boot_us)
+
+    def _main_passes(self) -> None:
+        while True:
+            pops = self._service_samples()
+            if self._heartbeat.due(self._now):
+                self._send_status()
+                self._heartbeat.sent(self._now)
+            if pops < MAX_POPS_PER_PASS:
+                return
+
+    def _read_link(self) -> None:
+        data, self._rx_pending = self._rx_pending, b""
+        for b in data:
+            if b != 0:
+                if len(self._rx) >= MAX_ENCODED_SIZE:
+                    self._rx_overlong = True
+                else:
+                    self._rx.append(b)
+                continue
+            run, overlong = bytes(self._rx), self._rx_overlong
+            self._rx.clear()
+            self._rx_overlong = False
+            if not run and not overlong:
+                continue  # empty frame
+            if overlong:
+                self.rx_errors += 1
+                continue
+            try:
+                frame = unpack_frame(cobs_decode(run))
+            except FrameError:
+                self.rx_errors += 1
+                continue
+            if not isinstance(
+                frame.message,
+                StreamStart
+                | StreamStop
+                | SetRate
+                | SetLed
+                | Tare
+                | WriteCal
+                | GetInfo
+                | RawCommand,
+            ):
+                self.rx_errors += 1
+                continue
+            self._handle(frame.seq, frame.message)
+
+    # ------------------------------------------------------------------ commands
+
+    def _handle(self, seq: int, msg: Command) -> None:
+        busy = self.tare_pending
+        ok, bad, busy_s = AckStatus.OK, AckStatus.BAD_ARGUMENT, AckStatus.BUSY
+        if isinstance(msg, RawCommand):
+            self._send_ack(seq, msg.cmd, msg.refusal)
+            return
+        status = ok
+        if isinstance(msg, StreamStart):
+            if busy:
+                status = busy_s
+            elif not self.streaming:
+                self._start_sampling()
+                self.streaming = True
+        elif isinstance(msg, StreamStop):
+            if busy:
+                status = busy_s
+            elif self.streaming:
+                self._stop_and_flush()
+                self.streaming = False
+        elif isinstance(msg, SetRate):
+            if not RATE_MIN_HZ <= msg.rate_hz <= RATE_MAX_HZ:
+                status = bad
+            elif busy:
+                status = busy_s
+            else:
+                if self.streaming:
+                    self._stop_and_flush()
+                self.rate_hz = msg.rate_hz
+                if self.streaming:
+                    self._start_sampling()
+                else:
+                    self._period_us = period_for_rate(self.rate_hz)
+        elif isinstance(msg, SetLed):
+            self.led_level = msg.level
+        elif isinstance(msg, Tare):
+            if busy:
+                status = busy_s
+            else:
+                self.tare_pending = True
+                self._tare_ref_seq = seq
+                self._tare_count = 0
+                self._tare_sum = 0
+                self._tare_from_index = self.taken
+                self._tare_owns_timer = not self.streaming
+                if self._tare_owns_timer:
+                    self._start_sampling()
+                return  # answered with the 16th sample
+        elif isinstance(msg, WriteCal):
+            if msg.zero_counts > _ADC_MAX or msg.span_un_per_count == 0:
+                status = bad
+            elif busy:
+                status = busy_s
+            elif self.eeprom_fails:
+                status = AckStatus.EEPROM_FAILED
+            else:
+                self.zero_counts = msg.zero_counts
+                self.span_un_per_count = msg.span_un_per_count
+                self.cal_valid = True
+        elif isinstance(msg, GetInfo):
+            info = InfoResult(
+                PROTOCOL_VERSION,
+                *self.fw_version,
+                self.rate_hz,
+                self.led_level,
+                self.zero_counts,
+                self.span_un_per_count,
+                ADC_BITS,
+                BATCH_SIZE,
+            )
+            self._emit(Ack(seq, CmdId.GET_INFO, ok, info), self._now)
+            return
+        self._send_ack(seq, int(msg.CMD), status)
+
+    # ------------------------------------------------------------------ sampler
+
+    def _start_sampling(self) -> None:
+        self._period_us = period_for_rate(self.rate_hz)
+        self._sampling = True
+        self._next_sample_us = self._now + self._period_us  # CTC: first match one period later
+        self._cache = np.zeros(0, dtype=np.int64)
+
+    def _stop_and_flush(self) -> None:
+        self._sampling = False
+        while self._ring:
+            self._send_batch(self._pop(BATCH_SIZE))
+
+    def _adc_at(self, t_us: int) -> int:
+        j = (t_us - self._cache_t0) // self._period_us if self._cache.size else -1
+        if not 0 <= j < self._cache.size or self._cache_t0 + j * self._period_us != t_us:
+            times = t_us + self._period_us * np.arange(_CACHE_SAMPLES, dtype=np.int64)
+            self._cache = np.clip(self._adc.counts(times), 0, _ADC_MAX).astype(np.int64)
+            self._cache_t0, j = t_us, 0
+        return int(self._cache[j])
+
+    def _isr_sample(self) -> None:
+        t = self._next_sample_us
+        self._next_sample_us = t + self._period_us
+        adc = self._adc_at(t)
+        index = self.taken
+        self.taken += 1
+        if self._overflow:
+            if self._ring:
+                self.dropped += 1
+                return
+            self._overflow = False
+        if len(self._ring) == RING_CAPACITY:
+            self._overflow = True
+            self.dropped += 1
+            return
+        if not self._ring:
+            self._first_index = index
+            self._first_t_us = t
+        self._ring.append(adc)
+
+    def _pop(self, max_n: int) -> _Batch:
+        n = min(len(self._ring), max_n, max(BATCH_SIZE, TARE_SAMPLES))
+        adc = tuple(self._ring.popleft() for _ in range(n))
+        batch = _Batch(self._first_index, self._first_t_us, self._period_us, adc)
+        self._first_index += n
+        self._first_t_us += n * self._period_us
+        return batch
+
+    def _service_samples(self) -> int:
+        if not self.streaming and not self.tare_pending:
+            return 0
+        pops = 0
+        for _ in range(MAX_POPS_PER_PASS):
+            want = BATCH_SIZE if self.streaming and not self._overflow else 1
+            if len(self._ring) < want:
+                break
+            batch = self._pop(BATCH_SIZE if self.streaming else TARE_SAMPLES)
+            pops += 1
+            if self.tare_pending:
+                self._feed_tare(batch)
+            if self.streaming:
+                self._send_batch(batch)
+        return pops
+
+    def _feed_tare(self, batch: _Batch) -> None:
+        for i, adc in enumerate(batch.adc):
+            if self._tare_count >= TARE_SAMPLES:
+                break
+            if batch.first_index + i < self._tare_from_index:
+                continue  # taken before the TARE
+            self._tare_sum += adc
+            self._tare_count += 1
+        if self._tare_count == TARE_SAMPLES:
+            self._finish_tare()
+
+    def _finish_tare(self) -> None:
+        self.tare_pending = False
+        if self._tare_owns_timer:
+            self._sampling = False
+            self._ring.clear()  # the tare's own samples are not streamed
+            self._tare_owns_timer = False
+        zero = (self._tare_sum + TARE_SAMPLES // 2) // TARE_SAMPLES
+        if self.eeprom_fails:
+            self._send_ack(self._tare_ref_seq, CmdId.TARE, AckStatus.EEPROM_FAILED)
+            return
+        self.zero_counts = zero
+        self.cal_valid = self.span_un_per_count != 0
+        self._emit(Ack(self._tare_ref_seq, CmdId.TARE, AckStatus.OK, TareResult(zero)), self._now)
+
+    # ------------------------------------------------------------------ frames out
+
+    def _send_batch(self, batch: _Batch) -> None:
+        if batch.adc:
+            msg = Samples(batch.first_index % _U32, batch.period_us, batch.adc)
+            self._emit(msg, batch.t_us)
+
+    def _send_status(self) -> None:
+        msg = Status(
+            self.led_level, self.rate_hz, self.dropped % _U32, self.supply_mv, self.status_flags()
+        )
+        self._emit(msg, self._now)
+
+    def _send_ack(self, ref_seq: int, cmd: int, status: AckStatus) -> None:
+        self._emit(Ack(ref_seq, cmd, status), self._now)
+
+    def _emit(self, msg: Message, t_us: int) -> None:
+        self._out.append(encode_frame(msg, self.seq, t_us % _U32))
+        self.seq = (self.seq + 1) & 0xFFFF
+        self.frames_sent += 1
+
+
+# ====================================================================== pty shell
+
+
+def _set_raw(fd: int) -> None:
+    tty.setraw(fd)
+    attrs = termios.tcgetattr(fd)
+    attrs[3] &= ~termios.ECHO
+    termios.tcsetattr(fd, termios.TCSANOW, attrs)
+
+
+class EmulatedFeather:
+    """A :class:`FeatherCore` behind a pty, paced on a session clock.
+
+    The host opens :attr:`path` (a symlink to the pty slave) with pyserial like a real
+    ``/dev/ttyACM0``. The shell keeps its own handle on the slave so that the master never
+    sees a hang-up while the host closes and reopens the port; frames the host's tty buffer
+    cannot take are dropped, as the firmware drops a frame its link cannot queue.
+
+    Parameters
+    ----------
+    core : FeatherCore
+        The probe model (its MCU time is ``mcu_clock.mcu_us(clock.now())``).
+    clock : SessionClock
+        The session clock the probe paces itself on.
+    mcu_clock : McuClock
+        Session time to MCU time (boot time, drift).
+    link_path : Path, optional
+        Where to create the symlink (default: a fresh temporary directory).
+    seed : int
+        Seed of the fault generator (bit flips, garbage).
+    max_tick_s : float
+        Longest session-time sleep between two runs of the model [s].
+    """
+
+    def __init__(
+        self,
+        core: FeatherCore,
+        clock: SessionClock,
+        mcu_clock: McuClock,
+        *,
+        link_path: Path | None = None,
+        seed: int = 0,
+        max_tick_s: float = 0.1,
+    ) -> None:
+        self.core = core
+        self.clock = clock
+        self.mcu_clock = mcu_clock
+        self._tmpdir: tempfile.TemporaryDirectory[str] | None = None
+        if link_path is None:
+            self._tmpdir = tempfile.TemporaryDirectory(prefix="stipi-feather-")
+            link_path = Path(self._tmpdir.name) / "ttyFEATHER"
+        self.path = link_path
+        """Stable path of the serial device (exists only while plugged in)."""
+        self._rng = np.random.default_rng(seed)
+        self._max_tick_s = max_tick_s
+        self._master: int | None = None
+        self._slave: int | None = None
+        self._pending = bytearray()
+        self._task: asyncio.Task[None] | None = None
+        self._wake = asyncio.Event()
+        self._silent_until = -math.inf
+        self._replug_at: float | None = None
+        self.bit_error_rate = 0.0
+        """Fault: probability of flipping each bit the probe sends."""
+        self._garbage: list[bytes] = []
+        # counters
+        self.frames_written = 0
+        """Frames that reached the pty."""
+        self.frames_dropped = 0
+        """Frames lost before the pty: unplugged, silent, or the host's buffer full."""
+        self.bits_flipped = 0
+        self.garbage_bytes = 0
+
+    # ------------------------------------------------------------------ lifecycle
+
+    @property
+    def plugged(self) -> bool:
+        """Whether the serial device exists."""
+        return self._master is not None
+
+    def _mcu_now(self) -> int:
+        return self.mcu_clock.mcu_us(self.clock.now())
+
+    async def start(self) -> None:
+        """Plug the probe in and start running it."""
+        if self._task is not None:
+            return
+        self.plug()
+        self._task = asyncio.get_running_loop().create_task(self._run(), name="emulated-feather")
+
+    async def stop(self) -> None:
+        """Stop the probe and remove the device; safe to call twice."""
+        task, self._task = self._task, None
+        if task is not None:
+            task.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await task
+        self.unplug()
+        if self._tmpdir is not None:
+            self._tmpdir.cleanup()
+            self._tmpdir = None
+
+    async def __aenter__(self) -> EmulatedFeather:
+        await self.start()
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        await self.stop()
+
+    def plug(self) -> None:
+        """Create the pty and the device path (the probe is plugged in)."""
+        if self._master is not None:
+            return
+        master, slave = os.openpty()
+        _set_raw(slave)
+        os.set_blocking(master, False)
+        self._master, self._slave = master, slave
+        self._pending.clear()
+        tmp = self.path.with_name(self.path.name + ".new")
+        with contextlib.suppress(FileNotFoundError):
+            tmp.unlink()
+        tmp.symlink_to(os.ttyname(slave))
+        tmp.replace(self.path)
+        with contextlib.suppress(RuntimeError):
+            asyncio.get_running_loop().add_reader(master, self._on_readable)
+        self._wake.set()
+
+    def unplug(self, duration_s: float | None = None) -> None:
+        """Fault: remove the device (the host's open port reports a hang-up).
+
+        The probe keeps running on its battery; what it sends meanwhile is lost. With
+        ``duration_s`` it comes back (a new pty, same path) after that much session time.
+        """
+        if self._master is not None:
+            with contextlib.suppress(RuntimeError):
+                asyncio.get_running_loop().remove_reader(self._master)
+            with contextlib.suppress(FileNotFoundError):
+                self.path.unlink()
+            os.close(self._master)
+            if self._slave is not None:
+                os.close(self._slave)
+            self._master = self._slave = None
+        self._replug_at = None if duration_s is None else self.clock.now() + duration_s
+        self._wake.set()
+
+    def silence(self, duration_s: float) -> None:
+        """Fault: for ``duration_s`` of session time nothing crosses the link either way."""
+        self._silent_until = max(self._silent_until, self.clock.now() + duration_s)
+        self._wake.set()
+
+    def inject_garbage(self, data: bytes | None = None, n_bytes: int = 32) -> None:
+        """Fault: send ``data`` (default ``n_bytes`` random non-zero bytes) before a frame."""
+        if data is None:
+            data = bytes(self._rng.integers(1, 256, size=n_bytes, dtype=np.uint8))
+        self._garbage.append(bytes(data))
+
+    def stall(self, duration_s: float) -> None:
+        """Fault: hold the MCU's main loop for ``duration_s`` (the ring overflows: probe drops)."""
+        self.core.advance(self._mcu_now())
+        self.core.stall(round(duration_s * 1e6))
+        self._wake.set()
+
+    # ------------------------------------------------------------------ I/O
+
+    def _silent(self) -> bool:
+        return self.clock.now() < self._silent_until
+
+    def _on_readable(self) -> None:
+        if self._master is None:
+            return
+        try:
+            data = os.read(self._master, 4096)
+        except (BlockingIOError, InterruptedError):
+            return
+        except OSError:
+            return  # EIO: no reader on the slave side; nothing to do
+        if not data or self._silent():
+            return
+        self.core.feed(data, self._mcu_now())
+        self._flush()
+        self._wake.set()
+
+    def _flush(self) -> None:
+        frames = self.core.take_output()
+        if self._master is None or self._silent():
+            self.frames_dropped += len(frames)
+            return
+        for frame in frames:
+            if frame == b"\x00":  # the boot flush: a lone delimiter, not a frame
+                self._pending += frame
+                self._write_pending()
+                continue
+            if self._garbage:
+                garbage = b"".join(self._garbage)
+                self._garbage.clear()
+                self.garbage_bytes += len(garbage)
+                self._pending += garbage
+            data, flipped = flip_bits(frame, self.bit_error_rate, self._rng)
+            self.bits_flipped += flipped
+            if len(self._pending) > 4 * MAX_ENCODED_SIZE:
+                self.frames_dropped += 1  # the host is not reading: the probe's link is full
+                continue
+            self._pending += data
+            self.frames_written += 1
+            self._write_pending()
+
+    def _write_pending(self) -> None:
+        while self._pending and self._master is not None:
+            try:
+                n = os.write(self._master, self._pending)
+            except (BlockingIOError, InterruptedError):
+                return
+            except OSError:
+                self._pending.clear()
+                return
+            del self._pending[:n]
+
+    async def _run(self) -> None:
+        clock = self.clock
+        while True:
+            now = clock.now()
+            if self._replug_at is not None and now >= self._replug_at:
+                self._replug_at = None
+                self.plug()
+            self.core.advance(self.mcu_clock.mcu_us(now))
+            self._flush()
+            t_next = self.mcu_clock.session_s(self.core.next_event_us() + 1)
+            deadline = min(t_next, now + self._max_tick_s)
+            if self._replug_at is not None:
+                deadline = min(deadline, self._replug_at)
+            wall_s = max(0.0, (deadline - clock.now()) / clock.speed)
+            self._wake.clear()
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(self._wake.wait(), wall_s)

@@ -1,0 +1,71 @@
+"""Probe transports: one module per link, chosen by the config's ``kind`` and imported lazily.
+
+Each transport module holds its pydantic config model and its
+:class:`~stipi_daemon.transports.base.Transport`: :mod:`.serial` (USB CDC / UART through
+pyserial, ``kind="serial"``), :mod:`.emulated` (an emulated probe on a pty,
+``kind="emulated"``) and :mod:`.ble` (BLE UART, ``kind="ble"``). :data:`TransportConfig`
+is their discriminated union (what the daemon config's ``probe.transport`` holds) and
+:func:`open_transport` builds the transport a config names. Nothing here frames or decodes
+bytes; :mod:`stipi_daemon.probe` does.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, TypeAlias
+
+from pydantic import Field
+
+from stipi_daemon.clock import SessionClock
+from stipi_daemon.transports.base import Releasable, Transport
+from stipi_daemon.transports.ble import BleTransportConfig
+from stipi_daemon.transports.emulated import EmulatedTransportConfig
+from stipi_daemon.transports.serial import SerialTransportConfig
+
+__all__ = [
+    "BleTransportConfig",
+    "EmulatedTransportConfig",
+    "Releasable",
+    "SerialTransportConfig",
+    "Transport",
+    "TransportConfig",
+    "open_transport",
+]
+
+TransportConfig: TypeAlias = Annotated[
+    SerialTransportConfig | EmulatedTransportConfig | BleTransportConfig,
+    Field(discriminator="kind"),
+]
+"""Any transport's config, told apart by ``kind`` (the BLE helper adds its model here)."""
+
+
+def open_transport(
+    config: SerialTransportConfig | EmulatedTransportConfig | BleTransportConfig,
+    clock: SessionClock,
+) -> Transport:
+    """Build (not yet connect) the transport ``config`` names; ``await t.open()`` connects.
+
+    Parameters
+    ----------
+    config : TransportConfig
+        Which link and its options.
+    clock : SessionClock
+        The session clock (emulated devices pace themselves on it).
+
+    Returns
+    -------
+    Transport
+        An unopened transport; :class:`~stipi_daemon.probe.ProbeLink` opens and reopens it.
+    """
+    if config.kind == "serial":
+        from stipi_daemon.transports.serial import SerialTransport
+
+        return SerialTransport(config)
+    if config.kind == "emulated":
+        from stipi_daemon.transports.emulated import EmulatedTransport
+
+        return EmulatedTransport(config, clock)
+    if config.kind == "ble":
+        from stipi_daemon.transports.ble import BleTransport
+
+        return BleTransport(config, clock)
+    raise ValueError(f"unknown transport kind {config.kind!r}")  # pragma: no cover

@@ -1,0 +1,132 @@
+"""CameraStream: stall detection, reopen with backoff and recovery, on real sources."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import pytest
+
+from stipi_daemon.cameras import (
+    CameraEvent,
+    CameraFrame,
+    CameraRecovered,
+    CameraStalled,
+    CameraStream,
+)
+from stipi_daemon.cameras.simulator import SimulatorCamera
+from stipi_daemon.cameras.video_file import VideoFileCamera
+from stipi_daemon.clock import ScaledClock
+from stipi_daemon.errors import CameraError
+from tests.cameras._scenes import small_scene
+from tests.cameras._video import write_avi
+
+
+async def test_stall_is_detected_reopened_and_recovered() -> None:
+    scene = small_scene(recovery_s=5.0)
+    fps = scene.camera.fps
+    clock = ScaledClock(speed=2.0)
+    cam = SimulatorCamera(scene, clock)
+    stream = CameraStream(cam, clock, stall_timeout_s=0.5, backoff_s=0.05)
+    events: list[tuple[CameraEvent, float]] = []
+    stall_at: float | None = None
+    w0 = time.monotonic()
+    async with stream:
+        async for ev in stream.events():
+            events.append((ev, clock.now()))
+            if isinstance(ev, CameraFrame):
+                if stall_at is None and ev.seq == 12:
+                    stall_at = clock.now()
+                    cam.stall(1.0)
+                elif stall_at is not None and ev.t_capture_s > stall_at + 1.3:
+                    break
+    assert time.monotonic() - w0 < 5.0
+    assert not cam.is_open and stall_at is not None
+    kinds = [type(e).__name__ for e, _ in events]
+    i_stall = kinds.index("CameraStalled")
+    assert kinds.count("CameraStalled") == 1 and kinds[i_stall + 1] == "CameraRecovered"
+    stalled = events[i_stall][0]
+    assert isinstance(stalled, CameraStalled)
+    assert stalled.last_seq == 12 and stalled.reason == "timeout"
+    # Detected 0.5 s (session time) after the last frame, plus scheduling latency.
+    assert 0.5 <= stalled.silent_s <= 0.5 + 0.15
+    assert stalled.t_s - stall_at <= 0.5 + 0.15
+    recovered = events[i_stall + 1][0]
+    assert isinstance(recovered, CameraRecovered)
+    assert recovered.attempts == 1 and recovered.t_s >= stall_at + 1.0
+    first = events[i_stall + 2][0]
+    assert isinstance(first, CameraFrame)
+    assert first.t_capture_s >= stall_at + 1.0 - 0.5 / fps
+    # Every frame of the frozen second is lost and accounted for.
+    assert first.dropped_before == first.seq - 13 >= round(1.0 * fps) - 2
+    frames = [e for e, _ in events if isinstance(e, CameraFrame)]
+    seqs = [f.seq for f in frames]
+    assert seqs == sorted(seqs) and seqs[:13] == list(range(13))
+    assert cam.stats.stalls == 1 and cam.stats.reopens == 1
+    assert cam.stats.dropped == first.dropped_before
+
+
+async def test_permanent_stall_gives_up_with_one_line_error() -> None:
+    clock = ScaledClock(speed=2.0)
+    cam = SimulatorCamera(small_scene(recovery_s=30.0), clock)
+    stream = CameraStream(
+        cam, clock, stall_timeout_s=0.2, open_timeout_s=0.3, max_reopens=2, backoff_s=0.05
+    )
+    events: list[CameraEvent] = []
+    w0 = time.monotonic()
+    with pytest.raises(CameraError) as info:
+        async with stream:
+            async for ev in stream.events():
+                events.append(ev)
+                if isinstance(ev, CameraFrame) and ev.seq == 3:
+                    cam.stall(1e6)
+    assert time.monotonic() - w0 < 5.0
+    msg = str(info.value)
+    assert msg.startswith(cam.name) and "2 reopen attempts" in msg and "\n" not in msg
+    assert isinstance(events[-1], CameraStalled)
+    assert not cam.is_open and cam.stats.stalls == 1 and cam.stats.reopens == 0
+
+
+async def test_reopen_failures_are_retried_then_reported(tmp_path: Path) -> None:
+    p = tmp_path / "v.avi"
+    write_avi(p, 200, fps=30.0)
+    clock = ScaledClock(speed=4.0)
+    cam = VideoFileCamera(p, clock)
+    stream = CameraStream(cam, clock, stall_timeout_s=0.2, max_reopens=3, backoff_s=0.05)
+    with pytest.raises(CameraError, match=r"3 reopen attempts \(last: video file .* not found\)"):
+        async with stream:
+            async for ev in stream.events():
+                if isinstance(ev, CameraFrame) and ev.seq == 5:
+                    p.unlink()  # the file disappears (unplugged disk) ...
+                    cam.stall(10.0)  # ... and the camera goes silent
+
+
+async def test_source_end_ends_the_stream_without_stall(tmp_path: Path) -> None:
+    p = tmp_path / "v.avi"
+    write_avi(p, 20, fps=30.0)
+    clock = ScaledClock()
+    cam = VideoFileCamera(p, clock, pace=False)
+    async with CameraStream(cam, clock) as stream:
+        events = [ev async for ev in stream.events()]
+    assert all(isinstance(e, CameraFrame) for e in events) and len(events) == 20
+    assert cam.stats.stalls == 0
+
+
+async def test_stall_timeout_covers_three_frame_periods(tmp_path: Path) -> None:
+    p = tmp_path / "slow.avi"
+    write_avi(p, 3, fps=2.0)
+    clock = ScaledClock(speed=20.0)
+    cam = VideoFileCamera(p, clock)
+    async with CameraStream(cam, clock, stall_timeout_s=0.5) as stream:
+        assert stream.effective_stall_timeout_s() == pytest.approx(1.5)
+        events = [ev async for ev in stream.events()]
+    assert [type(e) for e in events] == [CameraFrame] * 3
+
+
+def test_invalid_settings_rejected() -> None:
+    clock = ScaledClock()
+    cam = VideoFileCamera("x.avi", clock)
+    with pytest.raises(ValueError, match="stall_timeout_s"):
+        CameraStream(cam, clock, stall_timeout_s=0.0)
+    with pytest.raises(ValueError, match="max_reopens"):
+        CameraStream(cam, clock, max_reopens=0)
