@@ -71,6 +71,9 @@ class ForceSample:
         The host's conversion of ``adc_counts`` (nominal zero and span) [N].
     true_force_n : float
         The model's force at ``t_true_s`` before effects and quantisation [N].
+    t_host_s : float
+        When the host receives the sample, on the scene's clock [s] (``t_true_s`` without
+        a link effect such as ``ble_link``).
     """
 
     index: int
@@ -79,11 +82,16 @@ class ForceSample:
     adc_counts: int
     force_n: float
     true_force_n: float
+    t_host_s: float
 
 
 @dataclass(frozen=True)
 class ForceBatch:
-    """All delivered samples of a scene as arrays (fields as :class:`ForceSample`)."""
+    """All delivered samples of a scene as arrays (fields as :class:`ForceSample`).
+
+    ``lost_index`` holds the index of every sample taken but not delivered (sorted), so
+    that ``index`` and ``lost_index`` together are exactly ``0 .. n - 1``.
+    """
 
     index: NDArray[np.int64]
     t_mcu_us: NDArray[np.int64]
@@ -91,6 +99,8 @@ class ForceBatch:
     adc_counts: NDArray[np.int64]
     force_n: NDArray[np.float64]
     true_force_n: NDArray[np.float64]
+    t_host_s: NDArray[np.float64]
+    lost_index: NDArray[np.int64]
 
     def __len__(self) -> int:
         return int(self.index.size)
@@ -105,6 +115,7 @@ class ForceBatch:
                 adc_counts=int(self.adc_counts[i]),
                 force_n=float(self.force_n[i]),
                 true_force_n=float(self.true_force_n[i]),
+                t_host_s=float(self.t_host_s[i]),
             )
 
 
@@ -186,13 +197,14 @@ class Pipeline:
             if any(not e.keep(k, t, rngs[id(e)]) for e, _ in drop_fx):
                 continue
             s = float(model.occluded_area_px(np.asarray([t]))[0])
-            image = self._render(t, render_fx, rngs)
+            image = self._render(k, t, render_fx, rngs)
             for e, _ in frame_fx:
                 image = e.apply_frame(image, t, rngs[id(e)])
             yield SimFrame(k, t, image, s)
 
     def _render(
         self,
+        k: int,
         t: float,
         render_fx: list[tuple[RenderEffect, np.random.SeedSequence]],
         rngs: dict[int, np.random.Generator],
@@ -204,18 +216,27 @@ class Pipeline:
             st = e.sub_times_s(t)
             if len(st) > 1:
                 sub_times = st
-        acc: NDArray[np.float64] | None = None
-        for ts in sub_times:
+        acc: NDArray[np.uint16] | None = None
+        for j, ts in enumerate(sub_times):
             dx, dy = 0.0, 0.0
-            for e, _ in render_fx:
-                ox, oy = e.offset_px(ts, rngs[id(e)])
+            for e, ss in render_fx:
+                # Every sub-frame of an exposure restarts the effect's per-frame generator:
+                # a random draw (e.g. a tremor phase) is per frame, smooth within it.
+                g = rngs[id(e)] if j == 0 else _frame_rng(ss, k)
+                ox, oy = e.offset_px(ts, g)
                 dx, dy = dx + ox, dy + oy
             img = self.renderer.render(ts, (dx, dy))
             if len(sub_times) == 1:
                 return img
-            acc = img.astype(np.float64) if acc is None else acc + img
+            if acc is None:
+                acc = img.astype(np.uint16)
+            else:
+                np.add(acc, img, out=acc)
         assert acc is not None
-        out: NDArray[np.uint8] = np.clip(np.rint(acc / len(sub_times)), 0, 255).astype(np.uint8)
+        # Mean of the sub-frames, rounded half up (uint16: up to 257 sub-frames of 255).
+        n = len(sub_times)
+        acc += n // 2
+        out: NDArray[np.uint8] = (acc // n).astype(np.uint8)
         return out
 
     def force_batch(self) -> ForceBatch:
@@ -225,14 +246,21 @@ class Pipeline:
         index = np.arange(n, dtype=np.int64)
         t_nominal = index / spec.sample_rate_hz
         t_true = t_nominal
+        mcu_us = t_nominal * 1e6
         delivered = np.ones(n, dtype=np.bool_)
         clock_fx: list[tuple[SampleClockEffect, np.random.SeedSequence]] = self._of(
             SampleClockEffect, 1
         )
-        for ce, ss in clock_fx:
-            g = np.random.default_rng(ss)
+        gens = [(ce, np.random.default_rng(ss)) for ce, ss in clock_fx]
+        for ce, g in gens:
             t_true = ce.true_time_s(t_true, g)
+        for ce, g in gens:
+            mcu_us = ce.mcu_time_us(t_true, mcu_us, g)
+        for ce, g in gens:
             delivered &= ce.delivered(index, g)
+        t_host = t_true
+        for ce, g in gens:
+            t_host = ce.host_time_s(index, t_host, delivered, g)
         true_force = self.model.force_n(t_true)
         force = true_force
         force_fx: list[tuple[ForceEffect, np.random.Generator]] = [
@@ -243,7 +271,7 @@ class Pipeline:
         counts = self.load_cell.counts(force)
         for fe, fg in force_fx:
             counts = fe.apply_counts(counts, fg)
-        t_mcu = spec.mcu_boot_offset_us + np.rint(t_nominal * 1e6).astype(np.int64)
+        t_mcu = spec.mcu_boot_offset_us + np.rint(mcu_us).astype(np.int64)
         return ForceBatch(
             index=index[delivered],
             t_mcu_us=t_mcu[delivered],
@@ -251,6 +279,8 @@ class Pipeline:
             adc_counts=counts[delivered],
             force_n=self.load_cell.force_n(counts[delivered]),
             true_force_n=true_force[delivered],
+            t_host_s=t_host[delivered],
+            lost_index=index[~delivered],
         )
 
 

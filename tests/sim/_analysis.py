@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Iterable
 from dataclasses import dataclass
 
@@ -13,6 +14,7 @@ from stipi_daemon.analysis.imaging import CircleROI, FrameProcessor
 from stipi_daemon.analysis.pitting import compute_pitting_parameters
 from stipi_daemon.analysis.recovery_fit import fit_recovery
 from stipi_daemon.analysis.vpr import elasticity_kpa
+from stipi_daemon.clocksync import ClockSync
 from stipi_daemon.sim.pipeline import ForceBatch, SimFrame
 from stipi_daemon.sim.truth import GroundTruth
 
@@ -91,3 +93,19 @@ def analyse(
         flags=pp.flags | fit.flags,
         saturated_frames=saturated,
     )
+
+
+def host_timed(batch: ForceBatch, batch_size: int = 10) -> tuple[ForceBatch, ClockSync]:
+    """The batch with ``t_true_s`` replaced by the host's view of each sample's time.
+
+    As the daemon does: one :class:`ClockSync` observation per received notification (the
+    MCU time of its last sample, the host receive time ``t_host_s``), then every sample's
+    ``t_mcu_us`` mapped through the final fit. Returns the copy and the fit.
+    """
+    idx = batch.index
+    last = np.r_[idx[1:] // batch_size != idx[:-1] // batch_size, True]
+    sync = ClockSync()
+    for i in np.flatnonzero(last):
+        sync.observe(int(batch.t_mcu_us[i]), float(batch.t_host_s[i]))
+    mapped = np.asarray([sync.to_host(int(u)) for u in batch.t_mcu_us], dtype=np.float64)
+    return dataclasses.replace(batch, t_true_s=mapped), sync

@@ -19,6 +19,9 @@ __all__ = ["EFFECT_MODULES", "effect_module", "known_effects"]
 #: Scene name of each effect -> module under this package, in order of application.
 EFFECT_MODULES: dict[str, str] = {
     "hand_tremor": "hand_tremor",
+    "motion_blur": "motion_blur",
+    "vignetting": "vignetting",
+    "exposure_drift": "exposure_drift",
     "led_flicker": "led_flicker",
     "saturation": "saturation",
     "sensor_noise": "sensor_noise",
@@ -26,6 +29,8 @@ EFFECT_MODULES: dict[str, str] = {
     "dropped_frames": "dropped_frames",
     "force_noise": "force_noise",
     "force_drift": "force_drift",
+    "mcu_clock_drift": "mcu_clock_drift",
+    "ble_link": "ble_link",
 }
 
 

@@ -115,7 +115,12 @@ class ForceEffect(ABC):
 
 
 class SampleClockEffect:
-    """Relates the MCU's microsecond clock to true time, and may lose samples."""
+    """Relates the MCU's microsecond clock to true time, and may lose or delay samples.
+
+    The pipeline calls, for each such effect in registry order and with one generator per
+    effect: :meth:`true_time_s`, :meth:`mcu_time_us`, :meth:`delivered`,
+    :meth:`host_time_s`; each receives the previous effect's output.
+    """
 
     def true_time_s(
         self, t_nominal_s: NDArray[np.float64], rng: np.random.Generator
@@ -123,6 +128,30 @@ class SampleClockEffect:
         """True time [s] at which the MCU takes the samples it schedules at ``t_nominal_s``."""
         return t_nominal_s
 
+    def mcu_time_us(
+        self, t_true_s: NDArray[np.float64], mcu_us: NDArray[np.float64], rng: np.random.Generator
+    ) -> NDArray[np.float64]:
+        """MCU clock reading stamped on each sample, since the boot offset [us] (not rounded).
+
+        ``mcu_us`` is the reading so far (default: the nominal schedule, ``1e6 * t``); the
+        default keeps it.
+        """
+        return mcu_us
+
     def delivered(self, index: NDArray[np.int64], rng: np.random.Generator) -> NDArray[np.bool_]:
         """Which samples reach the host (BLE loss); default: all."""
         return np.ones(index.shape, dtype=np.bool_)
+
+    def host_time_s(
+        self,
+        index: NDArray[np.int64],
+        t_host_s: NDArray[np.float64],
+        delivered: NDArray[np.bool_],
+        rng: np.random.Generator,
+    ) -> NDArray[np.float64]:
+        """Host receive time of every sample [s] (lost ones: when they would have arrived).
+
+        ``t_host_s`` is the time so far (default: the true time, an ideal link) and
+        ``delivered`` the samples every effect lets through; the default keeps the times.
+        """
+        return t_host_s

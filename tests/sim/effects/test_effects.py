@@ -52,6 +52,13 @@ MILD: list[tuple[dict[str, Any], float]] = [
     ({"name": "jpeg_compression", "quality": 90}, 0.002),
     ({"name": "saturation", "gain": 1.2}, 0.05),
     ({"name": "hand_tremor", "position_amplitude_mm": 0.1, "force_amplitude_n": 0.3}, 0.001),
+    ({"name": "exposure_drift", "rate_percent_per_min": 5.0}, 0.005),
+    ({"name": "exposure_drift", "mode": "exponential", "rate_percent_per_min": -5.0}, 0.005),
+    ({"name": "vignetting", "strength": 0.3}, 0.005),
+    # samples only re-stamped or delivered late/lost; analysed on the host's clock in
+    # test_mcu_clock_drift.py and test_ble_link.py
+    ({"name": "mcu_clock_drift", "rate_error_ppm": 5000.0}, 0.001),
+    ({"name": "ble_link", "loss_probability": 0.05}, 0.001),
 ]
 
 
@@ -97,6 +104,53 @@ def test_large_tremor_moves_disc_but_not_area() -> None:
     )
     assert max(err.values()) <= 0.002, err
     assert not a.flags
+
+
+def test_too_strong_exposure_drift_is_flagged() -> None:
+    """-200 %/min: the lit waveguide falls below p during the recovery, S_k runs away."""
+    err, a = _errors([{"name": "exposure_drift", "rate_percent_per_min": -200.0}])
+    assert Flag.TIME_CONSTANT_OUTSIDE_WINDOW in a.flags
+    assert err["force"] > 1.0
+
+
+def test_too_strong_vignetting_is_flagged() -> None:
+    """90 % lost at half the half-diagonal: the ROI's rim is below p and counted occluded."""
+    err, a = _errors([{"name": "vignetting", "strength": 0.9, "radius_fraction": 0.5}])
+    assert {Flag.CALIBRATION_EXTRAPOLATED, Flag.DEPTH_CLIPPED} <= a.flags
+    assert err["depth"] > 1.0
+
+
+def test_motion_blur_with_tremor_is_bounded() -> None:
+    """A 2 ms exposure with 0.1 mm tremor: S_k lags S(t) by 1 ms (the frame integrates
+    [t, t + exposure]), which on grade I's fast recovery (tau_r 0.64 s) biases S_0 and D_p."""
+    err, a = _errors([{"name": "motion_blur", "exposure_s": 0.002}, {"name": "hand_tremor"}])
+    assert max(err.values()) <= 0.01, err
+    assert not a.flags
+
+
+def test_long_exposure_bias_is_not_flagged() -> None:
+    """8 ms on grade I: S_0 integrates the first 8 ms of a fast recovery; D_p (and E) are
+    biased by a few % with no flag (the analysis cannot tell an exposure lag)."""
+    err, a = _errors([{"name": "motion_blur", "exposure_s": 0.008}])
+    assert 0.01 < err["depth"] < 0.05, err
+    assert err["tau"] < 0.002 and err["force"] < 0.002, err
+    assert not a.flags
+
+
+def test_too_strong_motion_blur_is_flagged() -> None:
+    """A 33 ms exposure with a 10 mm, 5 Hz sway smears the disc by tens of px."""
+    err, a = _errors(
+        [
+            {
+                "name": "motion_blur",
+                "exposure_s": 0.033,
+                "sway_amplitude_mm": 10.0,
+                "sway_frequency_hz": 5.0,
+            }
+        ]
+    )
+    assert {Flag.EARLY_NOISY_CROSSING, Flag.NOT_SETTLED} <= a.flags
+    assert err["depth"] > 0.5
 
 
 @pytest.mark.parametrize(
