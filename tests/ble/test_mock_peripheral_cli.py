@@ -1,0 +1,95 @@
+"""``stipi-daemon mock-peripheral``: the CLI, and a central connecting to what it serves."""
+
+from __future__ import annotations
+
+import asyncio
+import subprocess
+import sys
+
+from stipi_daemon.ble.radio import VirtualRadio
+from stipi_daemon.clock import ScaledClock
+from stipi_daemon.commands.mock_peripheral import MockPeripheralOptions, serve
+from stipi_daemon.probe import ProbeLink
+from stipi_daemon.transports.ble import BleTransport, BleTransportConfig
+
+from .conftest import SCENES, ProbeRecorder
+
+
+def test_cli_runs_and_reports_a_missing_dongle_in_one_line() -> None:
+    scene = str(SCENES / "grade1.yaml")
+    ok = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "stipi_daemon",
+            "mock-peripheral",
+            "--scene",
+            scene,
+            "--transport",
+            "virtual:cli",
+            "--duration",
+            "0.4",
+            "--speed",
+            "4",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=False,
+    )
+    assert ok.returncode == 0, ok.stderr
+    assert "advertising STIPI-01" in ok.stdout and "notifications=" in ok.stdout
+    bad = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "stipi_daemon",
+            "mock-peripheral",
+            "--scene",
+            scene,
+            "--transport",
+            "nosuch:0",
+            "--duration",
+            "1",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=False,
+    )
+    assert bad.returncode != 0
+    assert bad.stderr.strip().count("\n") == 0 and "nosuch:0" in bad.stderr
+    assert "Traceback" not in bad.stderr
+
+
+async def test_daemon_side_connects_to_the_served_probe(radio: VirtualRadio) -> None:
+    opts = MockPeripheralOptions(
+        scene=SCENES / "grade1.yaml",
+        transport=radio.spec,
+        speed=8.0,
+        duration_s=60.0,
+        disconnect_every_s=1.5,
+        quiet=True,
+    )
+    ready = asyncio.Event()
+    server = asyncio.create_task(serve(opts, ready=ready))
+    await ready.wait()
+    clock = ScaledClock(8.0)
+    probe = ProbeLink(
+        BleTransport(BleTransportConfig(name="STIPI-01", hci=radio.spec), clock),
+        clock=clock,
+        reconnect_initial_s=0.05,
+    )
+    await probe.connect()
+    await probe.start_stream()
+    rec = ProbeRecorder(probe)
+    try:
+        await rec.until(lambda: len(rec.ups) >= 2 and rec.rows_since_up >= 20)
+    finally:
+        await rec.stop()
+        server.cancel()
+        try:
+            await server
+        except asyncio.CancelledError:
+            pass
+    assert len(rec.downs) >= 1  # the served probe dropped the link; the daemon came back
