@@ -147,11 +147,17 @@ class DaemonConfig(_Model):
             return p if p.is_absolute() else (base / p).resolve()
 
         def fix_paths(model: BaseModel) -> Any:
-            update = {
-                name: fix(value)
-                for name in ("scene", "path")
-                if isinstance(value := getattr(model, name, None), Path)
-            }
+            # ``scene`` and ``path`` fields, also in nested models (e.g. a BLE transport's
+            # ``emulate`` section).
+            update: dict[str, Any] = {}
+            for name in type(model).model_fields:
+                value = getattr(model, name)
+                if name in ("scene", "path") and isinstance(value, Path):
+                    update[name] = fix(value)
+                elif isinstance(value, BaseModel):
+                    fixed = fix_paths(value)
+                    if fixed is not value:
+                        update[name] = fixed
             return model.model_copy(update=update) if update else model
 
         probe = self.probe.model_copy(update={"transport": fix_paths(self.probe.transport)})

@@ -27,6 +27,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import time
+from collections.abc import Callable, Coroutine
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any, TextIO
@@ -40,7 +41,7 @@ from stipi_daemon.analysis.severity import load_reference
 from stipi_daemon.clock import ScaledClock
 from stipi_daemon.config import DaemonConfig
 from stipi_daemon.console import OperatorConsole, format_results
-from stipi_daemon.errors import ConfigError, StipiError
+from stipi_daemon.errors import ConfigError, SessionError, StipiError
 from stipi_daemon.measurement.merge import TimeOrderedMerger
 from stipi_daemon.measurement.pipeline import MeasurementPipeline
 from stipi_daemon.measurement.state_machine import (
@@ -58,7 +59,7 @@ from stipi_daemon.measurement.state_machine import (
 )
 from stipi_daemon.storage.writer import SessionWriter, StorageOptions
 
-__all__ = ["RunOutcome", "run_daemon", "run_measurement"]
+__all__ = ["DaemonHandles", "RunOutcome", "run_daemon", "run_measurement"]
 
 #: Interval between stored live-parameter rows and console updates [s of session time].
 LIVE_INTERVAL_S = 1.0
@@ -100,6 +101,35 @@ class RunOutcome:
     def exit_code(self) -> int:
         """0 for a completed measurement with results, 1 otherwise."""
         return 0 if self.phase == Phase.DONE and self.summary.get("results") else 1
+
+
+@dataclass(frozen=True)
+class DaemonHandles:
+    """The running daemon's parts, handed to an ``on_running`` callback.
+
+    For supervision and for reliability tests, which inject faults into the real devices
+    (``probe.transport.feather.unplug(...)``, ``camera.camera.stall(...)``) while the
+    daemon records. The callback must not write to the session.
+
+    Attributes
+    ----------
+    clock : ScaledClock
+        The session clock.
+    probe : ProbeLink
+        The probe link.
+    camera : CameraStream
+        The camera stream.
+    writer : SessionWriter
+        The session being recorded.
+    pipeline : MeasurementPipeline
+        The live measurement (``pipeline.phase`` is the state machine's phase).
+    """
+
+    clock: ScaledClock
+    probe: Any
+    camera: Any
+    writer: SessionWriter
+    pipeline: MeasurementPipeline
 
 
 @dataclass(frozen=True)
@@ -168,9 +198,12 @@ def run_measurement(
     out: TextIO | None = None,
     quiet: bool = False,
     live: bool | None = None,
+    on_session: Callable[[SessionWriter], None] | None = None,
 ) -> RunOutcome:
     """Run one measurement (blocking); see :func:`run_daemon`."""
-    return asyncio.run(run_daemon(config, speed=speed, out=out, quiet=quiet, live=live))
+    return asyncio.run(
+        run_daemon(config, speed=speed, out=out, quiet=quiet, live=live, on_session=on_session)
+    )
 
 
 async def run_daemon(
@@ -180,6 +213,10 @@ async def run_daemon(
     out: TextIO | None = None,
     quiet: bool = False,
     live: bool | None = None,
+    clock: ScaledClock | None = None,
+    scene_origin_s: float | None = None,
+    on_session: Callable[[SessionWriter], None] | None = None,
+    on_running: Callable[[DaemonHandles], Coroutine[Any, Any, None]] | None = None,
 ) -> RunOutcome:
     """Record and analyse one measurement as ``config`` says.
 
@@ -192,12 +229,31 @@ async def run_daemon(
         devices; the demo accelerates its simulated devices).
     out, quiet, live
         Console output (see :class:`~stipi_daemon.console.OperatorConsole`).
+    clock : ScaledClock, optional
+        The session clock to run on (default: a new one at ``speed``); lets a caller
+        start devices of its own (an emulated probe on a pty, a firmware simulation) on
+        the same timeline before the daemon starts.
+    scene_origin_s : float, optional
+        Session time of scene time 0 for simulated and replayed devices [s] (default:
+        :data:`SCENE_LEAD_WALL_S` after start-up); give it when a device started by the
+        caller plays the scene from a known instant.
+    on_session : callable, optional
+        Called with the :class:`~stipi_daemon.storage.writer.SessionWriter` once the
+        session exists (e.g. to record commit times in a benchmark).
+    on_running : async callable, optional
+        Run as a task with the :class:`DaemonHandles` once the stream has started, and
+        cancelled when the measurement ends (fault injection in reliability tests).
 
     Raises
     ------
     StipiError
         A device cannot be opened or the session cannot be created (one line; nothing
         is recorded in that case).
+    SessionError
+        Storing rows failed while recording (disk full, I/O error): the daemon stops at
+        once (within 1 s), keeps every row committed before, leaves the session
+        ``interrupted`` (``fault`` if the final state could still be stored) and says why
+        in one line.
     """
     from stipi_daemon.cameras import CameraFrame, CameraStream, open_camera
     from stipi_daemon.cameras import CameraRecovered as CamRecovered
@@ -212,21 +268,33 @@ async def run_daemon(
     )
     from stipi_daemon.transports import open_transport
 
-    run_speed = speed if speed is not None else config.run.speed
-    clock = ScaledClock(run_speed)
+    if clock is None:
+        clock = ScaledClock(speed if speed is not None else config.run.speed)
+    run_speed = clock.speed
     calibration, threshold, roi, truth = _resolve_imaging(config)
     reference = load_reference()
     console = OperatorConsole(config.measurement, out, live=live, quiet=quiet)
     wall0 = time.monotonic()
 
-    # Simulated devices (emulated probe, simulator camera) play one scene: they share its
-    # time origin, set far enough ahead that both are open and the measurement is armed
-    # before the scene starts.
-    origin_s = clock.now() + SCENE_LEAD_WALL_S * clock.speed
+    # Simulated and replayed devices (emulated probe, simulator camera, video file) play
+    # one scene: they share its time origin, set far enough ahead that all are open and
+    # the measurement is armed before the scene starts.
+    origin_s = (
+        scene_origin_s
+        if scene_origin_s is not None
+        else clock.now() + SCENE_LEAD_WALL_S * clock.speed
+    )
     pc = config.probe
     transport_config = pc.transport
     if transport_config.kind == "emulated" and transport_config.scene_start_s is None:
         transport_config = transport_config.model_copy(update={"scene_start_s": origin_s})
+    elif (
+        transport_config.kind == "ble"
+        and transport_config.emulate is not None
+        and transport_config.emulate.scene_start_s is None
+    ):
+        emulate = transport_config.emulate.model_copy(update={"scene_start_s": origin_s})
+        transport_config = transport_config.model_copy(update={"emulate": emulate})
     probe = ProbeLink(
         open_transport(transport_config, clock),
         clock=clock,
@@ -237,12 +305,15 @@ async def run_daemon(
         zero_counts=pc.zero_counts,
         span_un_per_count=pc.span_un_per_count,
     )
-    simulated_camera = config.camera.kind == "simulator"
+    # A paced video file replays the scene too (e.g. the simulator's rendering of it).
+    simulated_camera = config.camera.kind == "simulator" or (
+        config.camera.kind == "file" and config.camera.pace
+    )
     camera = CameraStream(
         open_camera(config.camera, clock, t0_s=origin_s if simulated_camera else None),
         clock,
-        # A simulated camera's first frame comes at the scene origin.
-        open_timeout_s=2.0 + (origin_s - clock.now() if simulated_camera else 0.0),
+        # A simulated or replayed camera's first frame comes at the scene origin.
+        open_timeout_s=2.0 + max(0.0, origin_s - clock.now() if simulated_camera else 0.0),
     )
     # Devices first: a missing port or camera is one clear line and no empty session.
     await probe.connect()
@@ -276,6 +347,8 @@ async def run_daemon(
         await camera.close()
         await probe.close()
         raise
+    if on_session is not None:
+        on_session(writer)
 
     pipeline = MeasurementPipeline(
         measurement=config.measurement,
@@ -360,16 +433,29 @@ async def run_daemon(
     summary: dict[str, Any] = {"status": "aborted"}
     next_live = 0.0
     stop_error: BaseException | None = None
+    storage_error: SessionError | None = None
     try:
         with console:
             console.line(f"session {writer.session_id} in {storage.root}")
             record(pipeline.arm(clock.now()))
+            # How session times map onto the host's monotonic clock (time.monotonic()).
+            writer.add_event(
+                clock.now(),
+                "session_clock",
+                {
+                    "speed": clock.speed,
+                    "monotonic_origin_s": time.monotonic() - clock.now() / clock.speed,
+                },
+            )
             await probe.start_stream()
             tasks = [
                 asyncio.create_task(pump_probe(), name="probe"),
                 asyncio.create_task(pump_camera(), name="camera"),
                 asyncio.create_task(ticker(), name="ticker"),
             ]
+            if on_running is not None:
+                handles = DaemonHandles(clock, probe, camera, writer, pipeline)
+                tasks.append(asyncio.create_task(on_running(handles), name="on_running"))
             while True:
                 ev = await queue.get()
                 outputs: list[Output] = []
@@ -468,6 +554,9 @@ async def run_daemon(
                         console.update(now, params=live_params)
             summary = _summary(pipeline, truth)
             status = "complete" if pipeline.phase == Phase.DONE else "fault"
+    except SessionError as exc:
+        # Storage failed (disk full, I/O error): stop recording now, keep what is stored.
+        storage_error = exc
     finally:
         for t in tasks:
             t.cancel()
@@ -488,8 +577,23 @@ async def run_daemon(
             "probe": probe.stats_dict(),
             "camera": camera.stats.as_dict() | {"source": camera.camera.metadata()},
         }
-        writer.finish(status, summary)
-        writer.close()
+        if storage_error is None:
+            writer.finish(status, summary)
+            writer.close()
+        else:
+            # Best effort: the disk that failed may still take the final state.
+            with contextlib.suppress(SessionError):
+                writer.finish(
+                    "fault", summary | {"status": "fault", "storage_error": str(storage_error)}
+                )
+            with contextlib.suppress(SessionError):
+                writer.close()
+    if storage_error is not None:
+        cause = storage_error.__cause__ or storage_error
+        raise SessionError(
+            f"{writer.directory}: recording stopped, the session could not be stored ({cause}); "
+            "the rows committed before are kept"
+        ) from storage_error
     for line in format_results(summary):
         console.line(line)
     console.line(f"session written to {writer.db_path.parent}")

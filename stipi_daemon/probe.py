@@ -327,6 +327,10 @@ class ProbeLink:
         self.decoder = FrameDecoder()
         self.accounting = SampleAccounting()
         self.clock_sync = ClockSync(clock_sync)
+        #: Mapped time of the last sample [s] and how often a sample's mapped time was held
+        #: after it because the clock fit moved back (see ``_on_samples``).
+        self._last_t_host: float | None = None
+        self.monotone_clamped = 0
         self.info: InfoResult | None = None
         """The last GET_INFO answer."""
         self.calibration: tuple[int, int] | None = None
@@ -552,6 +556,7 @@ class ProbeLink:
             "probe_runs": acc.runs,
             "connects": self.connects,
             "decoder": self.decoder.stats.as_dict(),
+            "mapped_times_held": self.monotone_clamped,
         }
         sync = self.clock_sync
         if sync.n_observations:
@@ -760,13 +765,22 @@ class ProbeLink:
         for i, adc in enumerate(msg.adc):
             t_us = f.t_us_unwrapped + i * period
             force = None if cal is None else (adc - cal[0]) * cal[1] * 1e-6
+            # Mapped times never go backwards: a burst of late notifications (BLE
+            # connection events) can move the clock fit back by a few ms; such samples
+            # are held 1 us after the previous one (counted) rather than reordered. The
+            # raw and unwrapped probe times are kept, so the mapping can be redone offline.
+            t_host = to_host(t_us)
+            if self._last_t_host is not None and t_host <= self._last_t_host:
+                t_host = self._last_t_host + 1e-6
+                self.monotone_clamped += 1
+            self._last_t_host = t_host
             rows.append(
                 ForceRow(
                     (msg.first_index + i) % _U32,
                     adc,
                     (f.t_us + i * period) % _U32,
                     t_us,
-                    to_host(t_us),
+                    t_host,
                     force,
                 )
             )

@@ -76,3 +76,14 @@ def test_bad_config_names_file_and_field(tmp_path: Path, text: str, needle: str)
 def test_missing_config_file(tmp_path: Path) -> None:
     with pytest.raises(ConfigError, match="cannot read config file"):
         load_config(tmp_path / "nope.yaml")
+
+
+def test_nested_scene_paths_resolve(tmp_path: Path) -> None:
+    p = _write(
+        tmp_path,
+        "probe: {transport: {kind: ble, name: STIPI-01, emulate: {scene: sc/a.yaml}}}\n"
+        "camera: {kind: file, path: v/x.avi}\n",
+    )
+    cfg = load_config(p)
+    assert cfg.probe.transport.emulate.scene == tmp_path / "sc" / "a.yaml"  # type: ignore[union-attr]
+    assert cfg.camera.path == tmp_path / "v" / "x.avi"  # type: ignore[union-attr]

@@ -1,0 +1,90 @@
+"""Issue 6: a whole simulated measurement over the BLE path equals the serial path's.
+
+Both runs use the same scene and seed: once with the emulated Feather on a pty (read
+through pyserial), once with the emulated probe as a BLE peripheral on a virtual radio,
+reached through bleak's public API on the Bumble backend. The camera is the same
+simulator in both, so the frames and S_k are identical. What depends only on S_k at T_0
+(S_0, D_p) is identical. What also depends on the force samples' mapped times differs by
+the links' timing: the release is detected from the force (BLE delivers in connection
+events), which moves the end of the recovery window by a frame or two and so S_max and
+F_r slightly, and F_a (the mean over the hold) and E by the clock-sync error. Those agree
+within the simulator issue's 1 %.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from stipi_daemon.config import parse_config
+from stipi_daemon.daemon import run_measurement
+from tests.conftest import REPO_ROOT
+
+SCENE = REPO_ROOT / "configs" / "scenes" / "demo_grade3.yaml"
+
+
+def _run(tmp_path: Path, transport: dict[str, Any], name: str) -> dict[str, Any]:
+    cfg = parse_config(
+        {
+            "probe": {"transport": transport, "rate_hz": 100},
+            "camera": {"kind": "simulator", "scene": str(SCENE)},
+            "storage": {"root": str(tmp_path / name), "min_free_mb": 0},
+            "run": {"speed": 4.0},
+        },
+        "test",
+    )
+    outcome = run_measurement(cfg, quiet=True)
+    assert outcome.exit_code == 0, outcome.summary.get("end_reason")
+    return outcome.summary
+
+
+@pytest.mark.timeout(240)
+def test_ble_measurement_equals_serial(tmp_path: Path) -> None:
+    serial = _run(tmp_path, {"kind": "emulated", "scene": str(SCENE)}, "serial")
+    ble = _run(
+        tmp_path,
+        {
+            "kind": "ble",
+            "name": "STIPI-01",
+            "hci": "virtual:stipi-test",
+            "emulate": {"scene": str(SCENE)},
+        },
+        "ble",
+    )
+    rs, rb = serial["results"], ble["results"]
+
+    # From S_k at T_0 (same frames): identical. T_0 on each run's scene timeline (each run
+    # has its own session-time origin).
+    def t0_scene(summary: dict[str, Any]) -> float:
+        return float(
+            summary["results"]["pitting"]["t0_s"] - summary["run"]["camera"]["source"]["t0_s"]
+        )
+
+    assert t0_scene(ble) == pytest.approx(t0_scene(serial), abs=1e-6)
+    for key in ("s0_px", "depth_mm", "depth_change_mm"):
+        assert rb["pitting"][key] == pytest.approx(rs["pitting"][key], rel=1e-9), key
+    # Depending on where the recovery window ends (release detected from the force).
+    assert rb["pitting"]["rebound_force_n"] == pytest.approx(
+        rs["pitting"]["rebound_force_n"], rel=0.01
+    )
+    assert rb["fitted_recovery"]["tau_s"] == pytest.approx(rs["fitted_recovery"]["tau_s"], rel=1e-3)
+    assert (
+        rb["severity"]["paper_estimator"]["severity"]
+        == rs["severity"]["paper_estimator"]["severity"]
+    )
+    assert rb["severity"]["fitted_recovery"]["nearest_grade"] == "III"
+    # From the force samples' mapped times: equal to the clock-sync error.
+    assert rb["applied_force_n"] == pytest.approx(rs["applied_force_n"], rel=2e-3)
+    assert rb["paper_estimator"]["elasticity_kpa"] == pytest.approx(
+        rs["paper_estimator"]["elasticity_kpa"], rel=2e-3
+    )
+    # Nothing lost on either link.
+    assert ble["run"]["probe"]["samples_lost"] == 0
+    assert serial["run"]["probe"]["samples_lost"] == 0
+    # And both match the scene's ground truth as the simulator issue requires.
+    gt = ble["ground_truth"]
+    assert rb["pitting"]["depth_mm"] == pytest.approx(gt["depth_mm"], rel=0.01)
+    assert rb["fitted_recovery"]["tau_s"] == pytest.approx(gt["time_constant_s"], rel=0.02)
+    assert rb["paper_estimator"]["elasticity_kpa"] == pytest.approx(gt["elasticity_kpa"], rel=0.01)
