@@ -87,3 +87,13 @@ def test_nested_scene_paths_resolve(tmp_path: Path) -> None:
     cfg = load_config(p)
     assert cfg.probe.transport.emulate.scene == tmp_path / "sc" / "a.yaml"  # type: ignore[union-attr]
     assert cfg.camera.path == tmp_path / "v" / "x.avi"  # type: ignore[union-attr]
+
+
+@pytest.mark.parametrize("name", ["probe.yaml", "probe-ble.yaml", "demo.yaml"])
+def test_shipped_configs_load(name: str) -> None:
+    cfg = load_config(REPO_ROOT / "configs" / name)
+    assert cfg.storage.root.is_absolute()
+    if name.startswith("probe"):
+        assert cfg.camera.kind == "v4l2"
+        assert cfg.run.speed == 1.0
+        assert cfg.calibration == (REPO_ROOT / "configs" / "calibration" / "probe.json")
