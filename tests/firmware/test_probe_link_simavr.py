@@ -136,7 +136,9 @@ async def test_probe_link_streams_the_real_firmware(
     t_mcu_s = np.array([r.t_mcu_us for r in got]) * 1e-6
     k = nearest(conv, t_mcu_s)
     offset_s = conv[k] - t_mcu_s
-    assert 0 <= np.median(offset_s) < 3e-3 and np.ptp(offset_s) < 20e-6
+    # micros() ticks every 8 us at 8 MHz and the ISR's entry latency varies with the other
+    # interrupts (Timer0, UART): the spread stays within a few ticks.
+    assert 0 <= np.median(offset_s) < 3e-3 and np.ptp(offset_s) < 5 * 8e-6
     adc = np.array([r.adc_counts for r in got])
     assert np.array_equal(adc, counts_of_mv(np.interp(conv[k], t_wave, mv)))
     force = np.array([r.force_n for r in got], dtype=np.float64)
