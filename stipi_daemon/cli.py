@@ -2,7 +2,7 @@
 
 Only argument parsing and dispatch live here; every subcommand calls into the package.
 User-facing errors (:class:`~stipi_daemon.errors.StipiError`) are printed as one line on
-stderr with exit status 2, never as a traceback.
+stderr with exit status 2, never as a traceback; Ctrl-C is one line and exit status 130.
 """
 
 from __future__ import annotations
@@ -70,6 +70,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     except StipiError as exc:
         print(f"stipi-daemon: error: {exc}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:
+        # Ctrl-C: the daemon has already closed its devices and finished the session as
+        # 'aborted' (asyncio.run cancels it and re-raises the interrupt here).
+        print("stipi-daemon: interrupted", file=sys.stderr)
+        return 130
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -178,7 +178,12 @@ class OperatorConsole:
             (str(self.phase).upper(), "bold cyan"),
             (f"   t = {self.now_s:6.1f} s", "dim"),
         )
-        bar = ProgressBar(total=total or 1.0, completed=min(elapsed, total) if total else 0.0)
+        # A ProgressBar ends no line of its own (it is made for table cells): in a Group it
+        # would share its line with the readings, which a full-width bar pushes off screen.
+        bar = Table.grid(expand=True)
+        bar.add_row(
+            ProgressBar(total=total or 1.0, completed=min(elapsed, total) if total else 0.0)
+        )
         readings = Table.grid(padding=(0, 2))
         readings.add_row(
             f"force {_fmt(self.force_n, 'N', 3)}",

@@ -10,14 +10,18 @@ the session, and then runs four asyncio tasks until the measurement ends:
 * the camera pump: every frame's S_k (Eqs. 1-2) measured as it arrives, camera stalls;
 * a ticker, so timeouts fire when nothing else arrives;
 * the main loop, which streams every row into the session (:mod:`stipi_daemon.storage`)
-  as it arrives, feeds samples and frames in time order
+  as it arrives (each frame's row committed at once, with whatever else is buffered),
+  feeds samples and frames in time order
   (:class:`~stipi_daemon.measurement.merge.TimeOrderedMerger`, as an offline replay does)
   into the pure :class:`~stipi_daemon.measurement.pipeline.MeasurementPipeline`, and keeps
   the operator console current.
 
 All times are on the session clock (:mod:`stipi_daemon.clock`): real devices run at speed
 1, simulated ones may be accelerated (the demo). When the state machine reaches DONE or
-a fault, the daemon stops the stream, writes ``summary.json`` and prints the results. It
+a fault, the daemon stops the stream, stores three representative raw frames
+(:mod:`stipi_daemon.report.frames`), writes ``summary.json``, prints the results and
+writes the session's report (``report/report.html``, :mod:`stipi_daemon.report`; a
+report that cannot be drawn is noted, never costs the session). It
 owns orchestration only: decoding, clock sync, the state machine, the analysis and
 storage live in their own modules.
 """
@@ -33,6 +37,7 @@ from pathlib import Path
 from typing import Any, TextIO
 
 import numpy as np
+import numpy.typing as npt
 
 from stipi_daemon import __version__
 from stipi_daemon.analysis.calibration import Calibration, load_calibration
@@ -57,6 +62,7 @@ from stipi_daemon.measurement.state_machine import (
     PhaseChanged,
     Tick,
 )
+from stipi_daemon.report.frames import RepresentativeFrames, write_representative_frames
 from stipi_daemon.storage.writer import SessionWriter, StorageOptions
 
 __all__ = ["DaemonHandles", "RunOutcome", "run_daemon", "run_measurement"]
@@ -140,6 +146,7 @@ class _FrameResult:
     s_k: int
     flags: tuple[str, ...]
     dropped_before: int
+    image: npt.NDArray[np.uint8]
 
 
 class _Stop:
@@ -359,6 +366,8 @@ async def run_daemon(
     )
     queue: asyncio.Queue[object] = asyncio.Queue()
     processor: FrameProcessor | None = None
+    # A few raw frames kept for the report (the session stores S_k, not video).
+    keeper = RepresentativeFrames(config.measurement.pitting_duration_s)
     latencies: list[float] = []
     counts = {"frames": 0, "samples": 0, "gaps": 0, "dropped_frames": 0}
 
@@ -394,6 +403,7 @@ async def run_daemon(
                             int(m.s_k_px),
                             tuple(sorted(m.flags)),
                             ev.dropped_before,
+                            ev.image,
                         )
                     )
                 else:
@@ -484,6 +494,16 @@ async def run_daemon(
                     writer.add_frames(
                         [(ev.seq, ev.t_capture_s, ev.t_processed_s, ev.s_k, ev.flags)]
                     )
+                    st = pipeline.state
+                    keeper.offer(
+                        ev.seq,
+                        ev.t_capture_s,
+                        ev.image,
+                        ev.s_k,
+                        st.phase,
+                        st.t_pit_start_s,
+                        st.t_release_s,
+                    )
                     latencies.append(clock.now() - ev.t_capture_s)
                     counts["frames"] += 1
                     if ev.dropped_before:
@@ -495,6 +515,11 @@ async def run_daemon(
                             ev.t_capture_s,
                             "camera",
                         )
+                    # Each frame is on disk before the next is due (with it, whatever else
+                    # is buffered): a WAL commit at synchronous=NORMAL costs ~15 us, against
+                    # up to 3/4 of storage.commit_interval_s of waiting for the commit
+                    # thread (docs/performance.md, "Live daemon latency").
+                    writer.commit()
                     merger.push(
                         "frame", ev.t_capture_s, (ev.t_capture_s, float(ev.s_k)), clock.now()
                     )
@@ -576,6 +601,7 @@ async def run_daemon(
             "merge_released_by_timeout": merger.released_by_timeout,
             "probe": probe.stats_dict(),
             "camera": camera.stats.as_dict() | {"source": camera.camera.metadata()},
+            "representative_frames": _store_frames(keeper, writer.directory),
         }
         if storage_error is None:
             writer.finish(status, summary)
@@ -588,6 +614,8 @@ async def run_daemon(
                 )
             with contextlib.suppress(SessionError):
                 writer.close()
+        if status == "aborted":  # interrupted (Ctrl-C) or an unexpected error
+            console.line(f"measurement aborted; what was recorded is in {writer.directory}")
     if storage_error is not None:
         cause = storage_error.__cause__ or storage_error
         raise SessionError(
@@ -597,9 +625,33 @@ async def run_daemon(
     for line in format_results(summary):
         console.line(line)
     console.line(f"session written to {writer.db_path.parent}")
+    console.line(_write_report(writer.db_path.parent))
     if stop_error is not None and isinstance(stop_error, StipiError):
         console.line(f"source ended with an error: {stop_error}")
     return RunOutcome(writer.db_path.parent, pipeline.phase, summary, summary["run"])
+
+
+def _store_frames(keeper: RepresentativeFrames, session_dir: Path) -> list[str] | dict[str, str]:
+    """Store the representative frames; a failure is recorded, never raised."""
+    try:
+        return [p.name for p in write_representative_frames(session_dir, keeper.selected())]
+    except Exception as exc:
+        return {"error": str(exc)}
+
+
+def _write_report(session_dir: Path) -> str:
+    """Write the finished session's report; a failure is noted, never raised."""
+    try:
+        from stipi_daemon.report.write import write_session_report
+
+        return f"report written to {write_session_report(session_dir).html_path}"
+    except Exception as exc:
+        note: Path | None = None
+        with contextlib.suppress(Exception):
+            from stipi_daemon.report.write import record_report_failure
+
+            note = record_report_failure(session_dir, exc)
+        return f"report not written: {exc}" + (f" (noted in {note})" if note else "")
 
 
 def _percentiles(values: list[float]) -> dict[str, float | None]:

@@ -107,6 +107,11 @@ class WriterStats:
     commits: int = 0
     max_commit_s: float = 0.0
     """Longest commit so far [s]."""
+    commit_log: list[tuple[float, dict[str, int]]] | None = None
+    """Off (None) by default. Set it to a list to record every commit as
+    ``(time.monotonic() when it completed [s], rows committed so far per table)``; the
+    counts are the highest committed row numbers in insertion order (benchmarks measure
+    write-to-disk latency with it)."""
 
 
 class SessionWriter:
@@ -386,7 +391,10 @@ class SessionWriter:
             self._pending[table.name] = []
         self._pending_since = None
         self.stats.commits += 1
-        self.stats.max_commit_s = max(self.stats.max_commit_s, time.monotonic() - t0)
+        t_end = time.monotonic()
+        self.stats.max_commit_s = max(self.stats.max_commit_s, t_end - t0)
+        if self.stats.commit_log is not None:
+            self.stats.commit_log.append((t_end, dict(self.stats.rows)))
 
     def _count_pending(self) -> int:
         return sum(len(rows) for rows in self._pending.values())

@@ -181,6 +181,9 @@ class Harness:
             self.port = serial.Serial(pty, 250000, timeout=0.02)
             # Wake the harness; a lone 0x00 is an empty frame, which the protocol ignores.
             self.port.write(b"\x00")
+            # time.monotonic() at simulated time 0: the harness starts its clock on this
+            # byte, within its poll latency (~0.1 ms).
+            self.started_s = time.monotonic()
             self.wait_line("START", 10.0)
         except BaseException:
             self.close()

@@ -1,0 +1,60 @@
+"""Shared pieces of the daemon's end-to-end tests: a short scene and config files.
+
+The scene is the grade-I phantom with the demo's operator timing shortened: 1 s approach,
+5.5 s hold (the daemon prompts the release after 5 s in the force band, the operator
+releases 0.6 s later, as in ``configs/scenes/demo_grade3.yaml``), 20 s of recovery; the
+measurement config asks for that 5 s pitting time. Grade I settles within ~3 s, so a
+measurement ends about 19 s of scene time after the start (settling test: 10 s hold).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from tests.conftest import REPO_ROOT
+
+SCENES = REPO_ROOT / "configs" / "scenes"
+
+#: The measurement section matching :func:`short_scene`.
+SHORT_MEASUREMENT: dict[str, Any] = {"pitting_duration_s": 5.0, "recovery_max_s": 20.0}
+
+
+def short_scene(directory: Path, *, width: int = 320, height: int = 240) -> Path:
+    """Write the short grade-I scene (smaller frames: faster rendering) and return its path."""
+    doc = yaml.safe_load((SCENES / "grade1.yaml").read_text())
+    doc["name"] = "grade1_daemon_e2e"
+    doc["force_profile"].update({"approach_s": 1.0, "hold_s": 5.5, "recovery_s": 20.0})
+    doc["camera"].update({"width": width, "height": height})
+    path = directory / "grade1_daemon_e2e.yaml"
+    path.write_text(yaml.safe_dump(doc))
+    return path
+
+
+def write_config(directory: Path, doc: dict[str, Any], name: str = "daemon.yaml") -> Path:
+    """Write a daemon config file; storage goes under ``directory/sessions`` by default."""
+    doc = {"storage": {"root": str(directory / "sessions"), "min_free_mb": 0}, **doc}
+    path = directory / name
+    path.write_text(yaml.safe_dump(doc))
+    return path
+
+
+def check_against_truth(summary: dict[str, Any], *, rel: dict[str, float]) -> dict[str, float]:
+    """Relative errors of the results against the summary's ground truth; assert ``rel``.
+
+    ``rel`` maps ground-truth keys (``depth_mm``, ``rebound_force_n``, ``time_constant_s``,
+    ``elasticity_kpa``) to the largest relative error allowed.
+    """
+    res, gt = summary["results"], summary["ground_truth"]
+    measured = {
+        "depth_mm": res["pitting"]["depth_mm"],
+        "rebound_force_n": res["pitting"]["rebound_force_n"],
+        "time_constant_s": res["fitted_recovery"]["tau_s"],
+        "elasticity_kpa": res["paper_estimator"]["elasticity_kpa"],
+    }
+    errors = {k: abs(measured[k] / gt[k] - 1.0) for k in rel}
+    bad = {k: (measured[k], gt[k], errors[k]) for k in rel if errors[k] > rel[k]}
+    assert not bad, f"results off the ground truth (measured, truth, rel. error): {bad}"
+    return errors
