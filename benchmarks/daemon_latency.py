@@ -28,9 +28,7 @@ time, all threads), frames dropped, and, separately, the cost of one commit of o
 row in WAL mode with ``synchronous=NORMAL`` (the daemon's setting) and ``FULL``.
 The daemon commits each frame's row as soon as it is added (``writer.commit()`` in its
 main loop); ``storage.commit_interval_s`` (default 0.2 s) only bounds how long other rows
-wait when no frame comes. Before that change the frame's row waited for the writer's
-commit thread (3/4 of the interval after the oldest buffered row); the figures measured
-with this benchmark then are kept in the document as :data:`BEFORE`.
+wait when no frame comes.
 """
 
 from __future__ import annotations
@@ -47,10 +45,6 @@ DOC = REPO_ROOT / "docs" / "performance.md"
 SECTION = "## Live daemon latency"
 #: Commit intervals run [s]: the default.
 INTERVALS_S = (0.2,)
-#: Measured with the previous design (frame rows committed by the commit thread only), on
-#: the machine of the first table, load average ~11: interval [s], to-disk median, p99, max
-#: [ms], commits.
-BEFORE = ((0.2, 85.1, 159.6, 191.8, 124), (0.01, 10.4, 20.6, 63.1, 1150))
 WIDTH, HEIGHT, FPS = 1280, 720, 60.0
 
 
