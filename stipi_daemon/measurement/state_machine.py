@@ -50,7 +50,10 @@ Policies (all thresholds are fields of :class:`MeasurementConfig`):
 * Link (force stream) down longer than ``link_loss_limit_s``: fault ``LINK_LOST`` in
   ARMED, PITTING and RELEASE; in IDLE and RECOVERY only a flag (the camera carries the
   recovery); ignored in ANALYSIS. Camera stalled longer than ``camera_stall_limit_s``:
-  fault ``CAMERA_STALLED`` in ARMED, PITTING, RELEASE and RECOVERY; a flag in IDLE;
+  fault ``CAMERA_STALLED`` in ARMED, RELEASE and RECOVERY (S_k around T_0 and during the
+  recovery is what the analysis needs); a flag in IDLE and PITTING (the pitting phase is
+  measured by the load cell; a camera that is back before the release loses nothing the
+  analysis uses, and one still stalled when RELEASE begins faults there at once);
   ignored in ANALYSIS. See :data:`LINK_POLICY` and :data:`CAMERA_POLICY`.
 * Time never goes backwards in the state: ``now_s`` is the maximum event time seen. A
   force sample or frame older than the previous one of its kind is dropped with an
@@ -247,7 +250,7 @@ LINK_POLICY: Final[dict[Phase, Policy]] = {
 CAMERA_POLICY: Final[dict[Phase, Policy]] = {
     Phase.IDLE: Policy.FLAG,
     Phase.ARMED: Policy.FAULT,
-    Phase.PITTING: Policy.FAULT,
+    Phase.PITTING: Policy.FLAG,
     Phase.RELEASE: Policy.FAULT,
     Phase.RECOVERY: Policy.FAULT,
     Phase.ANALYSIS: Policy.IGNORE,
@@ -270,6 +273,8 @@ class MeasurementFlag(StrEnum):
     """The force link was down past its limit before arming."""
     CAMERA_STALLED_WHILE_IDLE = "camera_stalled_while_idle"
     """The camera stalled past its limit before arming."""
+    CAMERA_STALLED_IN_PITTING = "camera_stalled_in_pitting"
+    """The camera stalled past its limit during pitting (and was back before release)."""
 
 
 class AdvisoryKind(StrEnum):
@@ -674,7 +679,11 @@ def _advance(state: MachineState, config: MeasurementConfig) -> Result:
                 f"camera stalled for {stall_s:.1f} s in {phase}",
                 config,
             )
-        flag = MeasurementFlag.CAMERA_STALLED_WHILE_IDLE
+        flag = (
+            MeasurementFlag.CAMERA_STALLED_IN_PITTING
+            if phase is Phase.PITTING
+            else MeasurementFlag.CAMERA_STALLED_WHILE_IDLE
+        )
         if policy is Policy.FLAG and flag not in state.flags:
             state = _with_flag(state, flag)
             out.append(

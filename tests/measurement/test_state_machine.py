@@ -404,10 +404,27 @@ def test_camera_stall_per_phase(phase: Phase) -> None:
     if policy is Policy.FAULT:
         assert s.phase is Phase.CAMERA_STALLED
     elif policy is Policy.FLAG:
-        assert s.phase is phase and MeasurementFlag.CAMERA_STALLED_WHILE_IDLE in s.flags
+        assert s.phase is phase and s.flags & {
+            MeasurementFlag.CAMERA_STALLED_WHILE_IDLE,
+            MeasurementFlag.CAMERA_STALLED_IN_PITTING,
+        }
+        assert advisories(out, AdvisoryKind.CAMERA_STALL_FLAGGED)
     else:
         assert s.phase is phase and not advisories(out, AdvisoryKind.CAMERA_STALL_FLAGGED)
     assert CAMERA_POLICY[Phase.RECOVERY] is Policy.FAULT
+    assert CAMERA_POLICY[Phase.PITTING] is Policy.FLAG
+
+
+def test_camera_still_stalled_at_release_faults_there() -> None:
+    s = state_in(Phase.PITTING)
+    t = s.now_s
+    s, out = run([CameraStalled(t + 0.1), Tick(t + 5.0)], state=s)
+    assert s.phase is Phase.PITTING and MeasurementFlag.CAMERA_STALLED_IN_PITTING in s.flags
+    assert s.t_pit_start_s is not None
+    t_end = s.t_pit_start_s + CFG.pitting_duration_s
+    s, out = run([ForceSample(t_end + 0.01, 16.0)], state=s)
+    assert s.phase is Phase.CAMERA_STALLED
+    assert [o.kind for o in out if isinstance(o, Fault)] == [Phase.CAMERA_STALLED]
 
 
 def test_recovery_times_out_at_105_s_not_settled() -> None:
