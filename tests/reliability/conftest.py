@@ -1,7 +1,8 @@
 """Shared helpers of the reliability tests (issue 8): configs, daemon runs, figures.
 
-Long forms are marked ``slow`` and are skipped unless the marker expression asks for them
-(``./dev pytest tests/reliability -m slow``); the normal suite runs the short forms.
+Long forms are marked ``slow`` and are deselected unless the marker expression asks for
+them (``./dev pytest tests/reliability -m slow``, or ``STIPI_RELIABILITY_LONG=1``); the
+normal suite runs the short forms.
 Figures (losses, latencies, error percentiles) are appended as JSON lines to the file
 named by ``STIPI_RELIABILITY_REPORT`` when it is set (docs/reliability.md quotes them).
 """
@@ -26,15 +27,19 @@ __all__ = ["PYTHON", "REPO_ROOT", "SCENES", "fast_scene", "report", "write_confi
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """Deselect (not skip) the long forms here unless asked for; their short forms run."""
     markexpr = str(config.getoption("markexpr", "") or "")
     wants_slow = "slow" in markexpr and "not slow" not in markexpr
     if wants_slow or os.environ.get("STIPI_RELIABILITY_LONG") == "1":
         return
-    skip = pytest.mark.skip(reason="long form: run with -m slow (or STIPI_RELIABILITY_LONG=1)")
     here = Path(__file__).parent
+    keep, drop = [], []
     for item in items:
-        if item.get_closest_marker("slow") and here in Path(str(item.fspath)).parents:
-            item.add_marker(skip)
+        long_form = item.get_closest_marker("slow") and here in Path(str(item.fspath)).parents
+        (drop if long_form else keep).append(item)
+    if drop:
+        config.hook.pytest_deselected(items=drop)
+        items[:] = keep
 
 
 def fast_scene(directory: Path, recovery_s: float = 14.0) -> Path:
