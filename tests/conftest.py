@@ -76,6 +76,7 @@ REALTIME_TESTS = (
     "tests/test_demo.py",
     "tests/test_offline.py",
     "tests/commands/test_analyze.py",
+    "tests/commands/test_report.py",
     "tests/report/",
 )
 

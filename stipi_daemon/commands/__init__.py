@@ -21,6 +21,7 @@ COMMAND_MODULES: tuple[str, ...] = (
     "analyze",
     "calibrate",
     "mock_peripheral",
+    "report",
     "sessions",
     "simulate",
 )

@@ -1,0 +1,29 @@
+"""Session reports: figures, parameter tables and a self-contained HTML page.
+
+``stipi-daemon report SESSION`` (and the daemon at the end of every run) writes
+``<session>/report/report.html`` with the figures also as PNGs: force and S_k over time
+with the phases, the fitted recovery with residuals, the VPR curves of Eq. (10) against the
+reference grades with the severity window and threshold (the paper's Figs. 10-12), the
+parameter table and representative frames with their thresholding. ``--compare`` overlays
+several sessions and tabulates mean and spread per parameter (the paper's Tables I-II).
+
+Figure data: :mod:`.data` (pure); drawing: :mod:`.render` (matplotlib); page: :mod:`.html`;
+files: :mod:`.write` (:func:`~.write.write_session_report`,
+:func:`~.write.write_compare_report`); representative frames: :mod:`.frames`. This package
+module imports only :mod:`.frames`, so the daemon can keep frames without loading
+matplotlib until the report is drawn.
+"""
+
+from stipi_daemon.report.frames import (
+    RepresentativeFrame,
+    RepresentativeFrames,
+    read_representative_frames,
+    write_representative_frames,
+)
+
+__all__ = [
+    "RepresentativeFrame",
+    "RepresentativeFrames",
+    "read_representative_frames",
+    "write_representative_frames",
+]

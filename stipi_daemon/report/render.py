@@ -1,0 +1,529 @@
+"""Drawing the report's figures with matplotlib (Agg canvas, no display, no pyplot state).
+
+One function per figure turns the arrays of :mod:`stipi_daemon.report.data` into a
+:class:`matplotlib.figure.Figure`; :func:`png_bytes` encodes it. Every data-bearing artist
+carries a ``gid`` (``"force"``, ``"s_k"``, ``"fit_model"``, ``"vpr_paper"``...) so that a
+test can read back exactly what was plotted. This module chooses looks only (colours,
+labels with units, legends); it computes nothing about the measurement.
+"""
+
+from __future__ import annotations
+
+import io
+import math
+from collections.abc import Sequence
+from typing import Final
+
+import numpy as np
+from matplotlib.axes import Axes
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
+from matplotlib.patches import Circle, Patch, Rectangle
+
+from stipi_daemon.analysis.imaging import CircleROI, RectROI
+from stipi_daemon.report.data import (
+    FitFigure,
+    ForceFigure,
+    FramePanel,
+    NormalisedCurve,
+    OverlaySeries,
+    PhaseSpan,
+    SkFigure,
+    VprFigure,
+    WindowSearchFigure,
+)
+
+__all__ = [
+    "DPI",
+    "PHASE_COLOURS",
+    "draw_fit",
+    "draw_force",
+    "draw_frames",
+    "draw_normalised",
+    "draw_overlay",
+    "draw_s_k",
+    "draw_vpr",
+    "draw_window_search",
+    "png_bytes",
+]
+
+#: Resolution of the PNGs [dots per inch]; figures are 10 in wide (1000 px).
+DPI: Final = 100
+#: Shading colour of each measurement phase (faults in red).
+PHASE_COLOURS: Final[dict[str, str]] = {
+    "idle": "#f0f0f0",
+    "armed": "#dddddd",
+    "pitting": "#f7c58b",
+    "release": "#fff2a8",
+    "recovery": "#bfe5bf",
+    "analysis": "#b9d7f0",
+    "link_lost": "#f4a6a6",
+    "camera_stalled": "#f4a6a6",
+    "force_out_of_band": "#f4a6a6",
+    "aborted": "#f4a6a6",
+}
+#: Line colour of each reference grade (mildest first), then of further curves.
+_GRADE_COLOURS: Final = ("#1f77b4", "#2ca02c", "#ff7f0e", "#d62728", "#9467bd", "#8c564b")
+#: Bar colours of the adjacent-grade pairs in Fig. 11, as in the paper (blue, orange, yellow).
+_PAIR_COLOURS: Final = ("#0072bd", "#d95319", "#edb120", "#7e2f8e", "#77ac30")
+_SESSION_COLOURS: Final = (
+    "#000000",
+    "#7f3fbf",
+    "#17becf",
+    "#bcbd22",
+    "#e377c2",
+    "#7f7f7f",
+    "#8c564b",
+    "#1f77b4",
+)
+
+
+def _figure(
+    height_in: float, rows: int = 1, height_ratios: Sequence[float] | None = None
+) -> Figure:
+    fig = Figure(figsize=(10.0, height_in), dpi=DPI, layout="constrained")
+    FigureCanvasAgg(fig)
+    if rows > 1:
+        fig.subplots(rows, 1, sharex=True, height_ratios=height_ratios)
+    else:
+        fig.add_subplot()
+    return fig
+
+
+def png_bytes(fig: Figure) -> bytes:
+    """``fig`` encoded as a PNG at :data:`DPI`."""
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=DPI)
+    return buf.getvalue()
+
+
+def _shade_phases(ax: Axes, phases: Sequence[PhaseSpan]) -> list[Patch]:
+    """Shade each phase; returns one legend handle per phase shown."""
+    seen: dict[str, Patch] = {}
+    for span in phases:
+        if span.phase in _UNSHADED:
+            continue
+        colour = PHASE_COLOURS.get(span.phase, "#eeeeee")
+        ax.axvspan(span.start_s, span.end_s, color=colour, alpha=0.7, lw=0, zorder=0)
+        seen.setdefault(span.phase, Patch(facecolor=colour, alpha=0.7, label=span.phase))
+    return list(seen.values())
+
+
+#: Phases not shaded: before arming, and the bookkeeping after the recovery.
+_UNSHADED: Final = frozenset({"idle", "analysis", "done"})
+
+
+def _vline(ax: Axes, x: float | None, label: str, colour: str, style: str = "--") -> None:
+    if x is not None and math.isfinite(x):
+        ax.axvline(x, color=colour, ls=style, lw=1.2, label=label, zorder=3)
+
+
+def draw_force(data: ForceFigure, title: str = "") -> Figure:
+    """Force over time with the phases shaded, the force band, F_a and T_0."""
+    fig = _figure(4.2)
+    ax = fig.axes[0]
+    handles = _shade_phases(ax, data.phases)
+    (line,) = ax.plot(data.t_s, data.force_n, color="#1f3b73", lw=0.9, label="load cell force")
+    line.set_gid("force")
+    if data.target_n is not None and data.tolerance_n is not None:
+        band = ax.axhspan(
+            data.target_n - data.tolerance_n,
+            data.target_n + data.tolerance_n,
+            color="#9ecae1",
+            alpha=0.35,
+            lw=0,
+            label=f"pitting band {data.target_n:g} ± {data.tolerance_n:g} N",
+            zorder=1,
+        )
+        band.set_gid("force_band")
+    if data.release_n is not None:
+        ax.axhline(
+            data.release_n,
+            color="#555555",
+            ls=":",
+            lw=1.0,
+            label=f"release threshold {data.release_n:g} N",
+        )
+    if data.applied_force_n is not None and data.hold_s is not None:
+        (fa,) = ax.plot(
+            data.hold_s,
+            [data.applied_force_n] * 2,
+            color="#d62728",
+            lw=2.0,
+            label=f"$F_a$ = {data.applied_force_n:.2f} N (mean over the hold)",
+        )
+        fa.set_gid("applied_force")
+    _vline(ax, data.t0_s, "$T_0$ (start of recovery)", "#2ca02c")
+    ax.set_xlabel("time [s] (session clock)")
+    ax.set_ylabel("force [N]")
+    ax.set_title(title or "Applied force over time")
+    lines, _ = ax.get_legend_handles_labels()
+    ax.legend(handles=[*lines, *handles], loc="upper right", fontsize=8, ncols=2)
+    ax.grid(True, alpha=0.3)
+    return fig
+
+
+def draw_s_k(data: SkFigure, title: str = "") -> Figure:
+    """S_k over time with the phases, T_0, T_s, S_0, S_max and the settling line (Eq. 6)."""
+    fig = _figure(4.2)
+    ax = fig.axes[0]
+    handles = _shade_phases(ax, data.phases)
+    (line,) = ax.plot(data.t_s, data.s_k_px, color="#222222", lw=0.9, label="$S_k$ (Eq. 2)")
+    line.set_gid("s_k")
+    _vline(ax, data.t0_s, "$T_0$ (start of recovery)", "#2ca02c")
+    _vline(ax, data.ts_s, "$T_s$ (settled)", "#9467bd")
+    if data.settle_level_px is not None:
+        level = ax.axhline(
+            data.settle_level_px,
+            color="#d62728",
+            ls="--",
+            lw=1.0,
+            label=(
+                f"{100 * data.settle_fraction:g} % of $S_{{max}}$ = {data.settle_level_px:.0f} px"
+            ),
+        )
+        level.set_gid("settle_level")
+    if data.s0_px is not None and data.t0_s is not None:
+        ax.plot(
+            [data.t0_s],
+            [data.s0_px],
+            "o",
+            color="#2ca02c",
+            ms=6,
+            label=f"$S_0$ = {data.s0_px:.0f} px",
+        )
+    if data.recovery_time_s is not None and data.t0_s is not None and data.ts_s is not None:
+        y = data.settle_level_px if data.settle_level_px is not None else 0.0
+        ax.annotate(
+            "",
+            xy=(data.ts_s, y),
+            xytext=(data.t0_s, y),
+            arrowprops={"arrowstyle": "<->", "color": "#9467bd"},
+        )
+        ax.text(
+            0.5 * (data.t0_s + data.ts_s),
+            y,
+            f"$T_r$ = {data.recovery_time_s:.2f} s",
+            ha="center",
+            va="bottom",
+            fontsize=9,
+            color="#9467bd",
+        )
+    ax.set_xlabel("time [s] (session clock)")
+    ax.set_ylabel("$S_k$ [px]")
+    flags = f" — flags: {', '.join(data.flags)}" if data.flags else ""
+    ax.set_title((title or "Occluded pixel count $S_k$ over time") + flags)
+    lines, _ = ax.get_legend_handles_labels()
+    ax.legend(handles=[*lines, *handles], loc="best", fontsize=8, ncols=2)
+    ax.grid(True, alpha=0.3)
+    return fig
+
+
+def draw_fit(data: FitFigure, title: str = "") -> Figure:
+    """The fitted Kelvin-Voigt recovery against the data (top) and the residuals (bottom)."""
+    fig = _figure(5.6, rows=2, height_ratios=(3.0, 1.4))
+    ax, axr = fig.axes
+    (pts,) = ax.plot(
+        data.t_since_t0_s,
+        data.s_k_px,
+        ".",
+        color="#7f7f7f",
+        ms=2.5,
+        label=f"$S_k$ data ({data.t_since_t0_s.size} frames)",
+    )
+    pts.set_gid("fit_data")
+    se = "" if data.tau_se_s is None else f" ± {data.tau_se_s:.2g}"
+    (model,) = ax.plot(
+        data.t_since_t0_s,
+        data.model_px,
+        color="#d62728",
+        lw=1.5,
+        label=(
+            f"fit $S_\\infty - A\\,e^{{-(t-T_0)/\\tau}}$: τ = {data.tau_s:.3f}{se} s, "
+            f"A = {data.amplitude_px:.0f} px, $S_\\infty$ = {data.offset_px:.0f} px"
+        ),
+    )
+    model.set_gid("fit_model")
+    ax.set_ylabel("$S_k$ [px]")
+    stats = []
+    if data.r_squared is not None:
+        stats.append(f"R² = {data.r_squared:.5f}")
+    if data.rmse_px is not None:
+        stats.append(f"RMSE = {data.rmse_px:.3g} px")
+    if data.flags:
+        stats.append("flags: " + ", ".join(data.flags))
+    ax.set_title(
+        (title or "Kelvin-Voigt recovery fitted to $S_k$")
+        + (f" ({'; '.join(stats)})" if stats else "")
+    )
+    ax.legend(loc="lower right", fontsize=8)
+    ax.grid(True, alpha=0.3)
+    (res,) = axr.plot(
+        data.t_since_t0_s, data.residual_px, ".", color="#1f77b4", ms=2.0, label="data − fit"
+    )
+    res.set_gid("fit_residual")
+    axr.axhline(0.0, color="#d62728", lw=1.0)
+    axr.set_ylabel("residual [px]")
+    axr.set_xlabel("time since $T_0$ [s]")
+    axr.grid(True, alpha=0.3)
+    return fig
+
+
+def _window_shade(ax: Axes, data: VprFigure) -> None:
+    span = ax.axvspan(
+        data.window_start_s,
+        data.window_end_s,
+        color="#ffd92f",
+        alpha=0.3,
+        lw=0,
+        label=(
+            f"severity window {data.window_start_s:g}-{data.window_end_s:g} s "
+            f"(grades {data.mild_grade}/{data.severe_grade})"
+        ),
+        zorder=0,
+    )
+    span.set_gid("severity_window")
+
+
+def _measurement_style(c: NormalisedCurve) -> tuple[str, str]:
+    return ("#000000", "-") if c.kind == "paper" else ("#7f3fbf", "-.")
+
+
+def draw_vpr(data: VprFigure, title: str = "") -> Figure:
+    """Fig. 10: D(t) = D_p exp(-(E/eta) t) of the reference grades and of this session."""
+    fig = _figure(4.6)
+    ax = fig.axes[0]
+    _window_shade(ax, data)
+    for i, c in enumerate(data.references):
+        if c.depth_curve_mm is None:
+            continue
+        (ln,) = ax.plot(
+            data.t_s, c.depth_curve_mm, color=_GRADE_COLOURS[i % 6], lw=1.4, ls="--", label=c.label
+        )
+        ln.set_gid(f"vpr_reference_{i}")
+    for c in data.measurements:
+        if c.depth_curve_mm is None:
+            continue
+        colour, style = _measurement_style(c)
+        (ln,) = ax.plot(data.t_s, c.depth_curve_mm, color=colour, ls=style, lw=2.0, label=c.label)
+        ln.set_gid(f"vpr_{c.kind}")
+    ax.set_xlabel("time since $T_0$ [s]")
+    ax.set_ylabel("pitting depth $D(t)$ [mm]")
+    ax.set_title(title or "VPR model, Eq. (10): reference grades (Table II) and this session")
+    ax.set_xlim(float(data.t_s[0]), float(data.t_s[-1]))
+    ax.set_ylim(bottom=0.0)
+    ax.legend(loc="upper right", fontsize=8)
+    ax.grid(True, alpha=0.3)
+    return fig
+
+
+def draw_normalised(data: VprFigure, title: str = "") -> Figure:
+    """Fig. 12: normalised VPR curves with the severity window and the mild/severe threshold."""
+    fig = _figure(4.6)
+    ax = fig.axes[0]
+    _window_shade(ax, data)
+    for i, c in enumerate(data.references):
+        (ln,) = ax.plot(
+            data.t_s,
+            c.normalised,
+            color=_GRADE_COLOURS[i % 6],
+            lw=1.4,
+            ls="--",
+            label=c.label.split(",")[0],
+        )
+        ln.set_gid(f"normalised_reference_{i}")
+    thr = ax.axhline(
+        data.threshold_depth_fraction,
+        color="#d62728",
+        lw=1.4,
+        label=(
+            f"threshold: depth {data.threshold_depth_fraction:.3f} of $D_p$ "
+            f"(severe if recovered < {data.threshold_recovered_percent:.1f} %)"
+        ),
+    )
+    thr.set_gid("threshold")
+    mid = 0.5 * (data.window_start_s + data.window_end_s)
+    for c in data.measurements:
+        colour, style = _measurement_style(c)
+        cls = "" if c.severe is None else (" → severe" if c.severe else " → mild")
+        (ln,) = ax.plot(data.t_s, c.normalised, color=colour, ls=style, lw=2.0, label=c.label + cls)
+        ln.set_gid(f"normalised_{c.kind}")
+        (mk,) = ax.plot(
+            [mid],
+            [c.window_mean_depth_fraction],
+            "D",
+            color=colour,
+            ms=7,
+            label=f"window mean {c.window_mean_depth_fraction:.3f}",
+        )
+        mk.set_gid(f"window_mean_{c.kind}")
+    ax.set_xlabel("time since $T_0$ [s]")
+    ax.set_ylabel("normalised depth $D(t)/D_p$ [-]")
+    ax.set_title(title or "Edema severity from normalised VPR curves (Fig. 12)")
+    ax.set_xlim(float(data.t_s[0]), float(data.t_s[-1]))
+    ax.set_ylim(0.0, 1.05)
+    ax.legend(loc="upper right", fontsize=8)
+    ax.grid(True, alpha=0.3)
+    return fig
+
+
+def draw_window_search(data: WindowSearchFigure, title: str = "") -> Figure:
+    """Fig. 11: mean distance between adjacent grades for each window start."""
+    fig = _figure(3.8)
+    ax = fig.axes[0]
+    width = 0.8 / max(len(data.pairs), 1)
+    for i, (label, starts, diffs) in enumerate(data.pairs):
+        bars = ax.bar(
+            starts + (i - (len(data.pairs) - 1) / 2) * width,
+            diffs,
+            width=width,
+            color=_PAIR_COLOURS[i % len(_PAIR_COLOURS)],
+            label=f"grades {label}",
+        )
+        for bar in bars.patches:
+            bar.set_gid(f"window_search_{i}")
+    ax.axvline(
+        data.window_start_s,
+        color="#d62728",
+        ls="--",
+        lw=1.2,
+        label=f"chosen window starts at {data.window_start_s:g} s "
+        f"({data.window_start_s:g}-{data.window_end_s:g} s)",
+    )
+    ax.set_xlabel(f"window start [s since $T_0$] ({data.length_s:g} s windows)")
+    ax.set_ylabel("mean |difference| of $D(t)/D_p$ [-]")
+    ax.set_title(title or "Window search between adjacent reference grades (Fig. 11)")
+    ax.legend(loc="upper right", fontsize=8)
+    ax.grid(True, axis="y", alpha=0.3)
+    return fig
+
+
+def _roi_patch(roi: RectROI | CircleROI) -> Circle | Rectangle:
+    if isinstance(roi, CircleROI):
+        return Circle((roi.cx_px, roi.cy_px), roi.radius_px, fill=False, ec="#00e5ff", lw=1.5)
+    return Rectangle(
+        (roi.x_px - 0.5, roi.y_px - 0.5),
+        roi.width_px,
+        roi.height_px,
+        fill=False,
+        ec="#00e5ff",
+        lw=1.5,
+    )
+
+
+def draw_frames(panels: Sequence[FramePanel], title: str = "") -> Figure:
+    """Each representative frame: raw (left) and Eq. (1) thresholded with the ROI (right).
+
+    In the thresholded image, occluded pixels inside the ROI (counted in S_k) are white,
+    occluded pixels outside it grey, the rest black.
+    """
+    rows = max(len(panels), 1)
+    fig = Figure(figsize=(10.0, 3.6 * rows), dpi=DPI, layout="constrained")
+    FigureCanvasAgg(fig)
+    axes = fig.subplots(rows, 2, squeeze=False)
+    for (ax_raw, ax_bin), p in zip(axes, panels, strict=False):
+        raw = p.raw if p.raw.ndim == 2 else p.raw[:, :, 2::-1]  # BGR -> RGB
+        im = ax_raw.imshow(
+            raw, cmap="gray" if p.raw.ndim == 2 else None, vmin=0, vmax=255, interpolation="nearest"
+        )
+        im.set_gid(f"raw_{p.kind}")
+        when = "" if p.t_since_t0_s is None else f", {p.t_since_t0_s:+.2f} s from $T_0$"
+        ax_raw.set_title(f"raw frame {p.seq} ({p.caption}{when})", fontsize=9)
+        shown = np.where(p.binary > 0, np.where(p.roi_mask, 255, 110), 0).astype(np.uint8)
+        bim = ax_bin.imshow(shown, cmap="gray", vmin=0, vmax=255, interpolation="nearest")
+        bim.set_gid(f"binary_{p.kind}")
+        if p.roi is not None:
+            ax_raw.add_patch(_roi_patch(p.roi))
+            ax_bin.add_patch(_roi_patch(p.roi))
+        ax_bin.set_title(
+            f"Eq. (1), p = {p.threshold_p}: $S_k$ = {p.s_k_recount_px} px in the ROI "
+            f"(recorded {p.s_k_live_px} px)",
+            fontsize=9,
+        )
+        for a in (ax_raw, ax_bin):
+            a.set_xlabel("x [px]")
+            a.set_ylabel("y [px]")
+    if not panels:
+        axes[0][0].text(0.5, 0.5, "no representative frame stored", ha="center")
+    fig.suptitle(title or "Representative frames: raw and thresholded (ROI in cyan)")
+    return fig
+
+
+def draw_overlay(
+    series: Sequence[OverlaySeries], ylabel: str, title: str, gid_prefix: str
+) -> Figure:
+    """Several sessions' series against time since their own T_0."""
+    fig = _figure(4.2)
+    ax = fig.axes[0]
+    for i, s in enumerate(series):
+        (ln,) = ax.plot(
+            s.t_since_t0_s,
+            s.values,
+            lw=1.0,
+            color=_SESSION_COLOURS[i % len(_SESSION_COLOURS)],
+            label=s.label,
+        )
+        ln.set_gid(f"{gid_prefix}_{i}")
+    ax.axvline(0.0, color="#2ca02c", ls="--", lw=1.0, label="$T_0$")
+    ax.set_xlabel("time since $T_0$ [s]")
+    ax.set_ylabel(ylabel)
+    ax.set_title(title)
+    ax.legend(loc="best", fontsize=8)
+    ax.grid(True, alpha=0.3)
+    return fig
+
+
+def draw_compare_vpr(
+    data: VprFigure,
+    sessions: Sequence[tuple[str, Sequence[NormalisedCurve]]],
+    *,
+    normalised: bool,
+) -> Figure:
+    """Figs. 10/12 for several sessions: reference grades and each session's paper curve."""
+    fig = _figure(4.6)
+    ax = fig.axes[0]
+    _window_shade(ax, data)
+    for i, c in enumerate(data.references):
+        y = c.normalised if normalised else c.depth_curve_mm
+        if y is None:
+            continue
+        (ln,) = ax.plot(
+            data.t_s, y, color=_GRADE_COLOURS[i % 6], lw=1.2, ls="--", label=c.label.split(",")[0]
+        )
+        ln.set_gid(f"reference_{i}")
+    if normalised:
+        ax.axhline(
+            data.threshold_depth_fraction,
+            color="#d62728",
+            lw=1.4,
+            label=f"threshold {data.threshold_depth_fraction:.3f} "
+            f"({data.threshold_recovered_percent:.1f} % recovered)",
+        )
+    for i, (label, curves) in enumerate(sessions):
+        for c in curves:
+            if c.kind != "paper":
+                continue
+            y = c.normalised if normalised else c.depth_curve_mm
+            if y is None:
+                continue
+            (ln,) = ax.plot(
+                data.t_s,
+                y,
+                lw=1.8,
+                color=_SESSION_COLOURS[i % len(_SESSION_COLOURS)],
+                label=f"{label} (η = E·T_r)",
+            )
+            ln.set_gid(f"session_{i}")
+    ax.set_xlabel("time since $T_0$ [s]")
+    if normalised:
+        ax.set_ylabel("normalised depth $D(t)/D_p$ [-]")
+        ax.set_ylim(0.0, 1.05)
+        ax.set_title("Normalised VPR curves with the severity threshold (Fig. 12)")
+    else:
+        ax.set_ylabel("pitting depth $D(t)$ [mm]")
+        ax.set_ylim(bottom=0.0)
+        ax.set_title("VPR model, Eq. (10), of each session and the reference grades (Fig. 10)")
+    ax.set_xlim(float(data.t_s[0]), float(data.t_s[-1]))
+    ax.legend(loc="upper right", fontsize=8)
+    ax.grid(True, alpha=0.3)
+    return fig

@@ -1,0 +1,456 @@
+"""Writing reports: one session's page and PNGs, or a comparison of several sessions.
+
+This module is the report's shell: it reads sessions (:mod:`.load`), asks
+:mod:`.data` for the arrays, :mod:`.render` for the figures and :mod:`.html` for the page,
+and writes ``report.html`` (self-contained) with the same figures as PNG files next to it.
+A figure whose data the session lacks (no results, no stored frame) is listed as not drawn
+with the reason, on the page and in :attr:`WrittenReport.missing`. Files are replaced
+atomically (written to ``*.tmp``, then renamed) so a reader never sees half a page.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Final
+
+import numpy as np
+from matplotlib.figure import Figure
+
+from stipi_daemon.analysis.severity import SeverityReference, load_reference
+from stipi_daemon.errors import AnalysisError, SessionError, StipiError
+from stipi_daemon.report import data as d
+from stipi_daemon.report import render as r
+from stipi_daemon.report.html import EmbeddedFigure, compare_page, format_number, session_page
+from stipi_daemon.report.load import load_report_input
+
+__all__ = [
+    "COMPARE_FIGURES",
+    "REPORT_DIR",
+    "REPORT_ERROR",
+    "REPORT_HTML",
+    "SESSION_FIGURES",
+    "WrittenReport",
+    "record_report_failure",
+    "render_session_report",
+    "write_compare_report",
+    "write_session_report",
+]
+
+#: Sub-directory of a session directory that holds its report.
+REPORT_DIR: Final = "report"
+#: File name of the page.
+REPORT_HTML: Final = "report.html"
+#: File written instead of a page when the daemon could not render the report.
+REPORT_ERROR: Final = "report_error.txt"
+#: Figures of a session report, in page order: name -> title.
+SESSION_FIGURES: Final[dict[str, str]] = {
+    "force": "Force over time",
+    "s_k": "S_k over time",
+    "recovery_fit": "Recovery fit and residuals",
+    "vpr": "VPR model (Fig. 10)",
+    "window_search": "Severity window search (Fig. 11)",
+    "vpr_normalised": "Severity classification (Fig. 12)",
+    "frames": "Representative frames",
+}
+#: Figures of a comparison report, in page order: name -> title.
+COMPARE_FIGURES: Final[dict[str, str]] = {
+    "overlay_s_k": "S_k of every session",
+    "overlay_force": "Force of every session",
+    "compare_vpr": "VPR model of every session (Fig. 10)",
+    "compare_vpr_normalised": "Normalised VPR curves and threshold (Fig. 12)",
+}
+
+
+@dataclass(frozen=True)
+class WrittenReport:
+    """What a report wrote.
+
+    Attributes
+    ----------
+    html_path : Path
+        The self-contained page.
+    figures : dict of str to Path
+        Figure name -> its PNG, for every figure drawn.
+    missing : dict of str to str
+        Figure name -> why it was not drawn.
+    """
+
+    html_path: Path
+    figures: dict[str, Path] = field(default_factory=dict)
+    missing: dict[str, str] = field(default_factory=dict)
+
+
+def _write_atomic(path: Path, payload: bytes) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    try:
+        tmp.write_bytes(payload)
+        os.replace(tmp, path)
+    except OSError as exc:
+        raise SessionError(f"{path}: cannot write: {exc}") from exc
+
+
+FigureMaker = Callable[[], "Figure | str"]
+
+
+def _make_figures(
+    makers: Sequence[tuple[str, str, str, FigureMaker]], out_dir: Path
+) -> tuple[list[EmbeddedFigure], dict[str, Path], dict[str, str]]:
+    """Draw each figure (a maker returns a Figure, or a string: why it cannot)."""
+    embedded: list[EmbeddedFigure] = []
+    written: dict[str, Path] = {}
+    missing: dict[str, str] = {}
+    for name, title, caption, make in makers:
+        try:
+            result = make()
+        except StipiError as exc:
+            result = str(exc)
+        if isinstance(result, str):
+            missing[name] = result
+            embedded.append(EmbeddedFigure(name, title, caption, None, result))
+            # A figure of an earlier report in this directory would no longer match.
+            (out_dir / f"{name}.png").unlink(missing_ok=True)
+            continue
+        png = r.png_bytes(result)
+        path = out_dir / f"{name}.png"
+        _write_atomic(path, png)
+        written[name] = path
+        embedded.append(EmbeddedFigure(name, title, caption, png))
+    return embedded, written, missing
+
+
+def _unique(items: Sequence[str]) -> list[str]:
+    return list(dict.fromkeys(i for i in items if i))
+
+
+def _notes(inp: d.ReportInput) -> list[str]:
+    s = inp.summary or {}
+    out = [str(n) for n in s.get("notes") or []]
+    res = inp.results or {}
+    out += [str(n) for n in res.get("notes") or []]
+    if s.get("analysis_error"):
+        out.append(f"analysis error: {s['analysis_error']}")
+    flags = s.get("measurement_flags") or []
+    if flags:
+        out.append("measurement flags: " + ", ".join(str(f) for f in flags))
+    if inp.summary is None:
+        out.append("the session has no summary.json (it was not finished)")
+    return _unique(out)
+
+
+def _headline(inp: d.ReportInput) -> str:
+    res = inp.results
+    if res is None:
+        err = (inp.summary or {}).get("analysis_error")
+        return f"No results{': ' + str(err) if err else ''}."
+    parts = []
+    for est, label in (("paper_estimator", "paper estimator"), ("fitted_recovery", "fit")):
+        sev = (res.get("severity") or {}).get(est)
+        if isinstance(sev, dict):
+            parts.append(
+                f"{sev.get('severity')} edema, nearest grade {sev.get('nearest_grade')} "
+                f"({label}: {format_number(sev.get('recovered_percent'))} % recovered over "
+                f"the window, threshold {format_number(sev.get('threshold_recovered_percent'))} %)"
+            )
+    pit = res.get("pitting") or {}
+    parts.append(
+        f"D_p = {format_number(pit.get('depth_mm'), 'mm')}, "
+        f"F_r = {format_number(pit.get('rebound_force_n'), 'N')}, "
+        f"T_r = {format_number(pit.get('recovery_time_s'), 's')}"
+    )
+    return "; ".join(parts) + "."
+
+
+def _meta(inp: d.ReportInput) -> list[tuple[str, str]]:
+    s = inp.summary or {}
+    run = s.get("run") or {}
+    cam = ((run.get("camera") or {}).get("source") or {}).get("name")
+    cal = inp.calibration
+    meta = [
+        ("Created (UTC)", inp.created_utc or "-"),
+        ("Phase / end", f"{s.get('phase', '-')} / {s.get('end_reason') or '-'}"),
+        (
+            "Recorded",
+            f"{inp.frame_times_s.size} frames, {inp.force_times_s.size} force samples over "
+            f"{format_number(inp.t_end_s - inp.t_start_s, 's')}",
+        ),
+        (
+            "Gaps",
+            f"{run.get('gaps', '-')} force gaps, {run.get('dropped_frames', '-')} dropped frames",
+        ),
+        ("Camera", str(cam or "-")),
+        ("Probe", str(((inp.config.get("probe") or {}).get("transport") or {}).get("kind", "-"))),
+        ("Calibration", f"{cal.get('source', '-')}; threshold p = {cal.get('threshold_p', '-')}"),
+    ]
+    if s.get("ground_truth"):
+        gt = s["ground_truth"]
+        meta.append(("Simulated scene", f"{gt.get('scene')} (seed {gt.get('seed')})"))
+    return meta
+
+
+def render_session_report(
+    inp: d.ReportInput, out_dir: Path, reference: SeverityReference | None = None
+) -> WrittenReport:
+    """Write the report of ``inp`` into ``out_dir`` (created if needed).
+
+    Raises
+    ------
+    SessionError
+        ``out_dir`` or a file in it cannot be written.
+    """
+    out_dir = Path(out_dir)
+    try:
+        out_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise SessionError(f"{out_dir}: cannot create report directory: {exc}") from exc
+    ref = reference if reference is not None else load_reference()
+    vpr = d.vpr_figure(inp.results, ref)
+    no_results = "the session has no results" + (
+        f" ({inp.summary['analysis_error']})"
+        if inp.summary and inp.summary.get("analysis_error")
+        else ""
+    )
+
+    def force() -> Figure | str:
+        if inp.force_times_s.size == 0:
+            return "the session holds no force sample"
+        return r.draw_force(d.force_figure(inp))
+
+    def s_k() -> Figure | str:
+        if inp.frame_times_s.size == 0:
+            return "the session holds no frame"
+        return r.draw_s_k(d.s_k_figure(inp))
+
+    def fit() -> Figure | str:
+        data = d.fit_figure(inp)
+        if data is None:
+            return "no fitted recovery" if inp.results is not None else no_results
+        return r.draw_fit(data)
+
+    def frames() -> Figure | str:
+        panels = d.frame_panels(inp)
+        if not panels:
+            return (
+                "the session stores no representative frame (frames/representative.json): "
+                "it was recorded before they were kept, or no frame arrived in the pitting "
+                "or recovery phase"
+            )
+        return r.draw_frames(panels)
+
+    vpr_note = "" if vpr.measurements else f" This session's curves are missing: {no_results}."
+    makers: list[tuple[str, str, str, FigureMaker]] = [
+        (
+            "force",
+            SESSION_FIGURES["force"],
+            "Load-cell force as recorded, with the measurement phases shaded, the pitting "
+            "force band, the release threshold, F_a (mean force over the pitting hold, Eq. 7) "
+            "and T_0.",
+            force,
+        ),
+        (
+            "s_k",
+            SESSION_FIGURES["s_k"],
+            "Occluded pixel count S_k of every frame (Eq. 2) with the phases, T_0, T_s, S_0 "
+            "and the 98 % of S_max line that defines T_s (Eq. 6).",
+            s_k,
+        ),
+        (
+            "recovery_fit",
+            SESSION_FIGURES["recovery_fit"],
+            "Kelvin-Voigt recovery S_inf - A exp(-(t - T_0)/tau) fitted to S_k over the "
+            "recovery window (top) and the residuals data - fit (bottom).",
+            fit,
+        ),
+        (
+            "vpr",
+            SESSION_FIGURES["vpr"],
+            "Pitting depth D(t) = D_p exp(-(E/eta) t), Eq. (10), of the reference grades "
+            "(Table II, STIP-I columns; depths from Table I) and of this session with eta from "
+            "Eq. (8) (E T_r) and from the fitted time constant (E tau)." + vpr_note,
+            lambda: r.draw_vpr(vpr),
+        ),
+        (
+            "window_search",
+            SESSION_FIGURES["window_search"],
+            "Mean distance between the normalised curves of adjacent grades for every 10 s "
+            "window; the severity window maximises it between the mild and severe grades.",
+            lambda: r.draw_window_search(d.window_search_figure(ref)),
+        ),
+        (
+            "vpr_normalised",
+            SESSION_FIGURES["vpr_normalised"],
+            "Normalised VPR curves D(t)/D_p with the severity window and the mild/severe "
+            "threshold (mid-point of the two grades' window means). This session's curves are "
+            "drawn as classified: the paper estimator at 1/T_r, the fit at 1/T_r(tau); a "
+            "diamond marks each curve's mean over the window." + vpr_note,
+            lambda: r.draw_normalised(vpr),
+        ),
+        (
+            "frames",
+            SESSION_FIGURES["frames"],
+            "Raw frames stored with the session (left) and their binary-inverted thresholding, "
+            "Eq. (1), with the ROI (right): occluded pixels in the ROI, counted in S_k, are "
+            "white.",
+            frames,
+        ),
+    ]
+    embedded, written, missing = _make_figures(makers, out_dir)
+    rows = d.parameter_table(inp.summary)
+    page = session_page(
+        session_id=inp.session_id,
+        status=inp.status,
+        meta=_meta(inp),
+        headline=_headline(inp),
+        figures=embedded,
+        rows=rows,
+        flag_descriptions=d.flag_descriptions(),
+        notes=_notes(inp),
+    )
+    html_path = out_dir / REPORT_HTML
+    _write_atomic(html_path, page.encode("utf-8"))
+    return WrittenReport(html_path, written, missing)
+
+
+def write_session_report(
+    session_dir: str | Path,
+    out_dir: str | Path | None = None,
+    *,
+    reference: SeverityReference | None = None,
+) -> WrittenReport:
+    """Read the session in ``session_dir`` and write its report.
+
+    Parameters
+    ----------
+    session_dir : str or Path
+        The session directory.
+    out_dir : str or Path, optional
+        Where to write; default ``<session_dir>/report``.
+    reference : SeverityReference, optional
+        Reference grade curves; default the package's.
+
+    Raises
+    ------
+    SessionError
+        The session cannot be read or the report cannot be written.
+    """
+    inp = load_report_input(session_dir)
+    out = Path(out_dir) if out_dir is not None else Path(session_dir) / REPORT_DIR
+    return render_session_report(inp, out, reference)
+
+
+def record_report_failure(session_dir: str | Path, error: BaseException) -> Path | None:
+    """Leave ``report/report_error.txt`` saying why the report was not written.
+
+    Returns its path, or None when even that cannot be written (the session itself is
+    never touched).
+    """
+    directory = Path(session_dir) / REPORT_DIR
+    path = directory / REPORT_ERROR
+    try:
+        directory.mkdir(exist_ok=True)
+        path.write_text(
+            f"The report of this session could not be written: {type(error).__name__}: "
+            f"{error}\nWrite it again with: stipi-daemon report {Path(session_dir)}\n",
+            encoding="utf-8",
+        )
+    except OSError:
+        return None
+    return path
+
+
+def write_compare_report(
+    session_dirs: Sequence[str | Path],
+    out_dir: str | Path,
+    labels: Sequence[str] | None = None,
+    *,
+    reference: SeverityReference | None = None,
+) -> WrittenReport:
+    """Overlay several sessions and tabulate mean and spread per parameter.
+
+    Parameters
+    ----------
+    session_dirs : sequence of str or Path
+        The sessions (at least two).
+    out_dir : str or Path
+        Where to write ``report.html`` and the PNGs.
+    labels : sequence of str, optional
+        One label per session (e.g. the grade); equal labels form a group of repeated
+        trials. Default: the session ids.
+    reference : SeverityReference, optional
+        Reference grade curves; default the package's.
+
+    Raises
+    ------
+    AnalysisError
+        Fewer than two sessions, or a label count that differs from the session count.
+    SessionError
+        A session cannot be read or the report cannot be written.
+    """
+    if len(session_dirs) < 2:
+        raise AnalysisError(f"a comparison needs at least two sessions, got {len(session_dirs)}")
+    if labels is not None and len(labels) != len(session_dirs):
+        raise AnalysisError(f"{len(labels)} labels for {len(session_dirs)} sessions")
+    inputs = [load_report_input(p) for p in session_dirs]
+    names = list(labels) if labels is not None else [i.session_id for i in inputs]
+    table = d.compare_table(inputs, names)
+    ref = reference if reference is not None else load_reference()
+    vpr = d.vpr_figure(None, ref)
+    t = vpr.t_s
+    window_t = vpr.window_sample_times_s
+    wt = np.asarray(window_t, dtype=np.float64)
+    curves = [
+        (name, d.measurement_curves(inp.results, t, wt, name))
+        for name, inp in zip(names, inputs, strict=True)
+    ]
+    out = Path(out_dir)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise SessionError(f"{out}: cannot create report directory: {exc}") from exc
+
+    def overlay(which: str) -> Figure | str:
+        series = d.overlay_s_k(inputs, names) if which == "s_k" else d.overlay_force(inputs, names)
+        if not series:
+            return "no session has a T_0 to align on"
+        if which == "s_k":
+            return r.draw_overlay(series, "$S_k$ [px]", "$S_k$ of every session", "overlay_s_k")
+        return r.draw_overlay(series, "force [N]", "Force of every session", "overlay_force")
+
+    makers: list[tuple[str, str, str, FigureMaker]] = [
+        (
+            "overlay_s_k",
+            COMPARE_FIGURES["overlay_s_k"],
+            "S_k of each session against the time since its own T_0.",
+            lambda: overlay("s_k"),
+        ),
+        (
+            "overlay_force",
+            COMPARE_FIGURES["overlay_force"],
+            "Force of each session against the time since its own T_0.",
+            lambda: overlay("force"),
+        ),
+        (
+            "compare_vpr",
+            COMPARE_FIGURES["compare_vpr"],
+            "D(t), Eq. (10), of each session (paper estimator, eta = E T_r) with the reference "
+            "grades (dashed).",
+            lambda: r.draw_compare_vpr(vpr, curves, normalised=False),
+        ),
+        (
+            "compare_vpr_normalised",
+            COMPARE_FIGURES["compare_vpr_normalised"],
+            "Normalised curves of each session with the severity window and threshold.",
+            lambda: r.draw_compare_vpr(vpr, curves, normalised=True),
+        ),
+    ]
+    embedded, written, missing = _make_figures(makers, out)
+    meta: list[tuple[str, Any]] = [
+        (f"{label}", f"{inp.session_id} ({inp.status})")
+        for label, inp in zip(names, inputs, strict=True)
+    ]
+    page = compare_page(table=table, figures=embedded, meta=[(k, str(v)) for k, v in meta])
+    html_path = out / REPORT_HTML
+    _write_atomic(html_path, page.encode("utf-8"))
+    return WrittenReport(html_path, written, missing)

@@ -1,0 +1,161 @@
+"""Written reports: every figure file exists and is the one embedded in a self-contained page."""
+
+from __future__ import annotations
+
+import base64
+import re
+import shutil
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from stipi_daemon.daemon import _write_report
+from stipi_daemon.errors import AnalysisError
+from stipi_daemon.report.write import (
+    COMPARE_FIGURES,
+    REPORT_DIR,
+    REPORT_ERROR,
+    REPORT_HTML,
+    SESSION_FIGURES,
+    record_report_failure,
+    write_compare_report,
+    write_session_report,
+)
+from stipi_daemon.storage import SessionReader, SessionState
+from tests._offline import interrupted_copy
+
+_DATA_URI = re.compile(
+    r'src="data:image/png;base64,([A-Za-z0-9+/=]+)" alt="([^"]*)" data-file="([^"]+)"'
+)
+
+
+def _check_png(path: Path) -> np.ndarray:
+    """A readable PNG 1000 px wide that is not blank."""
+    assert path.is_file() and path.stat().st_size > 10_000, path
+    img = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    assert img is not None, path
+    assert img.shape[1] == 1000
+    assert float(img.std()) > 10.0, f"{path} looks blank"
+    return img
+
+
+def _embedded(page: str) -> dict[str, bytes]:
+    return {m.group(3): base64.b64decode(m.group(1)) for m in _DATA_URI.finditer(page)}
+
+
+def _self_contained(page: str) -> None:
+    assert "<script" not in page
+    assert not re.search(r"(src|href)=\"(?!data:|#)", page), "page links to another file"
+    assert "http://" not in page and "https://" not in page
+    assert "@import" not in page and "url(" not in page
+
+
+def test_daemon_wrote_the_report_of_every_run(demo_session: Path) -> None:
+    out = demo_session / REPORT_DIR
+    page = (out / REPORT_HTML).read_text(encoding="utf-8")
+    assert set(p.stem for p in out.glob("*.png")) == set(SESSION_FIGURES)
+    assert set(_embedded(page)) == {f"{name}.png" for name in SESSION_FIGURES}
+
+
+def test_session_report_figures_exist_and_are_embedded(demo_session: Path, tmp_path: Path) -> None:
+    written = write_session_report(demo_session, tmp_path / "rep")
+    assert written.missing == {}
+    assert list(written.figures) == list(SESSION_FIGURES)
+    page = written.html_path.read_text(encoding="utf-8")
+    _self_contained(page)
+    embedded = _embedded(page)
+    for name, path in written.figures.items():
+        _check_png(path)
+        assert embedded[f"{name}.png"] == path.read_bytes()
+    with SessionReader(demo_session) as reader:
+        summary = reader.summary
+        sid = reader.session_id
+    assert summary is not None
+    res = summary["results"]
+    assert sid in page and 'id="status">complete<' in page
+    # The table shows the summary's numbers (4 significant digits) and the fit's SE.
+    assert f'data-key="depth_mm">{res["pitting"]["depth_mm"]:.4g}<' in page
+    assert f"{res['fitted_recovery']['tau_se_s']:.4g}" in page
+    assert "Ground truth" in page
+    sev = res["severity"]["paper_estimator"]
+    assert f"{sev['severity']} (nearest grade {sev['nearest_grade']})" in page
+    for flag in res["flags"]:
+        assert f'<span class="flag">{flag}</span>' in page
+
+
+def test_report_of_a_session_without_results(demo_session: Path, tmp_path: Path) -> None:
+    """An interrupted session: time series drawn, results' figures listed as not drawn."""
+    with SessionReader(demo_session) as reader:
+        transitions = reader.transitions()
+    t_recovery = next(t.t_host_s for t in transitions if t.new_state == "recovery")
+    session = interrupted_copy(demo_session, tmp_path / "root", "cut", t_recovery + 0.5)
+    stale = session / REPORT_DIR / "recovery_fit.png"
+    stale.parent.mkdir()
+    stale.write_bytes(b"an earlier report's figure")
+    written = write_session_report(session)
+    assert not stale.exists()
+    assert written.html_path == session / REPORT_DIR / REPORT_HTML
+    assert set(written.missing) == {"recovery_fit", "frames"}
+    assert {"force", "s_k", "vpr", "vpr_normalised", "window_search"} <= set(written.figures)
+    page = written.html_path.read_text(encoding="utf-8")
+    assert 'id="status">interrupted<' in page
+    assert "The session has no results." in page
+    assert "Not drawn: the session has no results" in page
+    assert "no summary.json" in page
+    with SessionReader(session) as reader:  # the session itself is untouched
+        assert reader.status is SessionState.INTERRUPTED
+        assert reader.integrity_check().ok
+
+
+def test_report_failure_is_noted_and_the_session_kept(demo_session: Path, tmp_path: Path) -> None:
+    session = tmp_path / "copy"
+    shutil.copytree(demo_session, session, ignore=shutil.ignore_patterns(REPORT_DIR))
+    (session / REPORT_DIR).write_text("a file where the report directory should be")
+    line = _write_report(session)
+    assert line.startswith("report not written:")
+    assert "cannot create report directory" in line
+    with SessionReader(session) as reader:
+        assert reader.status is SessionState.COMPLETE
+        assert reader.integrity_check().ok
+    (session / REPORT_DIR).unlink()
+    note = record_report_failure(session, RuntimeError("boom"))
+    assert note == session / REPORT_DIR / REPORT_ERROR
+    assert "RuntimeError: boom" in note.read_text()
+    assert _write_report(session).startswith("report written to ")
+
+
+def test_compare_report_tabulates_mean_and_spread(
+    demo_session: Path, second_session: Path, tmp_path: Path
+) -> None:
+    written = write_compare_report(
+        [demo_session, second_session, demo_session], tmp_path / "cmp", ["I", "II", "I"]
+    )
+    assert written.missing == {}
+    assert list(written.figures) == list(COMPARE_FIGURES)
+    page = written.html_path.read_text(encoding="utf-8")
+    _self_contained(page)
+    embedded = _embedded(page)
+    for name, path in written.figures.items():
+        _check_png(path)
+        assert embedded[f"{name}.png"] == path.read_bytes()
+    depths = []
+    for s in (demo_session, second_session):
+        with SessionReader(s) as reader:
+            summary = reader.summary
+        assert summary is not None
+        depths.append(summary["results"]["pitting"]["depth_mm"])
+    values = np.array([depths[0], depths[1], depths[0]])
+    mean, sd = values.mean(), values.std(ddof=1)
+    # Overall row: mean ± SD (CV) of the three sessions; group I: two equal trials (SD 0).
+    assert f"{mean:.4g} ± {sd:.4g} ({100 * sd / mean:.1f} %)" in page
+    assert f"{depths[0]:.4g} ± 0 (0.0 %)" in page
+    assert "<th>I (n = 2)</th>" in page and "<th>all sessions (n = 3)</th>" in page
+
+
+def test_compare_needs_two_sessions_and_matching_labels(demo_session: Path, tmp_path: Path) -> None:
+    with pytest.raises(AnalysisError, match="at least two sessions"):
+        write_compare_report([demo_session], tmp_path)
+    with pytest.raises(AnalysisError, match="1 labels for 2 sessions"):
+        write_compare_report([demo_session, demo_session], tmp_path, ["a"])
