@@ -7,6 +7,11 @@ peripheral on a virtual radio, where notifications leave only at connection even
 scheduling). Each sample's mapped host time (``ForceRow.t_host_s``) is compared with the
 true session time at which the emulated MCU took it; from 10 s after the first sample on,
 the 95th percentile of the error must stay within 5 ms.
+
+Both links run in real time (session clock speed 1), as a real probe does: on an
+accelerated session clock every millisecond the host's scheduler adds to a frame's
+delivery counts as ``speed`` milliseconds of transport delay, which is not the latency the
+requirement is about.
 """
 
 from __future__ import annotations
@@ -28,17 +33,14 @@ from .conftest import SCENES, report
 RUN_S = 12.0
 SETTLE_S = 10.0
 P95_LIMIT_S = 0.005
-#: Regression guard that must always hold (what the links reach today on a loaded machine).
-GUARD_S = 0.02
 
 
 async def _errors(link: str, ppm: float) -> np.ndarray:
     scene = SCENES / "grade1.yaml"
+    clock = ScaledClock(1.0)
     if link == "serial":
-        clock = ScaledClock(4.0)
         cfg: Any = EmulatedTransportConfig(scene=scene, rate_error_ppm=ppm)
     else:
-        clock = ScaledClock(2.0)
         cfg = BleTransportConfig(
             name="STIPI-01",
             scan_timeout_s=5.0,
@@ -84,8 +86,4 @@ async def test_mapped_times_within_5_ms_p95_after_10_s(link: str, ppm: float) ->
         max_abs_error_s=float(np.abs(err).max()),
         samples=int(err.size),
     )
-    assert p95 <= GUARD_S, p95
-    if p95 > P95_LIMIT_S:
-        # Known gap (docs/reliability.md): with the MCU clock 0.5 % fast, the mapping is
-        # biased by a few ms after 10 s on a loaded machine. Reported, not hidden.
-        pytest.xfail(f"p95 mapping error {p95 * 1e3:.1f} ms > 5 ms ({link}, {ppm:+.0f} ppm)")
+    assert p95 <= P95_LIMIT_S, f"p95 mapping error {p95 * 1e3:.2f} ms ({link}, {ppm:+.0f} ppm)"
