@@ -19,9 +19,11 @@ from stipi_daemon.analysis.imaging import (
     CircleROI,
     FrameProcessor,
     RectROI,
+    occluded_area_subpixel,
     occluded_pixel_count,
     otsu_threshold,
     roi_mask,
+    subpixel_membership_lut,
     threshold_binary_inverted,
     to_gray,
 )
@@ -397,3 +399,116 @@ def test_otsu_threshold_refuses_empty_roi() -> None:
     frame = disc_frame((50, 50), (25, 25), 10, 40, 200)
     with pytest.raises(AnalysisError, match="no pixel inside the frame"):
         otsu_threshold(frame, RectROI(x_px=100, y_px=0, width_px=5, height_px=5))
+
+
+# ---------------------------------------------------------------------------- sub-pixel area
+
+
+def hard_disc(shape: tuple[int, int], cx: float, cy: float, r: float, dark: int, bright: int) -> U8:
+    """A disc drawn by pixel-centre membership: no intermediate level anywhere."""
+    yy, xx = np.mgrid[0 : shape[0], 0 : shape[1]]
+    inside = (xx - cx) ** 2 + (yy - cy) ** 2 <= r * r
+    return np.where(inside, dark, bright).astype(np.uint8)
+
+
+def antialiased_disc(
+    shape: tuple[int, int], cx: float, cy: float, r: float, dark: int, bright: int, sub: int = 16
+) -> tuple[U8, float]:
+    """A disc whose edge pixels hold the covered fraction c as ``bright - c (bright - dark)``.
+
+    Coverage from ``sub x sub`` samples per pixel; returns the frame and the area the
+    8-bit frame represents (sum of the covered fractions) [px].
+    """
+    offs = (np.arange(sub) + 0.5) / sub - 0.5
+    ys = (np.arange(shape[0])[:, None] + offs[None, :]).reshape(-1)
+    xs = (np.arange(shape[1])[:, None] + offs[None, :]).reshape(-1)
+    inside = (xs[None, :] - cx) ** 2 + (ys[:, None] - cy) ** 2 <= r * r
+    cover = inside.reshape(shape[0], sub, shape[1], sub).mean(axis=(1, 3))
+    frame = np.rint(bright - cover * (bright - dark)).astype(np.uint8)
+    return frame, float(cover.sum())
+
+
+def test_membership_lut_is_binary_for_narrow_band_and_linear_inside() -> None:
+    binary = subpixel_membership_lut(100, 1.0)
+    assert np.array_equal(binary, (np.arange(256) <= 100).astype(np.float64))
+    lut = subpixel_membership_lut(135, 129.0)
+    levels = np.arange(71, 201)
+    assert np.allclose(lut[levels], (200 - levels) / 129.0)
+    assert lut[0] == 1.0 and lut[255] == 0.0
+    assert np.all(np.diff(lut) <= 0.0)
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    r=st.floats(3.0, 40.0),
+    cx=st.floats(50.0, 51.0),
+    cy=st.floats(45.0, 46.0),
+    dark=st.integers(0, 90),
+    bright=st.integers(170, 255),
+)
+def test_subpixel_area_exact_on_hard_edged_disc(
+    r: float, cx: float, cy: float, dark: int, bright: int
+) -> None:
+    frame = hard_disc((96, 104), cx, cy, r, dark, bright)
+    n_inside = int(np.count_nonzero(frame == dark))
+    area = occluded_area_subpixel(frame, 128, edge_width_levels=64.0)
+    assert area == n_inside == occluded_pixel_count(frame, 128)
+    # Lattice points in a disc of radius r: |N - pi r^2| <= sqrt(2) pi r + pi / 2.
+    assert abs(area - math.pi * r * r) <= math.sqrt(2.0) * math.pi * r + math.pi / 2
+
+
+def test_subpixel_area_beats_binary_count_on_antialiased_edges() -> None:
+    rng = np.random.default_rng(7)
+    dark, bright, p = 71, 200, 135  # p + 0.5 is the mid level; w = contrast reads coverage
+    soft_err, binary_err = [], []
+    for r in np.linspace(4.0, 30.0, 24):
+        cx, cy = 40.0 + rng.random(), 38.0 + rng.random()
+        frame, area = antialiased_disc((80, 84), cx, cy, float(r), dark, bright)
+        soft = occluded_area_subpixel(frame, p, edge_width_levels=float(bright - dark))
+        binary = occluded_pixel_count(frame, p)
+        edge_px = int(np.count_nonzero((frame > dark) & (frame < bright)))
+        # Only the 8-bit rounding of each edge pixel (<= 0.5 level of 129) remains.
+        assert abs(soft - area) <= edge_px * 0.5 / 129.0 + 1e-6
+        soft_err.append(abs(soft - area))
+        binary_err.append(abs(binary - area))
+    assert max(soft_err) < 0.5
+    assert np.mean(binary_err) > 10.0 * np.mean(soft_err)
+
+
+def test_subpixel_area_processor_roi_and_colour() -> None:
+    frame, _ = antialiased_disc((60, 64), 30.3, 28.7, 12.0, 70, 200, sub=8)
+    roi = CircleROI(cx_px=30.0, cy_px=29.0, radius_px=20.0)
+    proc = FrameProcessor(frame.shape, 128, roi, edge_width_levels=50.0)
+    a = proc.occluded_area_subpixel(frame)
+    assert a == occluded_area_subpixel(frame, 128, roi, edge_width_levels=50.0)
+    bgr = cv2.cvtColor(frame, cv2.COLOR_GRAY2BGR)
+    assert occluded_area_subpixel(bgr, 128, roi, edge_width_levels=50.0) == a
+    # Reference: the membership summed in float64 over the ROI mask.
+    lut = subpixel_membership_lut(128, 50.0)
+    expected = float(lut[frame][roi_mask(frame.shape, roi)].sum())
+    assert a == pytest.approx(expected, abs=1e-4 * max(1.0, expected) + 0.01)
+    # A pixel inside the ROI box but outside the circle must not count.
+    corner = frame.copy()
+    corner[10, 10] = 0
+    assert proc.occluded_area_subpixel(corner) == a
+    outside = FrameProcessor(frame.shape, 128, RectROI(x_px=500, y_px=0, width_px=5, height_px=5))
+    assert outside.occluded_area_subpixel(frame) == 0.0
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    frame=hnp.arrays(np.uint8, (17, 23)),
+    p=st.integers(0, 255),
+    w=st.floats(0.01, 1.0),
+)
+def test_subpixel_area_with_narrow_band_equals_binary_count(frame: U8, p: int, w: float) -> None:
+    assert occluded_area_subpixel(frame, p, edge_width_levels=w) == occluded_pixel_count(frame, p)
+
+
+@pytest.mark.parametrize("w", [0.0, -1.0, 256.0, math.nan, math.inf, True, "5"])
+def test_subpixel_area_rejects_bad_edge_width(w: object) -> None:
+    frame = np.zeros((4, 4), dtype=np.uint8)
+    with pytest.raises(AnalysisError, match="edge_width_levels"):
+        occluded_area_subpixel(frame, 10, edge_width_levels=w)  # type: ignore[arg-type]
+    with pytest.raises(AnalysisError, match="edge_width_levels"):
+        FrameProcessor(frame.shape, 10, edge_width_levels=w)  # type: ignore[arg-type]

@@ -1,0 +1,67 @@
+"""Smoke tests of the accuracy and throughput benchmarks in their --quick mode.
+
+They run each benchmark as a separate process (the throughput benchmark pins itself to one
+CPU) into a temporary directory and check that the Markdown report (and the plots) come
+out with the expected content. The numbers themselves are not checked: timings belong in
+docs/, not in tests.
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def run_benchmark(
+    script: str, *args: str, timeout_s: float = 110.0
+) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, str(ROOT / "benchmarks" / script), "--quick", *args],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=timeout_s,
+        check=False,
+    )
+
+
+def test_throughput_quick_writes_its_section_and_keeps_others(tmp_path: Path) -> None:
+    out = tmp_path / "performance.md"
+    out.write_text(
+        "# Performance\n\n## Live daemon latency\n\nkept text\n\n## S_k throughput\n\nold\n"
+    )
+    proc = run_benchmark("throughput.py", "--out", str(out))
+    assert proc.returncode == 0, proc.stderr
+    text = out.read_text()
+    assert "## Live daemon latency\n\nkept text" in text
+    assert text.count("## S_k throughput") == 1 and "\nold\n" not in text
+    assert "| 640x480 | gray | count, whole frame |" in text
+    assert "MJPG pipeline (decode + `measure`, circle ROI) within 1.2x" in text
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(300)
+def test_accuracy_vs_time_quick_writes_report_and_plots(tmp_path: Path) -> None:
+    proc = run_benchmark(
+        "accuracy_vs_time.py", "--out", str(tmp_path), "--jobs", "2", timeout_s=280.0
+    )
+    assert proc.returncode == 0, proc.stderr
+    text = (tmp_path / "accuracy-vs-time.md").read_text()
+    for heading in (
+        "## Cost per frame",
+        "## Accuracy against compute time",
+        "## Pareto front and recommended settings",
+        "## Accuracy against recording time",
+        "## Spread over seeds",
+    ):
+        assert heading in text
+    assert "| full, p fixed, binary, every 1 |" in text
+    assert "| 1/4, p otsu, subpixel, every 8 |" in text
+    for png in ("error_vs_compute.png", "error_vs_recording.png"):
+        data = (tmp_path / "accuracy-vs-time" / png).read_bytes()
+        assert data.startswith(b"\x89PNG") and len(data) > 10_000
