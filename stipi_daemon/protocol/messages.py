@@ -298,53 +298,48 @@ class Status:
 # --------------------------------------------------------------------------- host → probe
 
 
+class _TypedCommand:
+    """Shared behaviour of the typed COMMAND messages: ``cmd`` byte, arguments, body.
+
+    Subclasses set ``CMD`` and override :meth:`args` when the command takes arguments.
+    """
+
+    __slots__ = ()
+    MSG_TYPE: ClassVar[MsgType] = MsgType.COMMAND
+    CMD: ClassVar[CmdId]
+
+    @property
+    def cmd(self) -> int:
+        """Command id byte."""
+        return int(self.CMD)
+
+    def args(self) -> bytes:
+        """Argument bytes (none unless the command overrides this)."""
+        return b""
+
+    def body(self) -> bytes:
+        """Body bytes: ``cmd`` then arguments."""
+        return bytes((self.CMD,)) + self.args()
+
+
 @dataclass(frozen=True, slots=True)
-class StreamStart:
+class StreamStart(_TypedCommand):
     """STREAM_START: begin sending SAMPLES."""
 
-    MSG_TYPE: ClassVar[MsgType] = MsgType.COMMAND
     CMD: ClassVar[CmdId] = CmdId.STREAM_START
 
-    @property
-    def cmd(self) -> int:
-        """Command id byte."""
-        return int(self.CMD)
-
-    def args(self) -> bytes:
-        """Argument bytes (none)."""
-        return b""
-
-    def body(self) -> bytes:
-        """Body bytes: ``cmd`` then arguments."""
-        return bytes((self.CMD,))
-
 
 @dataclass(frozen=True, slots=True)
-class StreamStop:
+class StreamStop(_TypedCommand):
     """STREAM_STOP: stop sending SAMPLES."""
 
-    MSG_TYPE: ClassVar[MsgType] = MsgType.COMMAND
     CMD: ClassVar[CmdId] = CmdId.STREAM_STOP
-
-    @property
-    def cmd(self) -> int:
-        """Command id byte."""
-        return int(self.CMD)
-
-    def args(self) -> bytes:
-        """Argument bytes (none)."""
-        return b""
-
-    def body(self) -> bytes:
-        """Body bytes: ``cmd`` then arguments."""
-        return bytes((self.CMD,))
 
 
 @dataclass(frozen=True, slots=True)
-class SetRate:
+class SetRate(_TypedCommand):
     """SET_RATE: sampling rate [Hz], ``RATE_MIN_HZ``..``RATE_MAX_HZ`` (16..1000)."""
 
-    MSG_TYPE: ClassVar[MsgType] = MsgType.COMMAND
     CMD: ClassVar[CmdId] = CmdId.SET_RATE
 
     rate_hz: int
@@ -352,25 +347,15 @@ class SetRate:
     def __post_init__(self) -> None:
         _check_int("rate_hz", self.rate_hz, RATE_MIN_HZ, RATE_MAX_HZ)
 
-    @property
-    def cmd(self) -> int:
-        """Command id byte."""
-        return int(self.CMD)
-
     def args(self) -> bytes:
         """Argument bytes: ``rate_hz u16``."""
         return _U16.pack(self.rate_hz)
 
-    def body(self) -> bytes:
-        """Body bytes: ``cmd`` then arguments."""
-        return bytes((self.CMD,)) + self.args()
-
 
 @dataclass(frozen=True, slots=True)
-class SetLed:
+class SetLed(_TypedCommand):
     """SET_LED: LED PWM duty ``level``, 0..255."""
 
-    MSG_TYPE: ClassVar[MsgType] = MsgType.COMMAND
     CMD: ClassVar[CmdId] = CmdId.SET_LED
 
     level: int
@@ -378,43 +363,20 @@ class SetLed:
     def __post_init__(self) -> None:
         _u8("level", self.level)
 
-    @property
-    def cmd(self) -> int:
-        """Command id byte."""
-        return int(self.CMD)
-
     def args(self) -> bytes:
         """Argument bytes: ``level u8``."""
         return _U8.pack(self.level)
 
-    def body(self) -> bytes:
-        """Body bytes: ``cmd`` then arguments."""
-        return bytes((self.CMD,)) + self.args()
-
 
 @dataclass(frozen=True, slots=True)
-class Tare:
+class Tare(_TypedCommand):
     """TARE: average the next 16 samples into ``zero_counts`` and store it in EEPROM."""
 
-    MSG_TYPE: ClassVar[MsgType] = MsgType.COMMAND
     CMD: ClassVar[CmdId] = CmdId.TARE
-
-    @property
-    def cmd(self) -> int:
-        """Command id byte."""
-        return int(self.CMD)
-
-    def args(self) -> bytes:
-        """Argument bytes (none)."""
-        return b""
-
-    def body(self) -> bytes:
-        """Body bytes: ``cmd`` then arguments."""
-        return bytes((self.CMD,))
 
 
 @dataclass(frozen=True, slots=True)
-class WriteCal:
+class WriteCal(_TypedCommand):
     """WRITE_CAL: store tare and span in EEPROM.
 
     Parameters
@@ -425,7 +387,6 @@ class WriteCal:
         Force per ADC count [µN/count], -2^31..2^31-1.
     """
 
-    MSG_TYPE: ClassVar[MsgType] = MsgType.COMMAND
     CMD: ClassVar[CmdId] = CmdId.WRITE_CAL
 
     zero_counts: int
@@ -435,39 +396,16 @@ class WriteCal:
         _u16("zero_counts", self.zero_counts)
         _i32("span_un_per_count", self.span_un_per_count)
 
-    @property
-    def cmd(self) -> int:
-        """Command id byte."""
-        return int(self.CMD)
-
     def args(self) -> bytes:
         """Argument bytes: ``zero_counts u16, span_un_per_count i32``."""
         return _WRITE_CAL.pack(self.zero_counts, self.span_un_per_count)
 
-    def body(self) -> bytes:
-        """Body bytes: ``cmd`` then arguments."""
-        return bytes((self.CMD,)) + self.args()
-
 
 @dataclass(frozen=True, slots=True)
-class GetInfo:
+class GetInfo(_TypedCommand):
     """GET_INFO: ask for firmware version, settings and calibration (:class:`InfoResult`)."""
 
-    MSG_TYPE: ClassVar[MsgType] = MsgType.COMMAND
     CMD: ClassVar[CmdId] = CmdId.GET_INFO
-
-    @property
-    def cmd(self) -> int:
-        """Command id byte."""
-        return int(self.CMD)
-
-    def args(self) -> bytes:
-        """Argument bytes (none)."""
-        return b""
-
-    def body(self) -> bytes:
-        """Body bytes: ``cmd`` then arguments."""
-        return bytes((self.CMD,))
 
 
 @dataclass(frozen=True, slots=True)
