@@ -18,7 +18,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from stipi_daemon.analysis.imaging import CircleROI, FrameProcessor, RectROI
+from stipi_daemon.analysis.imaging import CircleROI, FrameProcessor, RectROI, sk_kernel
 
 POOL_BYTES = 160 * 1024 * 1024
 REPEATS = 7
@@ -37,7 +37,8 @@ def interleaved_ms(fns: list[Callable[[np.ndarray], Any]], frames: list[np.ndarr
 
 
 def raw_route(frame: np.ndarray) -> int:
-    """The reference route of performance.md on the whole frame, without any checks."""
+    """The reference route of shared/reference/performance.md (threshold + countNonZero) on the
+    whole frame, without any checks."""
     return int(cv2.countNonZero(cv2.threshold(frame, 100, 1, cv2.THRESH_BINARY_INV)[1]))
 
 
@@ -72,7 +73,9 @@ def main() -> None:
         f" Python {platform.python_version()}, OpenCV {cv2.__version__}, numpy {np.__version__};"
         " median of 7 interleaved passes over a frame pool larger than the caches. Raw route ="
         " `cv2.threshold(THRESH_BINARY_INV, maxval=1)` + `cv2.countNonZero` (after `cvtColor`"
-        " for BGR) on the whole frame with no validation: the floor FrameProcessor adds to."
+        " for BGR) on the whole frame with no validation, the two-pass OpenCV route;"
+        f" FrameProcessor counts with the compiled single-pass kernel `{sk_kernel()}`"
+        " (docs/analysis.md)."
         f" Absolute times depend on machine load (1-min load average at the end:"
         f" {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs).\n\n"
         "| frame | layout | ROI | count [ms] | measure [ms] | raw cv2 route, whole frame [ms] |\n"

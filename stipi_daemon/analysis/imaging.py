@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from types import ModuleType
 from typing import Annotated, Any, Final, Literal
 
 import cv2
@@ -41,6 +42,14 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from stipi_daemon.analysis.flags import Flag
 from stipi_daemon.errors import AnalysisError
+
+_skcount: ModuleType | None
+try:  # the compiled single-pass kernel (built by `pip install`; see _skcount.c)
+    from stipi_daemon.analysis import _skcount as _sk_module
+
+    _skcount = _sk_module
+except ImportError:  # pragma: no cover - exercised by forcing the fallback in the tests
+    _skcount = None
 
 __all__ = [
     "DEFAULT_EDGE_WIDTH_LEVELS",
@@ -57,6 +66,7 @@ __all__ = [
     "occluded_pixel_count",
     "otsu_threshold",
     "roi_mask",
+    "sk_kernel",
     "subpixel_membership_lut",
     "threshold_binary_inverted",
     "to_gray",
@@ -89,6 +99,18 @@ ramp); for an edge sharper than a pixel, use the dark-to-bright contrast instead
 
 _SUBPIXEL_SCALE: Final = 65535
 """Fixed-point scale of the membership look-up table (uint16; 1/65535 per pixel)."""
+
+
+def sk_kernel() -> str:
+    """Name of the routine that counts S_k in :class:`FrameProcessor` (recorded per session).
+
+    ``"avx2"``, ``"sse2"`` or ``"c"``: the compiled single-pass kernel of
+    ``stipi_daemon/analysis/_skcount.c`` (the best one the CPU runs), which reads each pixel
+    once. ``"opencv"``: the extension was not built (no C compiler at install time), and
+    S_k is counted with ``cv2.threshold`` + ``cv2.countNonZero`` (two passes, about 2x
+    slower on raw frames). All give identical counts.
+    """
+    return "opencv" if _skcount is None else str(_skcount.kernel())
 
 
 # --------------------------------------------------------------------------------------------
@@ -442,13 +464,16 @@ class FrameMeasurement:
 class FrameProcessor:
     """Computes S_k (Eq. (2)) of frames of one fixed shape, ROI and threshold.
 
-    Everything that does not depend on the pixel values (ROI clipping, bounding box, circle
-    mask, scratch buffers) is computed once here, so :meth:`count` only crops (a view),
-    converts the crop to gray when the frame is colour, thresholds it with
-    ``cv2.threshold(THRESH_BINARY_INV, maxval=1)`` into a preallocated buffer, masks it for
-    a circular ROI (``cv2.bitwise_and``) and counts with ``cv2.countNonZero``. The saturation
-    check of :meth:`measure` first reads the crop's maximum (``cv2.minMaxLoc``) and counts
-    saturated pixels only when a 255 is present.
+    Everything that does not depend on the pixel values (ROI clipping, bounding box, the
+    circle's per-row column spans, scratch buffers) is computed once here, so :meth:`count`
+    only crops (a view), converts the crop to gray when the frame is colour, and counts the
+    pixels ``<= p`` of each ROI row in one read-only pass (the compiled kernel named by
+    :func:`sk_kernel`); :meth:`measure` counts the saturated pixels in the same pass. Where
+    the kernel is not built, the processor thresholds with
+    ``cv2.threshold(THRESH_BINARY_INV, maxval=1)`` into a preallocated buffer, masks a
+    circular ROI (``cv2.bitwise_and``) and counts with ``cv2.countNonZero``; the saturation
+    check then first reads the crop's maximum (``cv2.minMaxLoc``). Both give identical
+    results.
 
     Parameters
     ----------
@@ -507,6 +532,8 @@ class FrameProcessor:
         self._gray_buf = np.empty(box, dtype=np.uint8)
         self._bin_buf = np.empty(box, dtype=np.uint8)
         self._mask = self._geo.mask
+        self._sk: ModuleType | None = _skcount
+        self._spans = None if self._mask is None else _row_spans(self._mask)
         # An empty ROI is reported as EMPTY_ROI alone; ROI_CLIPPED means "partly outside".
         if self._geo.empty:
             self._static_flags = frozenset({Flag.EMPTY_ROI})
@@ -568,6 +595,21 @@ class FrameProcessor:
         cv2.cvtColor(crop, self._code, dst=self._gray_buf)
         return self._gray_buf
 
+    def _count_le(self, gray: GrayImage) -> int:
+        """Pixels of the ROI crop ``gray`` with value <= p, Eqs. (1)-(2) [px]."""
+        if self._sk is not None:
+            return int(self._sk.count_le(_row_contiguous(gray), self._p, self._spans))
+        return self._count_where(gray, self._p, cv2.THRESH_BINARY_INV)
+
+    def _count_le_and_saturated(self, gray: GrayImage) -> tuple[int, int]:
+        """(pixels <= p, pixels == 255) of the ROI crop ``gray`` [px], in one pass."""
+        if self._sk is not None:
+            s_k, n_sat = self._sk.count_le_and_saturated(
+                _row_contiguous(gray), self._p, self._spans
+            )
+            return int(s_k), int(n_sat)
+        return self._count_where(gray, self._p, cv2.THRESH_BINARY_INV), self._saturated_count(gray)
+
     def _count_where(self, gray: GrayImage, thresh: int, kind: int) -> int:
         cv2.threshold(gray, thresh, 1, kind, dst=self._bin_buf)
         if self._mask is not None:
@@ -575,9 +617,11 @@ class FrameProcessor:
         return int(cv2.countNonZero(self._bin_buf))
 
     def _saturated_count(self, gray: GrayImage) -> int:
-        # Read-only early exit: with no 255 anywhere in the ROI's bounding box (the usual,
-        # correctly exposed frame) no ROI pixel is saturated; this skips a threshold pass
-        # that writes a buffer and a count that re-reads it (about 40 % of the cost).
+        if self._sk is not None:
+            return self._count_le_and_saturated(gray)[1]
+        # OpenCV route, read-only early exit: with no 255 anywhere in the ROI's bounding box
+        # (the usual, correctly exposed frame) no ROI pixel is saturated; this skips a
+        # threshold pass that writes a buffer and a count that re-reads it.
         if cv2.minMaxLoc(gray)[1] < SATURATION_LEVEL:
             return 0
         return self._count_where(gray, SATURATION_LEVEL - 1, cv2.THRESH_BINARY)
@@ -603,7 +647,7 @@ class FrameProcessor:
         gray = self._gray_crop(frame)
         if self._geo.empty:
             return 0
-        return self._count_where(gray, self._p, cv2.THRESH_BINARY_INV)
+        return self._count_le(gray)
 
     def occluded_area_subpixel(self, frame: Frame) -> float:
         """Occluded area with sub-pixel edges [px]: the sum of soft memberships over the ROI.
@@ -677,13 +721,36 @@ class FrameProcessor:
         gray = self._gray_crop(frame)
         if self._geo.empty:
             return FrameMeasurement(0, 0.0, self._static_flags)
-        s_k = self._count_where(gray, self._p, cv2.THRESH_BINARY_INV)
-        n_sat = self._saturated_count(gray)
+        s_k, n_sat = self._count_le_and_saturated(gray)
         fraction = n_sat / self._geo.pixel_count
         flags = self._static_flags
         if fraction > self._saturation_limit:
             flags = flags | {Flag.SATURATED_FRAME}
         return FrameMeasurement(s_k, fraction, flags)
+
+
+def _row_spans(mask: npt.NDArray[np.uint8]) -> npt.NDArray[np.int32]:
+    """Column span ``[x0, x1)`` of the member pixels of each row of a 0/1 ROI mask.
+
+    A circle meets each row in one run of pixels (it is convex), so a span per row describes
+    the mask exactly; rows without a member pixel get the empty span ``[0, 0)``.
+    """
+    member = mask.astype(bool)
+    n_row = member.sum(axis=1)
+    x0 = np.where(n_row > 0, member.argmax(axis=1), 0)
+    spans = np.stack([x0, x0 + n_row], axis=1).astype(np.int32)
+    cols = np.arange(mask.shape[1])[None, :]
+    if not np.array_equal((cols >= spans[:, :1]) & (cols < spans[:, 1:]), member):
+        raise AnalysisError("ROI mask rows are not single runs of pixels")
+    return spans
+
+
+def _row_contiguous(gray: GrayImage) -> GrayImage:
+    """``gray`` itself when its rows are contiguous in memory, else a contiguous copy."""
+    rows, cols = gray.strides
+    if cols == 1 and (gray.shape[0] == 1 or rows >= gray.shape[1]):
+        return gray
+    return np.ascontiguousarray(gray)
 
 
 def occluded_pixel_count(frame: Frame, p: int, roi: RectROI | CircleROI | None = None) -> int:

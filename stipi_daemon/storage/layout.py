@@ -96,8 +96,14 @@ def check_free_space(root: Path, min_free_bytes: int) -> int:
 
 
 def software_versions() -> dict[str, str | None]:
-    """Versions of the software that records a session (``None`` if a module is missing)."""
+    """Versions of the software that records a session (``None`` if a module is missing).
+
+    ``sk_kernel`` names the routine that counted S_k (see
+    :func:`stipi_daemon.analysis.imaging.sk_kernel`); every routine gives identical counts.
+    """
     import numpy
+
+    from stipi_daemon.analysis.imaging import sk_kernel
 
     try:
         import cv2
@@ -111,6 +117,7 @@ def software_versions() -> dict[str, str | None]:
         "numpy": numpy.__version__,
         "opencv": opencv,
         "sqlite": sqlite3.sqlite_version,
+        "sk_kernel": sk_kernel(),
     }
 
 

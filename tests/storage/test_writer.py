@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 import pytest
 
+from stipi_daemon.analysis.imaging import sk_kernel
 from stipi_daemon.errors import ConfigError, SessionError
 from stipi_daemon.storage import (
     DEFAULT_COMMIT_INTERVAL_S,
@@ -78,7 +79,15 @@ def test_manifest_contents(recorded: Recorded) -> None:
         "summary": "summary.json",
         "video": "video.avi",
     }
-    assert set(manifest["software"]) == {"stipi_daemon", "python", "numpy", "opencv", "sqlite"}
+    assert set(manifest["software"]) == {
+        "stipi_daemon",
+        "python",
+        "numpy",
+        "opencv",
+        "sqlite",
+        "sk_kernel",
+    }
+    assert manifest["software"]["sk_kernel"] == sk_kernel()
     assert manifest["software"]["sqlite"] == sqlite3.sqlite_version
     assert manifest["storage"]["commit_interval_s"] == DEFAULT_COMMIT_INTERVAL_S
 
