@@ -14,6 +14,8 @@ from pathlib import Path
 
 import pytest
 
+from stipi_daemon.analysis.imaging import sk_kernel
+
 ROOT = Path(__file__).resolve().parent.parent
 
 
@@ -41,6 +43,11 @@ def test_throughput_quick_writes_its_section_and_keeps_others(tmp_path: Path) ->
     assert "## Live daemon latency\n\nkept text" in text
     assert text.count("## S_k throughput") == 1 and "\nold\n" not in text
     assert "| 640x480 | gray | count, whole frame |" in text
+    assert "| 640x480 | gray | OpenCV route: count, circle ROI |" in text
+    assert f"S_k kernel `{sk_kernel()}`" in text
+    assert (
+        "S_k (`count`) on raw gray frames within 2x of the read floor: 640x480 whole frame" in text
+    )
     assert "MJPG pipeline (decode + `measure`, circle ROI) within 1.2x" in text
 
 
