@@ -18,7 +18,7 @@ from pathlib import Path
 from typing import Any, Literal
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, ValidationInfo, field_validator
 
 from stipi_daemon.analysis.imaging import ROI
 from stipi_daemon.analysis.measurement import AnalysisSettings
@@ -136,9 +136,27 @@ class DaemonConfig(_Model):
     calibration: Path | None = None
     imaging: ImagingSettings = ImagingSettings()
     measurement: MeasurementConfig = MeasurementConfig()
-    analysis: AnalysisSettings = AnalysisSettings()
+    analysis: AnalysisSettings = Field(AnalysisSettings(), validate_default=True)
     storage: StorageSettings = StorageSettings()
     run: RunSettings = RunSettings()
+
+    @field_validator("analysis")
+    @classmethod
+    def _settling_matches_analysis(
+        cls, analysis: AnalysisSettings, info: ValidationInfo
+    ) -> AnalysisSettings:
+        # The state machine ends a recovery early only when the analysis' T_s of Eq. (6)
+        # cannot change; both must read it at the same fraction of S_max.
+        measurement = info.data.get("measurement")
+        if isinstance(measurement, MeasurementConfig) and (
+            measurement.settle_fraction != analysis.settle_fraction
+        ):
+            raise ValueError(
+                f"analysis.settle_fraction ({analysis.settle_fraction}) must equal "
+                f"measurement.settle_fraction ({measurement.settle_fraction}): the recovery "
+                "stops early by the analysis' settling rule (Eq. (6))"
+            )
+        return analysis
 
     def resolved(self, base: Path) -> DaemonConfig:
         """The same config with relative paths made absolute against ``base``."""

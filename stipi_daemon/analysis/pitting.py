@@ -21,6 +21,7 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.ndimage import median_filter
 
 from stipi_daemon.analysis.flags import Flag
+from stipi_daemon.analysis.settling import least_squares_slope, still_rising
 from stipi_daemon.errors import AnalysisError
 
 if TYPE_CHECKING:
@@ -279,15 +280,17 @@ def _still_rising(
     band_px: float,
     end_fraction: float,
 ) -> bool:
-    """True when the final slope, continued for another T_r, would leave the settling band."""
+    """True when the final slope, continued for another T_r, would leave the settling band.
+
+    The test itself (:func:`~stipi_daemon.analysis.settling.still_rising`) is the one the
+    state machine applies before it ends a recovery early.
+    """
     if end_fraction <= 0.0:
         return False
     seg = tw >= tw[-1] - end_fraction * (tw[-1] - tw[0])
     if np.count_nonzero(seg) < 3:
         return False
-    x = tw[seg] - tw[seg].mean()
-    slope = float(x @ (sw[seg] - sw[seg].mean())) / float(x @ x)
-    return slope * recovery_s > band_px
+    return still_rising(least_squares_slope(tw[seg], sw[seg]), recovery_s, band_px)
 
 
 def recovery_time(

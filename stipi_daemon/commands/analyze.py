@@ -428,7 +428,16 @@ def _run_session(
     recording = data.recording(s_k)
     setup = ReplaySetup(measurement, analysis, calibration, load_reference())
     partial = status in (SessionState.INTERRUPTED, SessionState.RECORDING)
-    outcome = replay(recording, setup, partial_recovery=partial)
+    # A complete session whose recorder ended the recovery before these settings would
+    # (an older, shorter settling rule - docs/settling.md - or a shorter hold) is analysed
+    # on the recovery it kept, as an interrupted one is.
+    outcome = replay(recording, setup, partial_recovery=partial or status is SessionState.COMPLETE)
+    if status is SessionState.COMPLETE and outcome.partial:
+        notes.append(
+            "the recorder ended the recovery before these settings would have (an older "
+            "settling rule, docs/settling.md): analysed the recovery it kept; T_r and F_r "
+            "may read low"
+        )
     recomputed = outcome.summary()
 
     stored_cmp: dict[str, Any] | None = None

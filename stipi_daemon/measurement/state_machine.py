@@ -39,14 +39,46 @@ Policies (all thresholds are fields of :class:`MeasurementConfig`):
   force stays below ``release_force_n`` for ``release_debounce_s`` (T_release = first
   sample below the threshold), or *confirmed* by :class:`OperatorRelease`
   (T_release = the button's time, flag ``release_confirmed_by_operator``).
-* Settling is decided here, from :class:`FrameSample` ``S_k`` values (Eqs. (1)-(2)): the
-  recovery is *settled* once every S_k of the last ``settle_hold_s`` (a plateau) satisfies
-  ``min >= settle_fraction * max`` - S_k varied by less than 2 % of its maximum, as in
-  the 98 % criterion of Eq. (6). A frame that breaks the band starts a new plateau at that
-  frame (conservative: never settles early). This only decides when acquisition may stop;
-  T_s and T_r of Eq. (6) are computed by the analysis from the stored series. With
-  ``stop_when_settled=False`` the recovery always lasts ``recovery_max_s`` (the paper's
-  fixed 105 s). A recovery that times out goes to ANALYSIS with ``not_settled``.
+* Settling decides when the recovery may end before ``recovery_max_s``, from the
+  :class:`FrameSample` ``S_k`` values (Eqs. (1)-(2)). The analysis reads T_s of Eq. (6)
+  where S_k first reaches ``settle_fraction`` (98 %) of S_max *of the recorded window*,
+  so stopping as soon as S_k looks flat lowers S_max and T_r (a first 10 s plateau put
+  T_r 8 % low on the simulated grades III-IV). The recovery therefore counts as settled
+  at a frame only when all of these hold (the tests are shared with the analysis, see
+  :mod:`~stipi_daemon.analysis.settling`; figures in docs/settling.md):
+
+  1. *Plateau*: every S_k since the plateau start p is at or above ``settle_fraction``
+     times the peak, the largest S_k since the rise started, which is the S_max the
+     analysis will see. The rise starts at the first frame at or after T_0 and starts
+     again at any frame below both every S_k since and the band (the end of the release
+     transient: the analysis' T_0 refinement also takes the lowest S_k). p is the start
+     of the trailing run of frames inside the band, read on a grid of S_k levels a
+     twentieth of the band apart (0.1 %;
+     :class:`~stipi_daemon.measurement.settling.SettlingTracker`): at most one grid step
+     late, never early. Every frame from p on is inside the band, so the
+     analysis' T_s is at or before p: p - T_0 is an upper bound of its T_r.
+  2. *Hold*: the plateau has lasted ``settle_hold_s``.
+  3. *Truncation bound* (Kelvin-Voigt, Section III.C): with r = S_0 / peak (S_0: S_k at
+     the rise start) below ``settle_fraction``, the recovery has lasted at least
+     :func:`~stipi_daemon.analysis.settling.truncation_hold_factor` x (p - T_0), which keeps
+     the bias of T_r from the early stop at or below ``settle_bias_fraction`` (and of F_r
+     at about a tenth of that). Typically 2 x (p - T_0): about 7.6 time constants.
+  4. *Not still rising*: the least-squares slope of S_k over the plateau (a running sum,
+     O(1) per frame), continued for another p - T_0, stays within the band
+     (1 - ``settle_fraction``) x peak - the analysis' own still-rising test with its T_r
+     replaced by that upper bound. If the whole rise so far lies inside the band
+     (r >= ``settle_fraction``: no recovery, or one within a frame) there is no rise time
+     to scale with, and the slope is continued to the end of the recovery window instead.
+
+  Settling only decides when acquisition may stop; T_s and T_r of Eq. (6) are computed
+  by the analysis from the stored series. With ``stop_when_settled=False`` the recovery
+  always lasts ``recovery_max_s`` (the paper's fixed 105 s). A recovery that times out
+  (also one that settles too late for an unbiased early stop) goes to ANALYSIS with
+  ``not_settled``. The bound holds for the machine's T_0 and a single-exponential rise.
+  Frame noise above ~0.3 % of S_k (one standard deviation) keeps the plateau from
+  holding: no early stop. A slow second phase (creep) whose rise over p - T_0 stays
+  inside the band is not detected, as the analysis' own still-rising test does not
+  detect it on the shorter record: watch the whole window if recoveries have one.
 * Link (force stream) down longer than ``link_loss_limit_s``: fault ``LINK_LOST`` in
   ARMED, PITTING and RELEASE; in IDLE and RECOVERY only a flag (the camera carries the
   recovery); ignored in ANALYSIS. Camera stalled longer than ``camera_stall_limit_s``:
@@ -71,6 +103,7 @@ from typing import Final, Literal
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from stipi_daemon.analysis.flags import Flag
+from stipi_daemon.measurement.settling import SettlingTracker
 
 __all__ = [
     "CAMERA_POLICY",
@@ -139,11 +172,18 @@ class MeasurementConfig(BaseModel):
     recovery_max_s : float
         Longest recovery observed after T_0 [s] (paper: 105 s).
     stop_when_settled : bool
-        End the recovery as soon as S_k has settled (else always ``recovery_max_s``).
+        End the recovery once S_k has settled (see the module docstring), else always
+        after ``recovery_max_s``.
     settle_fraction : float
-        Relative band of the settling test, as in T_s at 98 % of S_max (Eq. (6)) [1].
+        Relative band of the settling test, as in T_s at 98 % of S_max (Eq. (6)) [1]; must
+        equal the analysis' ``settle_fraction`` (checked by the daemon's config).
     settle_hold_s : float
-        Time S_k must stay inside the settling band [s].
+        Shortest time S_k must stay inside the settling band before the recovery may end
+        early [s].
+    settle_bias_fraction : float
+        Largest relative bias of T_r (Eq. (6)) an early end may cause on a Kelvin-Voigt
+        recovery, in (0, 0.1] [1]; sets how long the recording continues after the plateau
+        starts (about 0.7 time constants more per halving).
     link_loss_limit_s : float
         Time the force link may be down before the phase's policy applies [s].
     camera_stall_limit_s : float
@@ -165,6 +205,7 @@ class MeasurementConfig(BaseModel):
     stop_when_settled: bool = True
     settle_fraction: float = Field(0.98, gt=0.0, lt=1.0, allow_inf_nan=False)
     settle_hold_s: float = Field(10.0, gt=0.0, allow_inf_nan=False)
+    settle_bias_fraction: float = Field(0.005, gt=0.0, le=0.1, allow_inf_nan=False)
     link_loss_limit_s: float = Field(2.0, gt=0.0, allow_inf_nan=False)
     camera_stall_limit_s: float = Field(1.0, gt=0.0, allow_inf_nan=False)
 
@@ -526,10 +567,8 @@ class MachineState:
     camera_stalled_since_s: float | None = None
     # settling (RECOVERY)
     last_frame_t_s: float | None = None
-    plateau_min: float | None = None
-    plateau_max: float | None = None
-    plateau_start_s: float | None = None
-    """Start of the current settling plateau (S_k within the band since then)."""
+    settling: SettlingTracker | None = None
+    """Rise, peak and plateau of S_k since T_0 (None before the first recovery frame)."""
     # bookkeeping
     flags: frozenset[str] = field(default_factory=frozenset)
     last_prompt: str = ""
@@ -1046,22 +1085,23 @@ def _frame_recovery(state: MachineState, event: Event, config: MeasurementConfig
                 state.now_s,
             )
         ]
-    if event.t_s < state.t_release_s:
+    t0_s = state.t_release_s
+    if event.t_s < t0_s:
         # a frame taken before T_0 that arrived late: not part of the recovery
         return replace(state, last_frame_t_s=event.t_s), []
-    s = event.s_k
-    lo, hi = state.plateau_min, state.plateau_max
-    if lo is None or hi is None or config.settle_fraction * max(hi, s) > min(lo, s):
-        # first frame, or S_k left the band: a new plateau starts at this frame
-        state = replace(
-            state, plateau_min=s, plateau_max=s, plateau_start_s=event.t_s, last_frame_t_s=event.t_s
-        )
-    else:
-        state = replace(
-            state, plateau_min=min(lo, s), plateau_max=max(hi, s), last_frame_t_s=event.t_s
-        )
-    assert state.plateau_start_s is not None
-    if config.stop_when_settled and event.t_s - state.plateau_start_s >= config.settle_hold_s:
+    tracker = state.settling
+    tracker = (
+        SettlingTracker.first(event.t_s, event.s_k, config.settle_fraction)
+        if tracker is None
+        else tracker.add(event.t_s, event.s_k)
+    )
+    state = replace(state, last_frame_t_s=event.t_s, settling=tracker)
+    if config.stop_when_settled and tracker.settled(
+        t0_s,
+        hold_s=config.settle_hold_s,
+        bias_fraction=config.settle_bias_fraction,
+        window_end_s=t0_s + config.recovery_max_s,
+    ):
         state = replace(state, t_settled_s=event.t_s)
         return _start_analysis(state, event.t_s, config, settled=True)
     return state, []

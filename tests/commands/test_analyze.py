@@ -170,6 +170,33 @@ def test_interrupted_session_is_analysed_with_a_note(
     assert "no results: no recovery recorded (recording ends in phase pitting)" in text
 
 
+def test_complete_session_ended_early_by_an_older_rule_is_analysed_with_a_note(
+    session_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # Sessions recorded before docs/settling.md's rule stopped the recovery sooner than
+    # the current one does; a longer hold than the recorder's reproduces that here.
+    stored = json.loads((session_dir / "summary.json").read_text())
+    cfg = tmp_path / "longer-hold.yaml"
+    cfg.write_text(
+        json.dumps(
+            {
+                "probe": {"transport": {"kind": "emulated", "scene": "x.yaml"}},
+                "camera": {"kind": "simulator", "scene": "x.yaml"},
+                "measurement": {"settle_hold_s": 20.0},
+            }
+        )
+    )
+    out = tmp_path / "older.json"
+    assert main(["analyze", str(session_dir), "--config", str(cfg), "--out", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "note: the recorder ended the recovery before these settings would have" in text
+    doc = json.loads(out.read_text())
+    assert doc["input"]["status"] == "complete" and doc["replay"]["partial_recovery"]
+    got = doc["summary"]["results"]["pitting"]
+    assert got["depth_mm"] == stored["results"]["pitting"]["depth_mm"]
+    assert got["recovery_time_s"] == stored["results"]["pitting"]["recovery_time_s"]
+
+
 def _session_with_video(sim_dir: Path, root: Path) -> Path:
     """A session whose stored S_k were lost (all 0) but whose video was kept."""
     truth = json.loads((sim_dir / "ground_truth.json").read_text())

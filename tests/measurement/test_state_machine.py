@@ -247,9 +247,11 @@ def test_happy_path_idle_to_done_with_a_synthetic_force_trace() -> None:
     # the force crosses 8 N 0.107 s after the release ramp starts (16 - 75 t = 8)
     assert start.t0_s == pytest.approx(start.t_pit_start_s + 15.6 + 0.107, abs=0.015)
     assert s.release_by == "force"
-    # tau = 4 s: the rise left is 2 % of S_k after ~14 s; then the 10 s hold
+    # tau = 4 s, S_0 / S_max = 0.04: S_k is inside the 2 % band from ~16-18 s on (T_r of
+    # Eq. (6) is 15.5 s); the recovery must then last about twice that (7.8 tau) for
+    # T_r to be off by at most settle_bias_fraction (0.5 %), well past the 10 s hold
     assert start.t_settled_s is not None
-    assert 20.0 < start.t_settled_s - start.t0_s < 35.0
+    assert 30.0 < start.t_settled_s - start.t0_s < 45.0
     assert start.t_end_s == start.t_settled_s
     prompts = [o.text for o in out if isinstance(o, OperatorPrompt)]
     assert prompts[0] == "Press the probe on the tissue until the force reads 16 N"
