@@ -72,9 +72,11 @@ Policies (all thresholds are fields of :class:`MeasurementConfig`):
 
   Settling only decides when acquisition may stop; T_s and T_r of Eq. (6) are computed
   by the analysis from the stored series. With ``stop_when_settled=False`` the recovery
-  always lasts ``recovery_max_s`` (the paper's fixed 105 s). A recovery that times out
-  (also one that settles too late for an unbiased early stop) goes to ANALYSIS with
-  ``not_settled``. The bound holds for the machine's T_0 and a single-exponential rise.
+  always lasts ``recovery_max_s`` (the paper's fixed 105 s), which is its normal end (no
+  flag: whether S_k settled within it is the analysis' ``not_settled``). With
+  ``stop_when_settled=True`` a recovery that times out (also one that settles too late
+  for an unbiased early stop) goes to ANALYSIS with the machine's flag ``not_settled``.
+  The bound holds for the machine's T_0 and a single-exponential rise.
   Frame noise above ~0.3 % of S_k (one standard deviation) keeps the plateau from
   holding: no early stop. A slow second phase (creep) whose rise over p - T_0 stays
   inside the band is not detected, as the analysis' own still-rising test does not
@@ -512,7 +514,8 @@ class StartAnalysis:
     t_settled_s : float | None
         Time the settling test passed [s] (the end of the hold), if it did.
     flags : tuple[str, ...]
-        Sorted caveats: :class:`MeasurementFlag` values and ``Flag.NOT_SETTLED``.
+        Sorted caveats: :class:`MeasurementFlag` values and ``Flag.NOT_SETTLED`` (only
+        with ``stop_when_settled``: the window ended before the settling test passed).
     """
 
     t0_s: float
@@ -821,10 +824,17 @@ def _start_analysis(
 ) -> Result:
     t0_s, pit_start_s, pit_end_s = state.t_release_s, state.t_pit_start_s, state.t_pit_end_s
     assert t0_s is not None and pit_start_s is not None and pit_end_s is not None
-    if not settled:
+    if settled:
+        reason = "recovery settled"
+    elif config.stop_when_settled:
+        # the machine watched for settling and did not see it within the window
         state = _with_flag(state, Flag.NOT_SETTLED)
+        reason = "recovery window ended before S_k settled"
+    else:
+        # the paper's protocol: the whole window is the normal end; whether S_k settled in
+        # it is the analysis' call (Eq. (6), its own NOT_SETTLED flag)
+        reason = f"recovery window complete ({config.recovery_max_s:g} s)"
     state = replace(state, t_recovery_end_s=t_end_s)
-    reason = "recovery settled" if settled else "recovery window ended before S_k settled"
     state, out = _goto(state, Phase.ANALYSIS, reason, config)
     start = StartAnalysis(
         t0_s=t0_s,
