@@ -270,13 +270,7 @@ def run_one(spec: RunSpec) -> RunResult:
     idx = np.asarray(index)
     result = RunResult(
         spec,
-        truth={
-            "D_p": truth.depth_mm,
-            "F_r": truth.rebound_force_n,
-            "T_r": truth.recovery_time_s,
-            "tau": truth.time_constant_s,
-            "E": truth.elasticity_kpa,
-        },
+        truth=truth.parameters(),
     )
     series: dict[tuple[int, str, str], np.ndarray] = {}
     cals: dict[int, Calibration] = {}

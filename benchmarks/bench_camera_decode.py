@@ -29,22 +29,14 @@ import cv2
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
+from _machine import cpu_model  # noqa: E402
+
 from stipi_daemon.cameras.video_file import VideoFileCamera  # noqa: E402
 from stipi_daemon.clock import ScaledClock  # noqa: E402
 from stipi_daemon.sim import Pipeline, load_scene  # noqa: E402
 
 N_FRAMES = 600
 WIDTH, HEIGHT, FPS = 1280, 720, 60.0
-
-
-def cpu_model() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown"
 
 
 def write_video(path: Path, noisy: bool) -> None:

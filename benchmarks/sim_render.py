@@ -21,18 +21,10 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
+from _machine import cpu_model  # noqa: E402
+
 from stipi_daemon.sim import Pipeline, load_scene  # noqa: E402
 from stipi_daemon.sim.output import VIDEO_FOURCC  # noqa: E402
-
-
-def cpu_model() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown"
 
 
 def run(pipe: Pipeline, video: Path | None = None) -> tuple[float, int]:

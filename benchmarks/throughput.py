@@ -40,6 +40,7 @@ from typing import Any
 
 import cv2
 import numpy as np
+from _machine import cpu_model
 
 from stipi_daemon.analysis import imaging
 from stipi_daemon.analysis.imaging import CircleROI, FrameProcessor, sk_kernel
@@ -51,17 +52,6 @@ POOL_BYTES = 192 * 1024 * 1024  # larger than the last-level cache: frames come 
 RECORDING_S, FPS = 120.0, 60.0
 SECTION = "## S_k throughput"
 JPEG_QUALITY = 95
-
-
-def cpu_model() -> str:
-    """The CPU's model name (Linux ``/proc/cpuinfo``), else what ``platform`` knows."""
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown CPU"
 
 
 def pin_one_cpu() -> str:

@@ -113,6 +113,18 @@ class GroundTruth:
     load_cell: dict[str, Any]
     effects: list[dict[str, Any]]
 
+    def parameters(self) -> dict[str, float]:
+        """The reported parameters by the paper's symbols: ``D_p`` [mm], ``F_r`` [N], ``T_r``
+        [s], ``tau`` [s], ``E`` [kPa], ``eta`` [N*s/mm^2] (eta = E T_r, Eq. (8))."""
+        return {
+            "D_p": self.depth_mm,
+            "F_r": self.rebound_force_n,
+            "T_r": self.recovery_time_s,
+            "tau": self.time_constant_s,
+            "E": self.elasticity_kpa,
+            "eta": self.viscosity_n_s_per_mm2,
+        }
+
     def to_json_dict(self) -> dict[str, Any]:
         """A JSON-ready mapping (every key names its unit)."""
         out = asdict(self)

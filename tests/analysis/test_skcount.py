@@ -24,6 +24,7 @@ from hypothesis.extra import numpy as hnp
 from stipi_daemon.analysis import imaging
 from stipi_daemon.analysis.flags import Flag
 from stipi_daemon.analysis.imaging import CircleROI, FrameProcessor, RectROI, roi_mask, sk_kernel
+from tests.analysis.test_imaging import roi_strategy
 
 _skcount = imaging._skcount
 
@@ -237,24 +238,6 @@ def backend(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch) -> 
     return str(request.param)
 
 
-rois = st.one_of(
-    st.none(),
-    st.builds(
-        RectROI,
-        x_px=st.integers(-20, 60),
-        y_px=st.integers(-20, 60),
-        width_px=st.integers(1, 80),
-        height_px=st.integers(1, 80),
-    ),
-    st.builds(
-        CircleROI,
-        cx_px=st.floats(-30, 90, allow_nan=False),
-        cy_px=st.floats(-30, 90, allow_nan=False),
-        radius_px=st.floats(0.3, 60, allow_nan=False),
-    ),
-)
-
-
 @settings(max_examples=120, suppress_health_check=FIXED_FIXTURE)
 @given(
     frame=hnp.arrays(
@@ -263,7 +246,7 @@ rois = st.one_of(
         elements=st.sampled_from([0, 1, 40, 99, 100, 101, 200, 254, 255]),
     ),
     p=st.integers(0, 255),
-    roi=rois,
+    roi=roi_strategy,
 )
 def test_processor_matches_reference_on_both_backends(
     backend: str, frame: U8, p: int, roi: RectROI | CircleROI | None

@@ -483,14 +483,7 @@ def replay(name: str, effects: list[dict[str, Any]] | None = None, seed: int = 1
         settled=start.settled,
         truncated=mp.result,
         full=full,
-        truth={
-            "D_p": truth.depth_mm,
-            "F_r": truth.rebound_force_n,
-            "T_r": truth.recovery_time_s,
-            "tau": truth.time_constant_s,
-            "E": truth.elasticity_kpa,
-            "eta": truth.viscosity_n_s_per_mm2,
-        },
+        truth=truth.parameters(),
     )
 
 
