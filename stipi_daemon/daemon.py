@@ -31,7 +31,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import time
-from collections.abc import Callable, Coroutine
+from collections.abc import AsyncIterator, Callable, Coroutine
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any, TextIO
@@ -75,6 +75,10 @@ TICK_S = 0.05
 SCENE_LEAD_WALL_S = 1.0
 #: Longest a sample or frame waits for the other stream before it is fed anyway [s].
 MERGE_HOLD_S = 0.5
+
+
+def _same(ev: object) -> object:
+    return ev
 
 
 def _feed(pipeline: MeasurementPipeline, kind: str, value: tuple[float, float]) -> list[Output]:
@@ -371,49 +375,42 @@ async def run_daemon(
     latencies: list[float] = []
     counts = {"frames": 0, "samples": 0, "gaps": 0, "dropped_frames": 0}
 
-    async def pump_probe() -> None:
+    async def pump(
+        who: str, events: AsyncIterator[object], convert: Callable[[object], object] = _same
+    ) -> None:
+        """Queue a source's events (converted), then a :class:`_Stop` when it ends or fails."""
         try:
-            async for ev in probe.events():
-                await queue.put(ev)
+            async for ev in events:
+                await queue.put(convert(ev))
         except asyncio.CancelledError:
             raise
         except BaseException as exc:
-            await queue.put(_Stop("probe", exc))
+            await queue.put(_Stop(who, exc))
             return
-        await queue.put(_Stop("probe"))
+        await queue.put(_Stop(who))
 
-    async def pump_camera() -> None:
+    def measure(ev: object) -> object:
+        """A camera frame's S_k, measured as it arrives; other camera events as they are."""
         nonlocal processor
-        try:
-            async for ev in camera.events():
-                if isinstance(ev, CameraFrame):
-                    if processor is None:
-                        processor = FrameProcessor(
-                            ev.image.shape,
-                            threshold,
-                            roi,
-                            saturation_limit_fraction=config.imaging.saturation_limit_fraction,
-                        )
-                    m = processor.measure(ev.image)
-                    await queue.put(
-                        _FrameResult(
-                            ev.seq,
-                            ev.t_capture_s,
-                            clock.now(),
-                            int(m.s_k_px),
-                            tuple(sorted(m.flags)),
-                            ev.dropped_before,
-                            ev.image,
-                        )
-                    )
-                else:
-                    await queue.put(ev)
-        except asyncio.CancelledError:
-            raise
-        except BaseException as exc:
-            await queue.put(_Stop("camera", exc))
-            return
-        await queue.put(_Stop("camera"))
+        if not isinstance(ev, CameraFrame):
+            return ev
+        if processor is None:
+            processor = FrameProcessor(
+                ev.image.shape,
+                threshold,
+                roi,
+                saturation_limit_fraction=config.imaging.saturation_limit_fraction,
+            )
+        m = processor.measure(ev.image)
+        return _FrameResult(
+            ev.seq,
+            ev.t_capture_s,
+            clock.now(),
+            int(m.s_k_px),
+            tuple(sorted(m.flags)),
+            ev.dropped_before,
+            ev.image,
+        )
 
     async def ticker() -> None:
         while True:
@@ -459,8 +456,8 @@ async def run_daemon(
             )
             await probe.start_stream()
             tasks = [
-                asyncio.create_task(pump_probe(), name="probe"),
-                asyncio.create_task(pump_camera(), name="camera"),
+                asyncio.create_task(pump("probe", probe.events()), name="probe"),
+                asyncio.create_task(pump("camera", camera.events(), measure), name="camera"),
                 asyncio.create_task(ticker(), name="ticker"),
             ]
             if on_running is not None:

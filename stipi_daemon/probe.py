@@ -57,6 +57,7 @@ from stipi_daemon.protocol.timestamps import SeqEvent
 from stipi_daemon.transports.base import Releasable, Transport
 
 __all__ = [
+    "FAULT_COUNTERS",
     "ClockProbe",
     "DecoderErrors",
     "ForceRow",
@@ -70,7 +71,7 @@ __all__ = [
 ]
 
 _U32: Final = 1 << 32
-_FAULT_COUNTERS: Final = (
+FAULT_COUNTERS: Final = (
     "bytes_discarded",
     "crc_errors",
     "cobs_errors",
@@ -348,7 +349,7 @@ class ProbeLink:
         self._conn_tasks: list[asyncio.Task[None]] = []
         self._supervisor: asyncio.Task[None] | None = None
         self._last_frame_s = 0.0
-        self._reported: dict[str, int] = dict.fromkeys(_FAULT_COUNTERS, 0)
+        self._reported: dict[str, int] = dict.fromkeys(FAULT_COUNTERS, 0)
 
     # ------------------------------------------------------------------ public API
 
@@ -789,7 +790,7 @@ class ProbeLink:
     def _report_errors(self, now: float) -> None:
         stats = self.decoder.stats
         delta: dict[str, int] = {}
-        for name in _FAULT_COUNTERS:
+        for name in FAULT_COUNTERS:
             value = getattr(stats, name)
             if value != self._reported[name]:
                 delta[name] = value - self._reported[name]

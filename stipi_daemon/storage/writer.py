@@ -277,7 +277,7 @@ class SessionWriter:
     def pending_rows(self) -> int:
         """Rows added but not yet committed."""
         with self._cond:
-            return sum(len(rows) for rows in self._pending.values())
+            return self._count_pending()
 
     # ------------------------------------------------------------------ adding rows
     def add_force_samples(self, rows: Iterable[object]) -> int:

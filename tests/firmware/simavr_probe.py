@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 import serial
 
+from stipi_daemon.probe import FAULT_COUNTERS
 from stipi_daemon.protocol.decoder import DecodedFrame, FrameDecoder
 from stipi_daemon.protocol.messages import Ack, Command, Samples, Status, encode_frame
 
@@ -47,21 +48,7 @@ BLE_PROBE_DONE_S = 2.0
 and the probe stalls the main loop, so streaming at high rates starts after this."""
 
 _KV = re.compile(r"(\w+)=(\S+)")
-LINK_FAULTS = frozenset(
-    {
-        "bytes_discarded",
-        "crc_errors",
-        "cobs_errors",
-        "length_errors",
-        "version_errors",
-        "unknown_type",
-        "body_errors",
-        "gaps",
-        "frames_lost",
-        "duplicates",
-        "restarts",
-    }
-)
+LINK_FAULTS = frozenset(FAULT_COUNTERS)
 """DecoderStats counters that must stay zero on a clean link."""
 
 
