@@ -7,6 +7,8 @@ problem and where it is (config field, file, byte offset).
 
 from __future__ import annotations
 
+import math
+
 
 class StipiError(Exception):
     """Base class of every error stipi-daemon reports to its user."""
@@ -18,6 +20,14 @@ class AnalysisError(StipiError, ValueError):
     Raised for input outside a function's stated domain (e.g. a negative depth, an empty
     series, NaN in a required value) when no flagged result can be returned instead.
     """
+
+
+def require_finite(name: str, value: float) -> float:
+    """``value`` as a float, or :class:`AnalysisError` naming ``name`` when it is NaN or inf."""
+    v = float(value)
+    if not math.isfinite(v):
+        raise AnalysisError(f"{name} must be finite, got {v}")
+    return v
 
 
 class CalibrationError(StipiError, ValueError):

@@ -25,13 +25,7 @@ import numpy.typing as npt
 
 from stipi_daemon.analysis.calibration import Calibration
 from stipi_daemon.analysis.flags import Flag
-from stipi_daemon.analysis.measurement import (
-    AnalysisSettings,
-    MeasurementResult,
-    analyze_recovery,
-    applied_force_n_from_samples,
-)
-from stipi_daemon.analysis.pitting import detect_recovery_start
+from stipi_daemon.analysis.measurement import AnalysisSettings, MeasurementResult
 from stipi_daemon.analysis.severity import SeverityReference
 from stipi_daemon.errors import AnalysisError, CalibrationError
 from stipi_daemon.measurement.pipeline import LiveParameters, MeasurementPipeline
@@ -363,36 +357,13 @@ def _events(rec: Recording) -> _Feed:
 
 
 def _partial_result(
-    pipeline: MeasurementPipeline, state: MachineState, setup: ReplaySetup
-) -> tuple[MeasurementResult | None, str | None, float | None, list[str]]:
-    """Analyse a recovery that the recording cut short (same steps as the pipeline)."""
-    notes: list[str] = []
-    t_rel, pit_start, pit_end = state.t_release_s, state.t_pit_start_s, state.t_pit_end_s
+    pipeline: MeasurementPipeline, state: MachineState
+) -> tuple[MeasurementResult | None, str | None, float | None]:
+    """Analyse a recovery that the recording cut short (the pipeline's own analysis step)."""
+    t_rel, pit_start = state.t_release_s, state.t_pit_start_s
     if t_rel is None or pit_start is None:
-        return None, f"the recording ends in phase {state.phase}: no recovery to analyse", None, []
-    t, s = pipeline.frame_series()
-    t0 = t_rel
-    if setup.t0_refine_s > 0.0:
-        sel = (t >= pit_start) & (t <= t_rel + setup.t0_refine_s)
-        try:
-            t0 = detect_recovery_start(t[sel], s[sel])
-            if t0 != t_rel:
-                notes.append(
-                    f"T_0 refined on S_k from the reported release {t_rel:.3f} s to {t0:.3f} s"
-                )
-        except AnalysisError as exc:
-            notes.append(f"T_0 kept at the reported release ({t_rel:.3f} s): {exc}")
-    try:
-        if setup.analysis.applied_force_n is not None:
-            f_a = setup.analysis.applied_force_n
-        else:
-            gt, gv = pipeline.force_series()
-            end = t0 if pit_end is None else min(pit_end, t0)
-            f_a = applied_force_n_from_samples(gt, gv, pit_start, end)
-        result = analyze_recovery(t, s, t0, setup.calibration, f_a, setup.analysis, setup.reference)
-    except AnalysisError as exc:
-        return None, str(exc), t0, notes
-    return result, None, t0, notes
+        return None, f"the recording ends in phase {state.phase}: no recovery to analyse", None
+    return pipeline.analyse_recording(t_rel, pit_start, state.t_pit_end_s)
 
 
 def replay(rec: Recording, setup: ReplaySetup, *, partial_recovery: bool = False) -> ReplayOutcome:
@@ -465,8 +436,8 @@ def replay(rec: Recording, setup: ReplaySetup, *, partial_recovery: bool = False
         pipeline_notes = list(pipeline.notes)
         if pipeline.start is None and partial_recovery:
             if before.phase == Phase.RECOVERY:
-                result, error, t0, extra = _partial_result(pipeline, before, setup)
-                pipeline_notes.extend(extra)
+                result, error, t0 = _partial_result(pipeline, before)
+                pipeline_notes = list(pipeline.notes)
                 partial = True
                 kept = before.now_s - (t0 if t0 is not None else before.now_s)
                 notes.append(

@@ -93,6 +93,16 @@ class CsvTable:
         return int(self.lines.size)
 
 
+def _read_text(p: Path, encoding: str) -> str:
+    """The text of ``p``; :class:`DataFileError` when it is missing or unreadable."""
+    try:
+        return p.read_text(encoding=encoding)
+    except FileNotFoundError:
+        raise DataFileError(f"{p}: no such file") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise DataFileError(f"{p}: cannot read: {exc}") from None
+
+
 def read_csv_table(
     path: str | Path,
     required: Sequence[str | Sequence[str]],
@@ -126,12 +136,7 @@ def read_csv_table(
         number (file, line and column named), or holds no data row.
     """
     p = Path(path)
-    try:
-        text = p.read_text(encoding="utf-8-sig")
-    except FileNotFoundError:
-        raise DataFileError(f"{p}: no such file") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise DataFileError(f"{p}: cannot read: {exc}") from None
+    text = _read_text(p, "utf-8-sig")
     rows = [
         (n, row)
         for n, row in enumerate(csv.reader(text.splitlines()), start=1)
@@ -503,12 +508,9 @@ def load_ground_truth(path: str | Path) -> dict[str, Any]:
         Unreadable, not JSON, or not a ``stipi-sim-ground-truth`` document.
     """
     p = Path(path)
+    text = _read_text(p, "utf-8")
     try:
-        doc = json.loads(p.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise DataFileError(f"{p}: no such file") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise DataFileError(f"{p}: cannot read: {exc}") from None
+        doc = json.loads(text)
     except json.JSONDecodeError as exc:
         raise DataFileError(
             f"{p}: not valid JSON ({exc.msg} at line {exc.lineno}, column {exc.colno})"

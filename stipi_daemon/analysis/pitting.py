@@ -22,7 +22,7 @@ from scipy.ndimage import median_filter
 
 from stipi_daemon.analysis.flags import Flag
 from stipi_daemon.analysis.settling import least_squares_slope, still_rising
-from stipi_daemon.errors import AnalysisError
+from stipi_daemon.errors import AnalysisError, require_finite
 
 if TYPE_CHECKING:
     from stipi_daemon.analysis.calibration import Calibration
@@ -153,13 +153,6 @@ def validate_series(times_s: ArrayLike, s_px: ArrayLike, *, min_samples: int = 2
     return Series(times_s=t_ok, s_px=s_ok, dropped=int(t.size - t_ok.size))
 
 
-def _require_finite(name: str, value: float) -> float:
-    v = float(value)
-    if not math.isfinite(v):
-        raise AnalysisError(f"{name} must be finite, got {v}")
-    return v
-
-
 def pitting_depth_mm(depth_change_mm: float, indenter_length_mm: float = 12.0) -> FlaggedValue:
     """Pitting depth D_p = l - d_s, Eq. (3).
 
@@ -184,8 +177,8 @@ def pitting_depth_mm(depth_change_mm: float, indenter_length_mm: float = 12.0) -
     AnalysisError
         ``depth_change_mm`` is NaN/inf, or ``indenter_length_mm`` is not finite and > 0.
     """
-    d_s = _require_finite("depth_change_mm", depth_change_mm)
-    length = _require_finite("indenter_length_mm", indenter_length_mm)
+    d_s = require_finite("depth_change_mm", depth_change_mm)
+    length = require_finite("indenter_length_mm", indenter_length_mm)
     if length <= 0.0:
         raise AnalysisError(f"indenter_length_mm must be > 0, got {length}")
     flags: frozenset[Flag] = frozenset()
@@ -216,7 +209,7 @@ def rebound_force_n(s_max_px: float, calibration: Calibration) -> FlaggedValue:
     AnalysisError
         ``s_max_px`` is NaN/inf or negative, or the calibration gives a non-finite force.
     """
-    s_max = _require_finite("s_max_px", s_max_px)
+    s_max = require_finite("s_max_px", s_max_px)
     if s_max < 0.0:
         raise AnalysisError(f"s_max_px must be >= 0 (a pixel count), got {s_max}")
     if s_max <= calibration.c1_px:
@@ -373,11 +366,11 @@ def recovery_time(
     """
     series = validate_series(times_s, s_k)
     t, s = series.times_s, series.s_px
-    t0 = _require_finite("t0_s", t0_s)
-    fraction = _require_finite("settle_fraction", settle_fraction)
+    t0 = require_finite("t0_s", t0_s)
+    fraction = require_finite("settle_fraction", settle_fraction)
     if not 0.0 < fraction <= 1.0:
         raise AnalysisError(f"settle_fraction must be in (0, 1], got {fraction}")
-    window = _require_finite("window_s", window_s)
+    window = require_finite("window_s", window_s)
     if window <= 0.0:
         raise AnalysisError(f"window_s must be > 0, got {window}")
     if persist_frames < 1:
@@ -499,8 +492,8 @@ def detect_recovery_start(
         raise AnalysisError(f"smooth_frames must be >= 1, got {smooth_frames}")
     if smooth_frames > 1:
         s = median_filter(s, size=smooth_frames, mode="nearest")
-    lo = -math.inf if search_start_s is None else _require_finite("search_start_s", search_start_s)
-    hi = math.inf if search_end_s is None else _require_finite("search_end_s", search_end_s)
+    lo = -math.inf if search_start_s is None else require_finite("search_start_s", search_start_s)
+    hi = math.inf if search_end_s is None else require_finite("search_end_s", search_end_s)
     idx = np.flatnonzero((t >= lo) & (t <= hi))
     if idx.size == 0:
         raise AnalysisError(f"no finite frame between search_start_s={lo} and search_end_s={hi}")

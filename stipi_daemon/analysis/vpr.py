@@ -22,7 +22,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from stipi_daemon.analysis.flags import Flag
-from stipi_daemon.errors import AnalysisError
+from stipi_daemon.errors import AnalysisError, require_finite
 
 if TYPE_CHECKING:
     from stipi_daemon.analysis.pitting import PittingParameters
@@ -63,15 +63,8 @@ measured F_a and R for new data and this constant only to reproduce the paper.
 PAPER_IMPLIED_RADIUS_MM = PAPER_APPLIED_FORCE_N / PAPER_FORCE_RADIUS_RATIO_N_PER_MM
 
 
-def _finite(name: str, value: float) -> float:
-    v = float(value)
-    if not math.isfinite(v):
-        raise AnalysisError(f"{name} must be finite, got {v}")
-    return v
-
-
 def _positive(name: str, value: float) -> float:
-    v = _finite(name, value)
+    v = require_finite(name, value)
     if v <= 0.0:
         raise AnalysisError(f"{name} must be > 0, got {v}")
     return v
@@ -107,7 +100,7 @@ def elasticity_kpa(applied_force_n: float, depth_mm: float, indenter_radius_mm: 
     """
     force = _positive("applied_force_n", applied_force_n)
     radius = _positive("indenter_radius_mm", indenter_radius_mm)
-    depth = _finite("depth_mm", depth_mm)
+    depth = require_finite("depth_mm", depth_mm)
     if depth <= 0.0:
         raise AnalysisError(
             f"depth_mm must be > 0, got {depth}: elasticity (Eq. 7) is undefined for a "
@@ -198,7 +191,7 @@ def vpr_depth_mm(
     if bad.size:
         i = int(bad[0])
         raise AnalysisError(f"t_s[{i}] = {t.ravel()[i]}: times must be finite and >= 0 s")
-    d_p = _finite("depth_mm", depth_mm)
+    d_p = require_finite("depth_mm", depth_mm)
     if d_p < 0.0:
         raise AnalysisError(f"depth_mm must be >= 0, got {d_p}")
     rate = decay_rate_per_s(elasticity_kpa, viscosity_n_s_per_mm2)

@@ -203,11 +203,7 @@ class MeasurementPipeline:
                 self._frames.t.append(event.t_s)
                 self._frames.v.append(event.s_k)
         self.state, outputs = transition(self.state, event, self.config)
-        out = list(outputs)
-        for o in outputs:
-            if isinstance(o, StartAnalysis):
-                out.extend(self._analyse(o))
-        return out
+        return self._run_requested_analysis(outputs)
 
     def arm(self, t_s: float) -> list[Output]:
         """Arm the measurement (wait for contact)."""
@@ -224,6 +220,10 @@ class MeasurementPipeline:
     def close(self, t_s: float) -> list[Output]:
         """Close the session: any non-terminal phase ends (see ``state_machine.close``)."""
         self.state, outputs = close(self.state, t_s, self.config)
+        return self._run_requested_analysis(outputs)
+
+    def _run_requested_analysis(self, outputs: list[Output]) -> list[Output]:
+        """``outputs``, each :class:`StartAnalysis` followed by what the analysis emitted."""
         out = list(outputs)
         for o in outputs:
             if isinstance(o, StartAnalysis):
@@ -252,10 +252,25 @@ class MeasurementPipeline:
             )
         return t0
 
-    def _analyse(self, start: StartAnalysis) -> list[Output]:
-        self.start = start
-        t0 = self._refined_t0(start.t0_s, start.t_pit_start_s)
-        self.t0_s = t0
+    def analyse_recording(
+        self,
+        t_release_s: float,
+        t_pit_start_s: float,
+        t_pit_end_s: float | None,
+        t_end_s: float | None = None,
+    ) -> tuple[MeasurementResult | None, str | None, float]:
+        """Analyse the recorded recovery: T_0 refined on S_k, F_a, then every result.
+
+        The step the machine's :class:`StartAnalysis` runs; also usable on a recovery the
+        recording cut short (``t_end_s=None``: every frame recorded). Notes on T_0 go to
+        :attr:`notes`; the pipeline's own result is not changed.
+
+        Returns
+        -------
+        tuple
+            The result (None when the analysis failed), why it failed, and T_0 [s].
+        """
+        t0 = self._refined_t0(t_release_s, t_pit_start_s)
         try:
             if self.analysis.applied_force_n is not None:
                 f_a = self.analysis.applied_force_n
@@ -263,16 +278,24 @@ class MeasurementPipeline:
                 ft, fv = self._force.arrays()
                 # The hold ends at the release at the latest: force after T_0 is the
                 # rebound, not the applied force of Eq. (7).
-                f_a = applied_force_n_from_samples(
-                    ft, fv, start.t_pit_start_s, min(start.t_pit_end_s, t0)
-                )
+                end = t0 if t_pit_end_s is None else min(t_pit_end_s, t0)
+                f_a = applied_force_n_from_samples(ft, fv, t_pit_start_s, end)
             t, s = self._frames.arrays()
-            sel = t <= start.t_end_s
-            self.result = analyze_recovery(
-                t[sel], s[sel], t0, self.calibration, f_a, self.analysis, self.reference
+            if t_end_s is not None:
+                sel = t <= t_end_s
+                t, s = t[sel], s[sel]
+            result = analyze_recovery(
+                t, s, t0, self.calibration, f_a, self.analysis, self.reference
             )
         except AnalysisError as exc:
-            self.analysis_error = str(exc)
+            return None, str(exc), t0
+        return result, None, t0
+
+    def _analyse(self, start: StartAnalysis) -> list[Output]:
+        self.start = start
+        self.result, self.analysis_error, self.t0_s = self.analyse_recording(
+            start.t0_s, start.t_pit_start_s, start.t_pit_end_s, start.t_end_s
+        )
         self.state, outputs = transition(self.state, AnalysisDone(self.state.now_s), self.config)
         return list(outputs)
 
