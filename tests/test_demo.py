@@ -14,6 +14,16 @@ from stipi_daemon.storage.reader import SessionReader
 from tests.conftest import REPO_ROOT
 
 
+def _run_cli(config: Path, timeout_s: float = 60) -> subprocess.CompletedProcess[str]:
+    """Run ``stipi-daemon --config CONFIG`` in a child interpreter."""
+    return subprocess.run(
+        [sys.executable, "-m", "stipi_daemon", "--config", str(config)],
+        capture_output=True,
+        text=True,
+        timeout=timeout_s,
+    )
+
+
 def test_demo_config_runs_a_whole_measurement(tmp_path: Path) -> None:
     cfg = yaml.safe_load((REPO_ROOT / "configs" / "demo.yaml").read_text())
     scene = str(REPO_ROOT / "configs" / "scenes" / "demo_grade3.yaml")
@@ -22,12 +32,7 @@ def test_demo_config_runs_a_whole_measurement(tmp_path: Path) -> None:
     cfg["storage"]["root"] = str(tmp_path / "sessions")
     path = tmp_path / "demo.yaml"
     path.write_text(yaml.safe_dump(cfg))
-    proc = subprocess.run(
-        [sys.executable, "-m", "stipi_daemon", "--config", str(path)],
-        capture_output=True,
-        text=True,
-        timeout=120,
-    )
+    proc = _run_cli(path, timeout_s=120)
     assert proc.returncode == 0, proc.stderr
     out = proc.stdout
     for needle in (
@@ -62,12 +67,7 @@ def test_bad_config_is_one_line_and_nonzero(tmp_path: Path) -> None:
         "probe: {transport: {kind: emulated, scene: x.yaml}}\n"
         "camera: {kind: simulator, scene: x.yaml}\nmeasurment: {}\n"
     )
-    proc = subprocess.run(
-        [sys.executable, "-m", "stipi_daemon", "--config", str(path)],
-        capture_output=True,
-        text=True,
-        timeout=60,
-    )
+    proc = _run_cli(path)
     assert proc.returncode == 2
     assert proc.stderr.count("\n") == 1
     assert "field 'measurment': unknown key" in proc.stderr
@@ -80,12 +80,7 @@ def test_missing_scene_is_one_line(tmp_path: Path) -> None:
         "probe: {transport: {kind: emulated, scene: nope.yaml}}\n"
         f"camera: {{kind: simulator, scene: nope.yaml}}\nstorage: {{root: {tmp_path}}}\n"
     )
-    proc = subprocess.run(
-        [sys.executable, "-m", "stipi_daemon", "--config", str(path)],
-        capture_output=True,
-        text=True,
-        timeout=60,
-    )
+    proc = _run_cli(path)
     assert proc.returncode == 2
     assert "nope.yaml" in proc.stderr and "Traceback" not in proc.stderr
     assert not any(tmp_path.glob("*/session.sqlite"))

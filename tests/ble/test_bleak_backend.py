@@ -22,6 +22,14 @@ async def _peripheral(radio: VirtualRadio, **kwargs: object) -> NusPeripheral:
     return p
 
 
+async def _until_received(notes: list[bytes], n: int) -> None:
+    """Poll (for about a second at most) until the notifications add up to ``n`` bytes."""
+    for _ in range(200):
+        if sum(map(len, notes)) >= n:
+            break
+        await asyncio.sleep(0.005)
+
+
 @pytest.fixture
 async def peripheral(radio: VirtualRadio) -> AsyncIterator[NusPeripheral]:
     p = await _peripheral(radio)
@@ -92,10 +100,7 @@ async def test_connect_discover_write_notify_and_disconnect(
         await client.start_notify(tx, lambda _c, data: None)
     frame = bytes(range(1, 46)) + b"\x00"
     assert peripheral.offer_frame(frame, tag="f")
-    for _ in range(200):
-        if sum(map(len, notes)) >= len(frame):
-            break
-        await asyncio.sleep(0.005)
+    await _until_received(notes, len(frame))
     assert received == [b"with", b"without"]
     assert b"".join(notes) == frame and [len(n) for n in notes] == [20, 20, 6]
     assert peripheral.counters.subscriptions_per_connection == [1]
@@ -139,10 +144,7 @@ async def test_larger_mtu_when_the_module_allows_it(
             notes: list[bytes] = []
             await client.start_notify(NUS_TX_UUID, lambda _c, d: notes.append(bytes(d)))
             assert p.offer_frame(b"\x01" * 200 + b"\x00")
-            for _ in range(200):
-                if sum(map(len, notes)) >= 201:
-                    break
-                await asyncio.sleep(0.005)
+            await _until_received(notes, 201)
             assert [len(n) for n in notes] == [97, 97, 7]
     finally:
         await p.close()

@@ -15,48 +15,25 @@ from stipi_daemon.transports.ble import BleTransport, BleTransportConfig
 from .conftest import SCENES, ProbeRecorder
 
 
-def test_cli_runs_and_reports_a_missing_dongle_in_one_line() -> None:
-    scene = str(SCENES / "grade1.yaml")
-    ok = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "stipi_daemon",
-            "mock-peripheral",
-            "--scene",
-            scene,
-            "--transport",
-            "virtual:cli",
-            "--duration",
-            "0.4",
-            "--speed",
-            "4",
-        ],
+def _mock_peripheral(*args: str) -> subprocess.CompletedProcess[str]:
+    """Run ``stipi-daemon mock-peripheral ARGS`` in a child interpreter."""
+    return subprocess.run(
+        [sys.executable, "-m", "stipi_daemon", "mock-peripheral", *args],
         capture_output=True,
         text=True,
         timeout=60,
         check=False,
+    )
+
+
+def test_cli_runs_and_reports_a_missing_dongle_in_one_line() -> None:
+    scene = str(SCENES / "grade1.yaml")
+    ok = _mock_peripheral(
+        "--scene", scene, "--transport", "virtual:cli", "--duration", "0.4", "--speed", "4"
     )
     assert ok.returncode == 0, ok.stderr
     assert "advertising STIPI-01" in ok.stdout and "notifications=" in ok.stdout
-    bad = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "stipi_daemon",
-            "mock-peripheral",
-            "--scene",
-            scene,
-            "--transport",
-            "nosuch:0",
-            "--duration",
-            "1",
-        ],
-        capture_output=True,
-        text=True,
-        timeout=60,
-        check=False,
-    )
+    bad = _mock_peripheral("--scene", scene, "--transport", "nosuch:0", "--duration", "1")
     assert bad.returncode != 0
     assert bad.stderr.strip().count("\n") == 0 and "nosuch:0" in bad.stderr
     assert "Traceback" not in bad.stderr

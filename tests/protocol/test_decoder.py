@@ -223,16 +223,18 @@ def survivors(
     return out
 
 
-damage_op = st.tuples(
-    st.sampled_from(["flip", "insert", "delete", "set"]),
-    st.floats(0, 1),
-    st.integers(0, 255),
-    st.binary(min_size=1, max_size=90),
-)
+def damage_ops(max_burst: int) -> st.SearchStrategy[tuple[str, float, int, bytes]]:
+    """One damage operation for :func:`apply_damage`; bursts of at most ``max_burst`` bytes."""
+    return st.tuples(
+        st.sampled_from(["flip", "insert", "delete", "set"]),
+        st.floats(0, 1),
+        st.integers(0, 255),
+        st.binary(min_size=1, max_size=max_burst),
+    )
 
 
 @settings(max_examples=300, derandomize=True)
-@given(st.integers(2, 25), st.integers(0, 2**32 - 1), st.lists(damage_op, max_size=6))
+@given(st.integers(2, 25), st.integers(0, 2**32 - 1), st.lists(damage_ops(90), max_size=6))
 def test_damage_loses_exactly_the_damaged_frames(
     n: int, seed: int, ops: list[tuple[str, float, int, bytes]]
 ) -> None:

@@ -31,7 +31,9 @@ from tests.protocol.test_decoder import (
     _random_content_frames,
     apply_damage,
     check_accounting,
+    damage_ops,
     encode_all,
+    feed_chunks,
     make_messages,
     survivors,
 )
@@ -158,16 +160,10 @@ def test_no_false_frame_in_1e6_random_frames() -> None:
     _random_frames(1_000_000, "random_frames_1e6")
 
 
-damage_op = st.tuples(
-    st.sampled_from(["flip", "insert", "delete", "set"]),
-    st.floats(0, 1),
-    st.integers(0, 255),
-    st.binary(min_size=1, max_size=1000),
-)
-
-
 @settings(max_examples=200, deadline=None)
-@given(st.integers(2, 30), st.integers(0, 2**32 - 1), st.lists(damage_op, max_size=8), st.data())
+@given(
+    st.integers(2, 30), st.integers(0, 2**32 - 1), st.lists(damage_ops(1000), max_size=8), st.data()
+)
 def test_fuzz_decoder_with_bursts_up_to_1000_bytes(
     n: int, seed: int, ops: list[tuple[str, float, int, bytes]], data: st.DataObject
 ) -> None:
@@ -178,11 +174,7 @@ def test_fuzz_decoder_with_bursts_up_to_1000_bytes(
     keep = survivors(stream, tagged, spans)
     cuts = sorted(data.draw(st.lists(st.integers(0, len(damaged)), max_size=20)))
     d = FrameDecoder()
-    frames = []
-    prev = 0
-    for cut in [*cuts, len(damaged)]:
-        frames += d.feed(damaged[prev:cut])
-        prev = cut
+    frames = feed_chunks(d, damaged, cuts)
     assert [f.message for f in frames] == [msgs[k] for k in keep]
     s = check_accounting(d)
     assert s.frames_lost == ((keep[-1] - keep[0] + 1 - len(keep)) if keep else 0)

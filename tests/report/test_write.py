@@ -5,6 +5,7 @@ from __future__ import annotations
 import base64
 import re
 import shutil
+from collections.abc import Mapping
 from pathlib import Path
 
 import cv2
@@ -19,6 +20,7 @@ from stipi_daemon.report.write import (
     REPORT_ERROR,
     REPORT_HTML,
     SESSION_FIGURES,
+    WrittenReport,
     record_report_failure,
     write_compare_report,
     write_session_report,
@@ -52,6 +54,19 @@ def _self_contained(page: str) -> None:
     assert "@import" not in page and "url(" not in page
 
 
+def _complete_page(written: WrittenReport, figures: Mapping[str, str]) -> str:
+    """The page of a report with every figure drawn, each file embedded byte for byte."""
+    assert written.missing == {}
+    assert list(written.figures) == list(figures)
+    page = written.html_path.read_text(encoding="utf-8")
+    _self_contained(page)
+    embedded = _embedded(page)
+    for name, path in written.figures.items():
+        _check_png(path)
+        assert embedded[f"{name}.png"] == path.read_bytes()
+    return page
+
+
 def test_daemon_wrote_the_report_of_every_run(demo_session: Path) -> None:
     out = demo_session / REPORT_DIR
     page = (out / REPORT_HTML).read_text(encoding="utf-8")
@@ -60,15 +75,7 @@ def test_daemon_wrote_the_report_of_every_run(demo_session: Path) -> None:
 
 
 def test_session_report_figures_exist_and_are_embedded(demo_session: Path, tmp_path: Path) -> None:
-    written = write_session_report(demo_session, tmp_path / "rep")
-    assert written.missing == {}
-    assert list(written.figures) == list(SESSION_FIGURES)
-    page = written.html_path.read_text(encoding="utf-8")
-    _self_contained(page)
-    embedded = _embedded(page)
-    for name, path in written.figures.items():
-        _check_png(path)
-        assert embedded[f"{name}.png"] == path.read_bytes()
+    page = _complete_page(write_session_report(demo_session, tmp_path / "rep"), SESSION_FIGURES)
     with SessionReader(demo_session) as reader:
         summary = reader.summary
         sid = reader.session_id
@@ -132,14 +139,7 @@ def test_compare_report_tabulates_mean_and_spread(
     written = write_compare_report(
         [demo_session, second_session, demo_session], tmp_path / "cmp", ["I", "II", "I"]
     )
-    assert written.missing == {}
-    assert list(written.figures) == list(COMPARE_FIGURES)
-    page = written.html_path.read_text(encoding="utf-8")
-    _self_contained(page)
-    embedded = _embedded(page)
-    for name, path in written.figures.items():
-        _check_png(path)
-        assert embedded[f"{name}.png"] == path.read_bytes()
+    page = _complete_page(written, COMPARE_FIGURES)
     depths = []
     for s in (demo_session, second_session):
         with SessionReader(s) as reader:

@@ -119,6 +119,14 @@ std::vector<uint8_t> wire_of(const std::vector<uint8_t>& frame) {
   return w;
 }
 
+// The encoder's frame f[0..n) and its wire form are the vector's bytes.
+void check_encoded(const Vector& v, const uint8_t* f, uint8_t n) {
+  VCHECK(v, std::vector<uint8_t>(f, f + n) == v.frame);
+  uint8_t w[kMaxWireLen];
+  const uint8_t wn = wire_encode(f, n, w);
+  VCHECK(v, std::vector<uint8_t>(w, w + wn) == v.wire);
+}
+
 // Feed a wire stream into the firmware's receiver path; collect frames and rejections.
 struct Received {
   std::vector<std::vector<uint8_t>> frames;  // decoded frames that passed check_frame
@@ -213,10 +221,7 @@ TEST(vectors_samples_encode_byte_exact) {
                                      static_cast<uint32_t>(num(v, "first_index")),
                                      static_cast<uint16_t>(num(v, "period_us")), adc.data(),
                                      static_cast<uint8_t>(count));
-    VCHECK(v, std::vector<uint8_t>(f, f + n) == v.frame);
-    uint8_t w[kMaxWireLen];
-    const uint8_t wn = wire_encode(f, n, w);
-    VCHECK(v, std::vector<uint8_t>(w, w + wn) == v.wire);
+    check_encoded(v, f, n);
   }
 }
 
@@ -232,10 +237,7 @@ TEST(vectors_status_encode_byte_exact) {
     uint8_t f[kMaxFrameLen];
     const uint8_t n = encode_status(f, static_cast<uint16_t>(num(v, "seq")),
                                     static_cast<uint32_t>(num(v, "t_us")), s);
-    VCHECK(v, std::vector<uint8_t>(f, f + n) == v.frame);
-    uint8_t w[kMaxWireLen];
-    const uint8_t wn = wire_encode(f, n, w);
-    VCHECK(v, std::vector<uint8_t>(w, w + wn) == v.wire);
+    check_encoded(v, f, n);
   }
 }
 
@@ -266,10 +268,7 @@ TEST(vectors_ack_encode_byte_exact) {
                                  static_cast<uint16_t>(num(v, "ref_seq")),
                                  static_cast<uint8_t>(num(v, "cmd")),
                                  static_cast<uint8_t>(num(v, "status")), r, rn);
-    VCHECK(v, std::vector<uint8_t>(f, f + n) == v.frame);
-    uint8_t w[kMaxWireLen];
-    const uint8_t wn = wire_encode(f, n, w);
-    VCHECK(v, std::vector<uint8_t>(w, w + wn) == v.wire);
+    check_encoded(v, f, n);
   }
 }
 
