@@ -27,7 +27,8 @@ from stipi_daemon.ble.nus import DEFAULT_PROBE_NAME
 from stipi_daemon.ble.peripheral import BleModuleLimits, NusPeripheral
 from stipi_daemon.ble.radio import open_hci
 from stipi_daemon.clock import SessionClock
-from stipi_daemon.emulator.feather import FeatherCore, McuClock, SceneAdc
+from stipi_daemon.emulator.feather import FeatherCore, McuClock
+from stipi_daemon.emulator.feather import scene_core as feather_scene_core
 from stipi_daemon.protocol.cobs import cobs_decode
 from stipi_daemon.protocol.messages import Samples, StatusFlags, unpack_frame
 
@@ -238,9 +239,8 @@ def scene_core(
 ) -> BleFeatherCore:
     """A firmware model reading a simulator scene, booted at session time ``now_s``.
 
-    As the serial emulator builds it (``transports/emulated.py``): the scene's load-cell
-    samples (``seed``) at the MCU's sample times, and its load cell's tare and span in
-    EEPROM when ``calibrated``.
+    :func:`stipi_daemon.emulator.feather.scene_core` with the BLE probe's core
+    (:class:`BleFeatherCore`).
 
     Parameters
     ----------
@@ -257,14 +257,17 @@ def scene_core(
     scene_start_s : float, optional
         Session time of the scene's t = 0 [s] (default: the first sample).
     """
-    start = None if scene_start_s is None else mcu_clock.mcu_us(scene_start_s)
-    adc = SceneAdc(scene, seed, start_mcu_us=start, rate_error_ppm=mcu_clock.rate_error_ppm)
-    return BleFeatherCore(
-        adc,
-        boot_us=mcu_clock.mcu_us(now_s),
-        zero_counts=adc.zero_counts if calibrated else 0,
-        span_un_per_count=adc.span_un_per_count if calibrated else 0,
+    core = feather_scene_core(
+        scene,
+        seed,
+        mcu_clock,
+        now_s,
+        calibrated=calibrated,
+        scene_start_s=scene_start_s,
+        core_type=BleFeatherCore,
     )
+    assert isinstance(core, BleFeatherCore)
+    return core
 
 
 async def start_ble_probe(

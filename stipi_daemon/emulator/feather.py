@@ -89,6 +89,7 @@ __all__ = [
     "SceneAdc",
     "flip_bits",
     "period_for_rate",
+    "scene_core",
 ]
 
 # ---- firmware constants (firmware/feather32u4/config.h) -----------------------------------
@@ -696,6 +697,49 @@ class FeatherCore:
 
 
 # ====================================================================== pty shell
+
+
+def scene_core(
+    scene: object,
+    seed: int | None,
+    mcu_clock: McuClock,
+    now_s: float,
+    *,
+    calibrated: bool = True,
+    scene_start_s: float | None = None,
+    core_type: type[FeatherCore] = FeatherCore,
+) -> FeatherCore:
+    """A firmware model reading a simulator scene, booted at session time ``now_s``.
+
+    The scene's load-cell samples (``seed``) at the MCU's sample times, and its load cell's
+    tare and span in EEPROM when ``calibrated``; the serial emulator and the BLE mock probe
+    both build theirs here.
+
+    Parameters
+    ----------
+    scene : stipi_daemon.sim.Scene
+        The scene.
+    seed : int, optional
+        Seed of the scene's effects (default: the scene's).
+    mcu_clock : McuClock
+        Session time to MCU time.
+    now_s : float
+        Session time of the boot [s].
+    calibrated : bool
+        EEPROM holds the scene's calibration (else span 0).
+    scene_start_s : float, optional
+        Session time of the scene's t = 0 [s] (default: the first sample).
+    core_type : type
+        :class:`FeatherCore` or a subclass (the BLE probe's reports its BLE link).
+    """
+    start = None if scene_start_s is None else mcu_clock.mcu_us(scene_start_s)
+    adc = SceneAdc(scene, seed, start_mcu_us=start, rate_error_ppm=mcu_clock.rate_error_ppm)
+    return core_type(
+        adc,
+        boot_us=mcu_clock.mcu_us(now_s),
+        zero_counts=adc.zero_counts if calibrated else 0,
+        span_un_per_count=adc.span_un_per_count if calibrated else 0,
+    )
 
 
 def _set_raw(fd: int) -> None:

@@ -91,19 +91,19 @@ class EmulatedTransport:
         return self._feather
 
     def _make_feather(self) -> EmulatedFeather:
-        from stipi_daemon.emulator.feather import EmulatedFeather, FeatherCore, McuClock, SceneAdc
+        from stipi_daemon.emulator.feather import EmulatedFeather, McuClock, scene_core
         from stipi_daemon.sim import load_scene
 
         cfg = self.config
         scene = load_scene(cfg.scene)
         mcu = McuClock(self.clock.now(), cfg.boot_offset_us, cfg.rate_error_ppm)
-        start = None if cfg.scene_start_s is None else mcu.mcu_us(cfg.scene_start_s)
-        adc = SceneAdc(scene, cfg.seed, start_mcu_us=start, rate_error_ppm=cfg.rate_error_ppm)
-        core = FeatherCore(
-            adc,
-            boot_us=mcu.mcu_us(self.clock.now()),
-            zero_counts=adc.zero_counts if cfg.calibrated else 0,
-            span_un_per_count=adc.span_un_per_count if cfg.calibrated else 0,
+        core = scene_core(
+            scene,
+            cfg.seed,
+            mcu,
+            self.clock.now(),
+            calibrated=cfg.calibrated,
+            scene_start_s=cfg.scene_start_s,
         )
         seed = scene.seed if cfg.seed is None else cfg.seed
         return EmulatedFeather(core, self.clock, mcu, link_path=cfg.link_path, seed=seed)
