@@ -240,22 +240,7 @@ def scene_core(
     """A firmware model reading a simulator scene, booted at session time ``now_s``.
 
     :func:`stipi_daemon.emulator.feather.scene_core` with the BLE probe's core
-    (:class:`BleFeatherCore`).
-
-    Parameters
-    ----------
-    scene : stipi_daemon.sim.Scene
-        The scene.
-    seed : int, optional
-        Seed of the scene's effects (default: the scene's).
-    mcu_clock : McuClock
-        Session time to MCU time.
-    now_s : float
-        Session time of the boot [s].
-    calibrated : bool
-        EEPROM holds the scene's calibration (else span 0).
-    scene_start_s : float, optional
-        Session time of the scene's t = 0 [s] (default: the first sample).
+    (:class:`BleFeatherCore`); the parameters are that function's.
     """
     core = feather_scene_core(
         scene,
