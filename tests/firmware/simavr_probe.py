@@ -112,6 +112,10 @@ class HarnessLog:
         """Simulated instants the firmware started a load-cell conversion [s]."""
         return np.array([float(kv["sim_s"]) for kv in self.of("ADC")])
 
+    def conversion_mv(self) -> np.ndarray:
+        """Integer millivolts the harness fed at each of those conversions [mV]."""
+        return np.array([int(kv["mv"]) for kv in self.of("ADC")], dtype=np.int64)
+
     def last_speed(self) -> float:
         """Simulated seconds per wall second at the last TIME or EXIT line."""
         rows = self.of("TIME") + self.of("EXIT")
@@ -392,6 +396,18 @@ def rate_hz(stream: Stream) -> float:
     """Samples per simulated second, from the probe's timestamps across the stream."""
     span_s = (stream.t_us[-1] - stream.t_us[0]) * 1e-6
     return float((stream.index[-1] - stream.index[0]) / span_s)
+
+
+def assert_counts_are_fed_wave(adc: np.ndarray, fed_mv: np.ndarray, wave_mv: np.ndarray) -> None:
+    """Each count is simavr's conversion of the millivolts the harness fed, and those are
+    the waveform at the conversion, rounded to integer mV.
+
+    The fed value is compared, not the waveform recomputed here: the harness interpolates
+    the waveform file (times to 1 us, voltages to 1 uV), so a value within a few uV of a
+    half millivolt can round either way on the two sides.
+    """
+    assert np.array_equal(adc, counts_of_mv(fed_mv))
+    assert np.max(np.abs(fed_mv - wave_mv)) <= 0.5 + 2e-3, np.max(np.abs(fed_mv - wave_mv))
 
 
 def nearest(times_s: np.ndarray, t_s: np.ndarray) -> np.ndarray:

@@ -27,8 +27,8 @@ from tests.firmware.simavr_probe import (
     FIRMWARE_ELF,
     SIMAVR_HEADER,
     Harness,
+    assert_counts_are_fed_wave,
     build,
-    counts_of_mv,
     nearest,
     write_wave,
 )
@@ -140,7 +140,7 @@ async def test_probe_link_streams_the_real_firmware(
     # interrupts (Timer0, UART): the spread stays within a few ticks.
     assert 0 <= np.median(offset_s) < 3e-3 and np.ptp(offset_s) < 5 * 8e-6
     adc = np.array([r.adc_counts for r in got])
-    assert np.array_equal(adc, counts_of_mv(np.interp(conv[k], t_wave, mv)))
+    assert_counts_are_fed_wave(adc, h.log.conversion_mv()[k], np.interp(conv[k], t_wave, mv))
     force = np.array([r.force_n for r in got], dtype=np.float64)
     assert np.allclose(force, (adc - 512) * 0.01)
     # rate and clock: simulated time runs at wall speed, so the mapped times follow it

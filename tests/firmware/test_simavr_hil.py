@@ -41,6 +41,7 @@ from tests.firmware.simavr_probe import (
     TESTPROG_ELF,
     Harness,
     SimProbe,
+    assert_counts_are_fed_wave,
     build,
     counts_of_mv,
     flatten,
@@ -103,6 +104,7 @@ def test_harness_feeds_adc_in_simulated_time_and_bridges_uart(built_harness: Non
         assert "E 00" in lines and "E 5a" in lines  # wake-up byte and our byte, in order
         rows = np.array([[int(v) for v in ln.split()[1:]] for ln in lines if ln.startswith("S ")])
         conv = h.log.conversion_times_s()
+        fed_mv = h.log.conversion_mv()
         exit_kv = h.log.of("EXIT")[0]
     finally:
         h.close()
@@ -112,7 +114,8 @@ def test_harness_feeds_adc_in_simulated_time_and_bridges_uart(built_harness: Non
     assert np.array_equal(idx, np.arange(1, len(idx) + 1)) and len(idx) >= 140
     # Conversions every 10.000 ms of simulated time; values = the ramp at those instants.
     assert np.allclose(np.diff(conv), 0.010, atol=1e-6)
-    assert np.array_equal(adc, counts_of_mv(np.interp(conv[: len(adc)], [0, 2], [0, 3300])))
+    n = len(adc)
+    assert_counts_are_fed_wave(adc, fed_mv[:n], np.interp(conv[:n], [0, 2], [0, 3300]))
 
 
 def test_stream_follows_waveform_at_default_rate(
@@ -155,13 +158,17 @@ def test_stream_follows_waveform_at_default_rate(
     assert len(np.unique(k)) == len(k), "two samples matched to one conversion"
     offset_s = conv[k] - s.t_us * 1e-6
     assert 0 <= np.median(offset_s) < 3e-3, np.median(offset_s)
-    assert np.ptp(offset_s) < 20e-6, np.ptp(offset_s)
+    # micros() ticks every 8 us at 8 MHz and the sample ISR's entry latency varies with the
+    # other interrupts (Timer0, and UART RX when the host's commands arrive, at wall-clock
+    # instants): the spread stays within a few ticks (21 us seen once in ~30 runs; 5 ticks
+    # as in test_probe_link_simavr.py).
+    assert np.ptp(offset_s) < 5 * 8e-6, np.ptp(offset_s)
     # ADC counts against the waveform at the samples' simulated times: within ±2 counts.
     t_sim_s = s.t_us * 1e-6 + np.median(offset_s)
     err = s.adc - counts_of_mv(np.interp(t_sim_s, t_s, mv))
     assert np.max(np.abs(err)) <= 2, (np.max(np.abs(err)), err[:20])
     # And exactly the value the harness fed at that conversion.
-    assert np.array_equal(s.adc, counts_of_mv(np.interp(conv[k], t_s, mv)))
+    assert_counts_are_fed_wave(s.adc, probe.log.conversion_mv()[k], np.interp(conv[k], t_s, mv))
 
 
 def test_commands_are_acked_and_take_effect(probe_factory: Callable[..., SimProbe]) -> None:
