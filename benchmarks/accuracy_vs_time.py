@@ -48,8 +48,8 @@ from stipi_daemon.analysis.imaging import (
     FrameProcessor,
     otsu_threshold,
 )
-from stipi_daemon.analysis.measurement import AnalysisSettings, analyze_recovery
 from stipi_daemon.analysis.recovery_fit import time_constant_from_settling_time
+from stipi_daemon.analysis.results import AnalysisSettings, analyze_recovery
 from stipi_daemon.analysis.severity import SeverityReference, load_reference
 from stipi_daemon.analysis.vpr import elasticity_kpa
 from stipi_daemon.errors import StipiError

@@ -9,7 +9,7 @@ core with the 99th-percentile frame-to-disk latency under one frame period".
 
 What runs. The simulator renders a grade-I scene (1 s approach, 5.5 s hold, 20 s recovery)
 at 1280x720, 60 fps, through the real CLI (``stipi-daemon simulate SCENE --resolution
-1280x720``: MJPG AVI). The real daemon (:func:`stipi_daemon.daemon.run_daemon`) then
+1280x720``: MJPG AVI). The real daemon (:func:`stipi_daemon.app.daemon.run_daemon`) then
 measures it at speed 1: ``camera: {kind: file, path: video.avi, pace: true}`` (the capture
 thread decodes each JPEG to gray, frame k is delivered at t0 + k / 60 s on the session
 clock) and the emulated Feather on a pty (100 Hz, through pyserial) playing the same scene,
@@ -66,9 +66,9 @@ def worker(config_path: Path, cpu: int, result_path: Path, nice: int) -> None:
 
     import numpy as np
 
+    from stipi_daemon.app.config import load_config
+    from stipi_daemon.app.daemon import run_daemon
     from stipi_daemon.clock import ScaledClock
-    from stipi_daemon.config import load_config
-    from stipi_daemon.daemon import run_daemon
     from stipi_daemon.storage.writer import SessionWriter
 
     config = load_config(config_path)

@@ -45,8 +45,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _run(args: argparse.Namespace) -> int:
-    from stipi_daemon.config import load_config
-    from stipi_daemon.daemon import run_measurement
+    from stipi_daemon.app.config import load_config
+    from stipi_daemon.app.daemon import run_measurement
 
     config = load_config(args.config)
     outcome = run_measurement(config, speed=1.0 if args.realtime else None, quiet=args.quiet)

@@ -11,8 +11,8 @@ from pathlib import Path
 
 import yaml
 
-from stipi_daemon.config import load_config
-from stipi_daemon.daemon import run_measurement
+from stipi_daemon.app.config import load_config
+from stipi_daemon.app.daemon import run_measurement
 from stipi_daemon.storage import SessionReader, SessionWriter, StorageOptions
 
 REPO_ROOT = Path(__file__).resolve().parent.parent

@@ -18,8 +18,8 @@ from pathlib import Path
 import pytest
 import yaml
 
-from stipi_daemon.config import load_config
-from stipi_daemon.daemon import run_measurement
+from stipi_daemon.app.config import load_config
+from stipi_daemon.app.daemon import run_measurement
 from tests._offline import SCENES as SCENE_DIR
 
 #: Scene name -> shortened recovery [s]: long enough for S_k to settle and hold 10 s.

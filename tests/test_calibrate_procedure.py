@@ -10,7 +10,7 @@ from stipi_daemon.analysis.calibration import (
     fit_depth_calibration,
     fit_force_calibration,
 )
-from stipi_daemon.calibrate_procedure import (
+from stipi_daemon.analysis.calibration_procedure import (
     DisplacementInterval,
     displacement_points,
     find_force_plateaus,

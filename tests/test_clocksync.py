@@ -9,7 +9,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from stipi_daemon.clocksync import (
+from stipi_daemon.protocol.clocksync import (
     ClockModel,
     ClockSync,
     ClockSyncConfig,

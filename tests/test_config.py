@@ -6,7 +6,7 @@ from pathlib import Path
 
 import pytest
 
-from stipi_daemon.config import load_config
+from stipi_daemon.app.config import load_config
 from stipi_daemon.errors import ConfigError
 from tests.conftest import REPO_ROOT
 

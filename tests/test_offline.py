@@ -11,9 +11,19 @@ import pytest
 
 from stipi_daemon.analysis.calibration import Calibration
 from stipi_daemon.analysis.flags import Flag
-from stipi_daemon.analysis.measurement import AnalysisSettings
+from stipi_daemon.analysis.results import AnalysisSettings
 from stipi_daemon.analysis.severity import load_reference
+from stipi_daemon.app.offline_io import SessionData, read_session
 from stipi_daemon.errors import AnalysisError, CalibrationError
+from stipi_daemon.measurement.replay import (
+    Recording,
+    ReplaySetup,
+    _events,
+    calibration_from_mapping,
+    compare_ground_truth,
+    diff_results,
+    replay,
+)
 from stipi_daemon.measurement.state_machine import (
     Arm,
     ForceSample,
@@ -23,16 +33,6 @@ from stipi_daemon.measurement.state_machine import (
     MeasurementConfig,
     Phase,
 )
-from stipi_daemon.offline import (
-    Recording,
-    ReplaySetup,
-    _events,
-    calibration_from_mapping,
-    compare_ground_truth,
-    diff_results,
-    replay,
-)
-from stipi_daemon.offline_io import SessionData, read_session
 from stipi_daemon.storage import SessionState
 from tests._offline import record_session
 

@@ -9,14 +9,7 @@ import numpy as np
 import pytest
 
 from stipi_daemon.analysis.imaging import CircleROI, RectROI
-from stipi_daemon.errors import DataFileError
-from stipi_daemon.measurement.state_machine import (
-    CameraRecovered,
-    CameraStalled,
-    LinkLost,
-    LinkRestored,
-)
-from stipi_daemon.offline_io import (
+from stipi_daemon.app.offline_io import (
     count_video,
     match_frame_times,
     parse_roi,
@@ -24,6 +17,13 @@ from stipi_daemon.offline_io import (
     read_force_csv,
     read_frame_times_csv,
     read_session,
+)
+from stipi_daemon.errors import DataFileError
+from stipi_daemon.measurement.state_machine import (
+    CameraRecovered,
+    CameraStalled,
+    LinkLost,
+    LinkRestored,
 )
 from stipi_daemon.storage import SessionState, SessionWriter, StorageOptions
 

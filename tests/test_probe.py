@@ -18,9 +18,8 @@ import numpy as np
 import pytest
 
 from stipi_daemon.clock import ScaledClock
-from stipi_daemon.emulator.feather import EmulatedFeather
 from stipi_daemon.errors import DeviceNotFoundError, LinkLostError
-from stipi_daemon.probe import (
+from stipi_daemon.probe.link import (
     ClockProbe,
     DecoderErrors,
     ForceRow,
@@ -32,9 +31,10 @@ from stipi_daemon.probe import (
     ProbeLink,
     StatusReport,
 )
+from stipi_daemon.probe.transports.serial import SerialTransport, SerialTransportConfig
 from stipi_daemon.sim import Pipeline, load_scene
-from stipi_daemon.transports.emulated import EmulatedTransport, EmulatedTransportConfig
-from stipi_daemon.transports.serial import SerialTransport, SerialTransportConfig
+from stipi_daemon.sim.emulated_transport import EmulatedTransport, EmulatedTransportConfig
+from stipi_daemon.sim.feather import EmulatedFeather
 
 SCENE = Path(__file__).resolve().parents[1] / "configs" / "scenes" / "grade2.yaml"
 SPEED = 4.0

@@ -37,12 +37,6 @@ from stipi_daemon.analysis.imaging import (
     threshold_binary_inverted,
     to_gray,
 )
-from stipi_daemon.analysis.measurement import (
-    AnalysisSettings,
-    MeasurementResult,
-    analyze_recovery,
-    applied_force_n_from_samples,
-)
 from stipi_daemon.analysis.pitting import (
     PittingParameters,
     compute_pitting_parameters,
@@ -52,6 +46,12 @@ from stipi_daemon.analysis.pitting import (
     recovery_time,
 )
 from stipi_daemon.analysis.recovery_fit import RecoveryFit, fit_recovery
+from stipi_daemon.analysis.results import (
+    AnalysisSettings,
+    MeasurementResult,
+    analyze_recovery,
+    applied_force_n_from_samples,
+)
 from stipi_daemon.analysis.severity import (
     SeverityReference,
     SeverityResult,

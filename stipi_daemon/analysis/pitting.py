@@ -21,7 +21,7 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.ndimage import median_filter
 
 from stipi_daemon.analysis.flags import Flag
-from stipi_daemon.analysis.settling import least_squares_slope, still_rising
+from stipi_daemon.analysis.settling_rules import least_squares_slope, still_rising
 from stipi_daemon.errors import AnalysisError, require_finite
 
 if TYPE_CHECKING:
@@ -275,7 +275,7 @@ def _still_rising(
 ) -> bool:
     """True when the final slope, continued for another T_r, would leave the settling band.
 
-    The test itself (:func:`~stipi_daemon.analysis.settling.still_rising`) is the one the
+    The test itself (:func:`~stipi_daemon.analysis.settling_rules.still_rising`) is the one the
     state machine applies before it ends a recovery early.
     """
     if end_fraction <= 0.0:

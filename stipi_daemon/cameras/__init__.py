@@ -55,7 +55,7 @@ CameraConfig = Annotated[
 _SOURCES = {
     "v4l2": ("stipi_daemon.cameras.v4l2", "V4L2Camera"),
     "file": ("stipi_daemon.cameras.video_file", "VideoFileCamera"),
-    "simulator": ("stipi_daemon.cameras.simulator", "SimulatorCamera"),
+    "simulator": ("stipi_daemon.sim.camera", "SimulatorCamera"),
 }
 
 

@@ -11,7 +11,7 @@ JSON (``--out``; default ``analysis-<UTC time>.json`` in the session directory o
 the video; the session's own files are never overwritten). A simulator ground truth
 (``ground_truth.json`` next to the video, or the one a simulated session's summary holds)
 is compared parameter by parameter. This module is the shell: the replay and comparisons
-are :mod:`stipi_daemon.offline`, file reading :mod:`stipi_daemon.offline_io`.
+are :mod:`stipi_daemon.measurement.replay`, file reading :mod:`stipi_daemon.app.offline_io`.
 """
 
 from __future__ import annotations
@@ -28,22 +28,10 @@ from pydantic import BaseModel, ValidationError
 from stipi_daemon import __version__
 from stipi_daemon.analysis.calibration import Calibration, load_calibration
 from stipi_daemon.analysis.imaging import CircleROI, RectROI
-from stipi_daemon.analysis.measurement import AnalysisSettings
+from stipi_daemon.analysis.results import AnalysisSettings
 from stipi_daemon.analysis.severity import load_reference
-from stipi_daemon.config import DaemonConfig, ImagingSettings, load_config
-from stipi_daemon.errors import ConfigError, DataFileError, SessionError
-from stipi_daemon.measurement.state_machine import MeasurementConfig
-from stipi_daemon.offline import (
-    ParameterComparison,
-    Recording,
-    ReplayOutcome,
-    ReplaySetup,
-    calibration_from_mapping,
-    compare_ground_truth,
-    diff_results,
-    replay,
-)
-from stipi_daemon.offline_io import (
+from stipi_daemon.app.config import DaemonConfig, ImagingSettings, load_config
+from stipi_daemon.app.offline_io import (
     SessionData,
     count_video,
     load_ground_truth,
@@ -53,6 +41,18 @@ from stipi_daemon.offline_io import (
     read_frame_times_csv,
     read_session,
 )
+from stipi_daemon.errors import ConfigError, DataFileError, SessionError
+from stipi_daemon.measurement.replay import (
+    ParameterComparison,
+    Recording,
+    ReplayOutcome,
+    ReplaySetup,
+    calibration_from_mapping,
+    compare_ground_truth,
+    diff_results,
+    replay,
+)
+from stipi_daemon.measurement.state_machine import MeasurementConfig
 from stipi_daemon.storage import DEFAULT_ROOT, SessionState, layout
 
 OUTPUT_FORMAT = "stipi-offline-analysis"
@@ -261,7 +261,7 @@ def _report(
     header: list[str],
     truth_rows: list[ParameterComparison] | None,
 ) -> list[str]:
-    from stipi_daemon.console import format_results
+    from stipi_daemon.app.console import format_results
 
     lines = list(header)
     lines.append(

@@ -11,7 +11,7 @@ PATH is a session directory (stored S_k) or a directory holding ``video.avi``,
 ``frames.csv`` and ``force.csv`` as ``stipi-daemon simulate`` writes them (S_k counted
 with ``--threshold``/``--roi``). The fits, their refusals and the file format are
 :mod:`stipi_daemon.analysis.calibration`'s; recordings are turned into points by
-:mod:`stipi_daemon.calibrate_procedure`. The procedure is in ``docs/calibration.md``.
+:mod:`stipi_daemon.analysis.calibration_procedure`. The procedure is in ``docs/calibration.md``.
 """
 
 from __future__ import annotations
@@ -31,8 +31,7 @@ from stipi_daemon.analysis.calibration import (
     load_calibration,
     save_calibration,
 )
-from stipi_daemon.analysis.imaging import CircleROI, RectROI
-from stipi_daemon.calibrate_procedure import (
+from stipi_daemon.analysis.calibration_procedure import (
     DEFAULT_MIN_FORCE_N,
     DEFAULT_MIN_PLATEAU_S,
     DEFAULT_PLATEAU_TOLERANCE_N,
@@ -43,8 +42,8 @@ from stipi_daemon.calibrate_procedure import (
     fit_report,
     force_points,
 )
-from stipi_daemon.errors import CalibrationError, ConfigError, DataFileError
-from stipi_daemon.offline_io import (
+from stipi_daemon.analysis.imaging import CircleROI, RectROI
+from stipi_daemon.app.offline_io import (
     count_video,
     match_frame_times,
     parse_roi,
@@ -53,6 +52,7 @@ from stipi_daemon.offline_io import (
     read_frame_times_csv,
     read_session,
 )
+from stipi_daemon.errors import CalibrationError, ConfigError, DataFileError
 
 FloatArray = npt.NDArray[np.float64]
 

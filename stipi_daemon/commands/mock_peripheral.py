@@ -1,6 +1,6 @@
 """``stipi-daemon mock-peripheral --scene SCENE``: the emulated probe as a real BLE peripheral.
 
-Thin shell over :mod:`stipi_daemon.ble.mock_probe`: opens a Bluetooth controller with
+Thin shell over :mod:`stipi_daemon.sim.ble.mock_probe`: opens a Bluetooth controller with
 Bumble (``--transport usb:0``, ``hci-socket:0``, ``serial:...``, or ``virtual:NAME`` for an
 in-process radio), advertises the probe's name and the Nordic UART Service, and streams the
 scene's load-cell samples in the real wire protocol, answering commands as the firmware
@@ -24,7 +24,7 @@ from typing import TYPE_CHECKING
 from stipi_daemon.errors import ConfigError
 
 if TYPE_CHECKING:
-    from stipi_daemon.ble.peripheral import LinkCounters
+    from stipi_daemon.sim.ble.peripheral import LinkCounters
 
 __all__ = ["MockPeripheralOptions", "register", "run", "serve"]
 
@@ -152,13 +152,13 @@ async def serve(opts: MockPeripheralOptions, *, ready: asyncio.Event | None = No
     LinkCounters
         What the emulated module did.
     """
-    from stipi_daemon.ble.mock_probe import scene_core, start_ble_probe
-    from stipi_daemon.ble.module import NotificationFaults
-    from stipi_daemon.ble.peripheral import BleModuleLimits
-    from stipi_daemon.ble.radio import VIRTUAL_SCHEME, BleRadioError, VirtualRadio
     from stipi_daemon.clock import ScaledClock
-    from stipi_daemon.emulator.feather import McuClock
     from stipi_daemon.sim import load_scene
+    from stipi_daemon.sim.ble.mock_probe import scene_core, start_ble_probe
+    from stipi_daemon.sim.ble.module import NotificationFaults
+    from stipi_daemon.sim.ble.peripheral import BleModuleLimits
+    from stipi_daemon.sim.ble.radio import VIRTUAL_SCHEME, BleRadioError, VirtualRadio
+    from stipi_daemon.sim.feather import McuClock
 
     _check(opts)
     scene = load_scene(opts.scene)

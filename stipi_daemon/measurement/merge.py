@@ -6,7 +6,7 @@ slightly different phase timings live and on replay. :class:`TimeOrderedMerger` 
 items in timestamp order: an item is released once every stream has delivered something
 at or after its time (the *watermark*), or once it has waited ``max_hold_s`` of session
 time, so that a stalled or lost stream delays the others by at most that much. Offline
-replay (:mod:`stipi_daemon.offline`) feeds the stored rows in the same order, so a replay
+replay (:mod:`stipi_daemon.measurement.replay`) feeds the stored rows in the same order, so a replay
 reproduces the live run exactly unless the hold expired (the merger counts those
 releases). Ties keep the streams' declared order (force before frame). Pure; no clock
 is read: callers pass the current session time.

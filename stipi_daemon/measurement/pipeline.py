@@ -5,7 +5,7 @@ demo, the offline ``analyze`` replay) feeds it force samples and frame S_k value
 clock (host seconds). It keeps the series, drives the pit/release state machine
 (:mod:`~stipi_daemon.measurement.state_machine`), computes live pitting parameters while
 the tissue recovers and, when the machine asks for it, runs the whole-measurement
-analysis (:func:`~stipi_daemon.analysis.measurement.analyze_recovery`). It does no I/O
+analysis (:func:`~stipi_daemon.analysis.results.analyze_recovery`). It does no I/O
 and reads no clock: the same inputs give the same outputs, live or replayed.
 
 T_0 (Eq. 6) is the release the state machine reports, refined on the S_k series: the
@@ -27,14 +27,14 @@ import numpy as np
 
 from stipi_daemon.analysis.calibration import Calibration
 from stipi_daemon.analysis.flags import Flag
-from stipi_daemon.analysis.measurement import (
+from stipi_daemon.analysis.pitting import compute_pitting_parameters, detect_recovery_start
+from stipi_daemon.analysis.recovery_fit import fit_recovery
+from stipi_daemon.analysis.results import (
     AnalysisSettings,
     MeasurementResult,
     analyze_recovery,
     applied_force_n_from_samples,
 )
-from stipi_daemon.analysis.pitting import compute_pitting_parameters, detect_recovery_start
-from stipi_daemon.analysis.recovery_fit import fit_recovery
 from stipi_daemon.analysis.severity import SeverityReference
 from stipi_daemon.analysis.vpr import elasticity_kpa
 from stipi_daemon.errors import AnalysisError

@@ -45,7 +45,7 @@ Policies (all thresholds are fields of :class:`MeasurementConfig`):
   so stopping as soon as S_k looks flat lowers S_max and T_r (a first 10 s plateau put
   T_r 8 % low on the simulated grades III-IV). The recovery therefore counts as settled
   at a frame only when all of these hold (the tests are shared with the analysis, see
-  :mod:`~stipi_daemon.analysis.settling`; figures in docs/settling.md):
+  :mod:`~stipi_daemon.analysis.settling_rules`; figures in docs/settling.md):
 
   1. *Plateau*: every S_k since the plateau start p is at or above ``settle_fraction``
      times the peak, the largest S_k since the rise started, which is the S_max the
@@ -54,13 +54,13 @@ Policies (all thresholds are fields of :class:`MeasurementConfig`):
      transient: the analysis' T_0 refinement also takes the lowest S_k). p is the start
      of the trailing run of frames inside the band, read on a grid of S_k levels a
      twentieth of the band apart (0.1 %;
-     :class:`~stipi_daemon.measurement.settling.SettlingTracker`): at most one grid step
+     :class:`~stipi_daemon.measurement.settling_tracker.SettlingTracker`): at most one grid step
      late, never early. Every frame from p on is inside the band, so the
      analysis' T_s is at or before p: p - T_0 is an upper bound of its T_r.
   2. *Hold*: the plateau has lasted ``settle_hold_s``.
   3. *Truncation bound* (Kelvin-Voigt, Section III.C): with r = S_0 / peak (S_0: S_k at
      the rise start) below ``settle_fraction``, the recovery has lasted at least
-     :func:`~stipi_daemon.analysis.settling.truncation_hold_factor` x (p - T_0), which keeps
+     :func:`~stipi_daemon.analysis.settling_rules.truncation_hold_factor` x (p - T_0), which keeps
      the bias of T_r from the early stop at or below ``settle_bias_fraction`` (and of F_r
      at about a tenth of that). Typically 2 x (p - T_0): about 7.6 time constants.
   4. *Not still rising*: the least-squares slope of S_k over the plateau (a running sum,
@@ -105,7 +105,7 @@ from typing import Final, Literal
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from stipi_daemon.analysis.flags import Flag
-from stipi_daemon.measurement.settling import SettlingTracker
+from stipi_daemon.measurement.settling_tracker import SettlingTracker
 
 __all__ = [
     "CAMERA_POLICY",

@@ -49,7 +49,7 @@ from stipi_daemon.analysis.severity import (
 )
 from stipi_daemon.analysis.vpr import KPA_PER_N_PER_MM2
 from stipi_daemon.errors import AnalysisError, SessionError
-from stipi_daemon.offline import compare_ground_truth
+from stipi_daemon.measurement.replay import compare_ground_truth
 from stipi_daemon.report.frames import KINDS, RepresentativeFrame
 from stipi_daemon.storage.schema import Transition
 

@@ -10,7 +10,7 @@ import pytest
 
 from stipi_daemon.analysis.calibration import Calibration
 from stipi_daemon.analysis.flags import Flag
-from stipi_daemon.analysis.measurement import (
+from stipi_daemon.analysis.results import (
     AnalysisSettings,
     analyze_recovery,
     applied_force_n_from_samples,

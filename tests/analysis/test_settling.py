@@ -10,7 +10,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from stipi_daemon.analysis.pitting import recovery_time
-from stipi_daemon.analysis.settling import (
+from stipi_daemon.analysis.settling_rules import (
     LineSums,
     kelvin_voigt_truncation_bias,
     least_squares_slope,

@@ -14,10 +14,10 @@ from pathlib import Path
 
 import pytest
 
-from stipi_daemon.ble.bleak_backend import BumbleAdapter
-from stipi_daemon.ble.mock_probe import SampleLedger
-from stipi_daemon.ble.radio import VirtualRadio
-from stipi_daemon.probe import ClockProbe, ForceRows, Gap, LinkDown, LinkUp, ProbeLink
+from stipi_daemon.probe.link import ClockProbe, ForceRows, Gap, LinkDown, LinkUp, ProbeLink
+from stipi_daemon.sim.ble.bleak_backend import BumbleAdapter
+from stipi_daemon.sim.ble.mock_probe import SampleLedger
+from stipi_daemon.sim.ble.radio import VirtualRadio
 
 REPO = Path(__file__).resolve().parents[2]
 SCENES = REPO / "configs" / "scenes"

@@ -8,12 +8,12 @@ indices, ADC counts, forces and probe timestamps (from the first sample).
 
 from __future__ import annotations
 
-from stipi_daemon.ble.radio import VirtualRadio
 from stipi_daemon.clock import ScaledClock
-from stipi_daemon.probe import ForceRow, ForceRows, ProbeLink
-from stipi_daemon.transports import TransportConfig, open_transport
-from stipi_daemon.transports.ble import BleEmulationConfig, BleTransportConfig
-from stipi_daemon.transports.emulated import EmulatedTransportConfig
+from stipi_daemon.probe.link import ForceRow, ForceRows, ProbeLink
+from stipi_daemon.probe.transports import TransportConfig, open_transport
+from stipi_daemon.probe.transports.ble import BleEmulationConfig, BleTransportConfig
+from stipi_daemon.sim.ble.radio import VirtualRadio
+from stipi_daemon.sim.emulated_transport import EmulatedTransportConfig
 
 from .conftest import SCENES
 

@@ -9,11 +9,11 @@ import pytest
 from bleak import BleakClient, BleakScanner
 from bleak.exc import BleakError
 
-from stipi_daemon.ble.bleak_backend import BumbleAdapter
-from stipi_daemon.ble.nus import NUS_RX_UUID, NUS_SERVICE_UUID, NUS_TX_UUID
-from stipi_daemon.ble.peripheral import BleModuleLimits, NusPeripheral
-from stipi_daemon.ble.radio import BleRadioError, VirtualRadio, open_hci
 from stipi_daemon.clock import ScaledClock
+from stipi_daemon.probe.nus import NUS_RX_UUID, NUS_SERVICE_UUID, NUS_TX_UUID
+from stipi_daemon.sim.ble.bleak_backend import BumbleAdapter
+from stipi_daemon.sim.ble.peripheral import BleModuleLimits, NusPeripheral
+from stipi_daemon.sim.ble.radio import BleRadioError, VirtualRadio, open_hci
 
 
 async def _peripheral(radio: VirtualRadio, **kwargs: object) -> NusPeripheral:

@@ -18,8 +18,8 @@ from typing import Any
 
 import pytest
 
-from stipi_daemon.config import parse_config
-from stipi_daemon.daemon import run_measurement
+from stipi_daemon.app.config import parse_config
+from stipi_daemon.app.daemon import run_measurement
 from tests.conftest import REPO_ROOT
 
 SCENE = REPO_ROOT / "configs" / "scenes" / "demo_grade3.yaml"

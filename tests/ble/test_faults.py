@@ -4,12 +4,12 @@ from __future__ import annotations
 
 import statistics
 
-from stipi_daemon.ble.module import NotificationFaults
-from stipi_daemon.ble.radio import VirtualRadio
 from stipi_daemon.clock import ScaledClock
-from stipi_daemon.probe import ProbeLink
-from stipi_daemon.transports import open_transport
-from stipi_daemon.transports.ble import BleEmulationConfig, BleTransport, BleTransportConfig
+from stipi_daemon.probe.link import ProbeLink
+from stipi_daemon.probe.transports import open_transport
+from stipi_daemon.probe.transports.ble import BleEmulationConfig, BleTransport, BleTransportConfig
+from stipi_daemon.sim.ble.module import NotificationFaults
+from stipi_daemon.sim.ble.radio import VirtualRadio
 
 from .conftest import SCENES, ProbeRecorder, check_accounting_against_ledger
 

@@ -6,15 +6,15 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from stipi_daemon.ble.module import (
+from stipi_daemon.protocol.decoder import FrameDecoder
+from stipi_daemon.protocol.messages import Samples, encode_frame
+from stipi_daemon.sim.ble.module import (
     ConnectionEventPacer,
     FaultInjector,
     NotificationFaults,
     ReceiverSyncModel,
     UartTxFifo,
 )
-from stipi_daemon.protocol.decoder import FrameDecoder
-from stipi_daemon.protocol.messages import Samples, encode_frame
 
 
 def test_fifo_takes_whole_frames_or_refuses_them() -> None:

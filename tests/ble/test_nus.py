@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from stipi_daemon.ble.nus import NUS_SERVICE_UUID, advertising_payloads
+from stipi_daemon.probe.nus import NUS_SERVICE_UUID, advertising_payloads
 
 
 def _structures(payload: bytes) -> list[tuple[int, bytes]]:

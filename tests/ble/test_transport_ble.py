@@ -14,16 +14,16 @@ import numpy as np
 import pytest
 from pydantic import TypeAdapter, ValidationError
 
-from stipi_daemon.ble.peripheral import BleModuleLimits, NusPeripheral
-from stipi_daemon.ble.radio import VirtualRadio, open_hci
 from stipi_daemon.clock import ScaledClock
 from stipi_daemon.errors import DeviceNotFoundError, LinkLostError
-from stipi_daemon.probe import ForceRows, ProbeLink
+from stipi_daemon.probe.link import ForceRows, ProbeLink
+from stipi_daemon.probe.transports import TransportConfig, open_transport
+from stipi_daemon.probe.transports.ble import BleEmulationConfig, BleTransport, BleTransportConfig
 from stipi_daemon.protocol.decoder import FrameDecoder
 from stipi_daemon.protocol.messages import Samples, encode_frame
 from stipi_daemon.sim import Pipeline, load_scene
-from stipi_daemon.transports import TransportConfig, open_transport
-from stipi_daemon.transports.ble import BleEmulationConfig, BleTransport, BleTransportConfig
+from stipi_daemon.sim.ble.peripheral import BleModuleLimits, NusPeripheral
+from stipi_daemon.sim.ble.radio import VirtualRadio, open_hci
 
 from .conftest import SCENES
 
@@ -202,7 +202,7 @@ async def test_link_up_reports_the_ble_flag(radio: VirtualRadio) -> None:
     probe = ProbeLink(open_transport(cfg, clock), clock=clock)
     await probe.connect()
     try:
-        from stipi_daemon.probe import StatusReport
+        from stipi_daemon.probe.link import StatusReport
         from stipi_daemon.protocol.messages import StatusFlags
 
         async with asyncio.timeout(10):

@@ -24,5 +24,5 @@ def test_open_camera_imports_only_the_chosen_source() -> None:
     loaded = ast.literal_eval(out)  # a printed list of module names
     assert "stipi_daemon.cameras.video_file" in loaded
     assert "stipi_daemon.cameras.v4l2" not in loaded
-    assert "stipi_daemon.cameras.simulator" not in loaded
+    assert "stipi_daemon.sim.camera" not in loaded
     assert not any(m.startswith("stipi_daemon.sim") for m in loaded)

@@ -7,8 +7,8 @@ import time
 import numpy as np
 
 from stipi_daemon.cameras import CameraFrame, SimulatorCameraConfig, open_camera
-from stipi_daemon.cameras.simulator import SimulatorCamera
 from stipi_daemon.clock import ScaledClock
+from stipi_daemon.sim.camera import SimulatorCamera
 from stipi_daemon.sim.pipeline import Pipeline, frame_count
 from tests.cameras._scenes import small_scene
 from tests.conftest import REPO_ROOT

@@ -14,10 +14,10 @@ from stipi_daemon.cameras import (
     CameraStalled,
     CameraStream,
 )
-from stipi_daemon.cameras.simulator import SimulatorCamera
 from stipi_daemon.cameras.video_file import VideoFileCamera
 from stipi_daemon.clock import ScaledClock
 from stipi_daemon.errors import CameraError
+from stipi_daemon.sim.camera import SimulatorCamera
 from tests.cameras._scenes import small_scene
 from tests.cameras._video import write_avi
 

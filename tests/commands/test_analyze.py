@@ -9,8 +9,8 @@ from pathlib import Path
 import pytest
 
 from stipi_daemon.analysis.calibration import save_calibration
+from stipi_daemon.app.offline_io import SessionData, read_session
 from stipi_daemon.cli import main
-from stipi_daemon.offline_io import SessionData, read_session
 from stipi_daemon.sim import load_scene
 from stipi_daemon.sim.physics import scaled_calibration
 from stipi_daemon.storage import SessionWriter, StorageOptions

@@ -1,6 +1,6 @@
 """The daemon end to end over ``probe.transport: serial``, against an emulated Feather.
 
-The emulated Feather (:class:`~stipi_daemon.emulator.feather.EmulatedFeather`) is started by
+The emulated Feather (:class:`~stipi_daemon.sim.feather.EmulatedFeather`) is started by
 the test, not by the daemon: it sits on its own pty like a plugged-in probe, with a
 resonator 200 ppm fast and ``micros()`` 3 s before its 2^32 wrap, and plays the scene
 whose frames the simulator camera renders. The test owns the session clock and the
@@ -21,11 +21,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from stipi_daemon.app.config import load_config
+from stipi_daemon.app.daemon import run_daemon
 from stipi_daemon.clock import ScaledClock
-from stipi_daemon.config import load_config
-from stipi_daemon.daemon import run_daemon
-from stipi_daemon.emulator.feather import EmulatedFeather, FeatherCore, McuClock, SceneAdc
 from stipi_daemon.sim import load_scene
+from stipi_daemon.sim.feather import EmulatedFeather, FeatherCore, McuClock, SceneAdc
 from stipi_daemon.storage.reader import SessionReader
 from tests.daemon._support import SHORT_MEASUREMENT, check_against_truth, short_scene, write_config
 

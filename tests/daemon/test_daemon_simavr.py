@@ -41,9 +41,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from stipi_daemon.app.config import load_config
+from stipi_daemon.app.daemon import run_daemon
 from stipi_daemon.clock import ScaledClock
-from stipi_daemon.config import load_config
-from stipi_daemon.daemon import run_daemon
 from stipi_daemon.sim import Pipeline, load_scene
 from stipi_daemon.storage.reader import SessionReader
 from tests.conftest import require_path, require_tool

@@ -9,17 +9,6 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from stipi_daemon.emulator.feather import (
-    BATCH_SIZE,
-    HEARTBEAT_PERIOD_US,
-    RING_CAPACITY,
-    ConstantAdc,
-    FeatherCore,
-    McuClock,
-    SceneAdc,
-    flip_bits,
-    period_for_rate,
-)
 from stipi_daemon.protocol import (
     Ack,
     AckStatus,
@@ -42,6 +31,17 @@ from stipi_daemon.protocol import (
     encode_frame,
 )
 from stipi_daemon.sim import Pipeline, load_scene
+from stipi_daemon.sim.feather import (
+    BATCH_SIZE,
+    HEARTBEAT_PERIOD_US,
+    RING_CAPACITY,
+    ConstantAdc,
+    FeatherCore,
+    McuClock,
+    SceneAdc,
+    flip_bits,
+    period_for_rate,
+)
 from tests.protocol.test_vectors import LINES, Line
 
 SCENES = Path(__file__).resolve().parents[2] / "configs" / "scenes"

@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 import serial
 
-from stipi_daemon.probe import FAULT_COUNTERS
+from stipi_daemon.probe.link import FAULT_COUNTERS
 from stipi_daemon.protocol.decoder import DecodedFrame, FrameDecoder
 from stipi_daemon.protocol.messages import Ack, Command, Samples, Status, encode_frame
 

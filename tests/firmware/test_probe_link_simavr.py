@@ -19,8 +19,16 @@ import numpy as np
 import pytest
 
 from stipi_daemon.clock import ScaledClock
-from stipi_daemon.probe import ForceRow, ForceRows, Gap, LinkDown, LinkUp, ProbeEvent, ProbeLink
-from stipi_daemon.transports.serial import SerialTransport, SerialTransportConfig
+from stipi_daemon.probe.link import (
+    ForceRow,
+    ForceRows,
+    Gap,
+    LinkDown,
+    LinkUp,
+    ProbeEvent,
+    ProbeLink,
+)
+from stipi_daemon.probe.transports.serial import SerialTransport, SerialTransportConfig
 from tests.conftest import require_path, require_tool
 from tests.firmware.simavr_probe import (
     BLE_PROBE_DONE_S,

@@ -14,8 +14,8 @@ import numpy as np
 import pytest
 
 from stipi_daemon.clock import ScaledClock
-from stipi_daemon.probe import ForceRow, ForceRows, Gap, ProbeEvent, ProbeLink, StatusReport
-from stipi_daemon.transports.serial import SerialTransport, SerialTransportConfig
+from stipi_daemon.probe.link import ForceRow, ForceRows, Gap, ProbeEvent, ProbeLink, StatusReport
+from stipi_daemon.probe.transports.serial import SerialTransport, SerialTransportConfig
 
 
 @pytest.fixture

@@ -7,7 +7,7 @@ import pytest
 
 from stipi_daemon.analysis.calibration import Calibration
 from stipi_daemon.analysis.imaging import CircleROI, FrameProcessor
-from stipi_daemon.analysis.measurement import AnalysisSettings
+from stipi_daemon.analysis.results import AnalysisSettings
 from stipi_daemon.analysis.severity import load_reference
 from stipi_daemon.measurement.pipeline import MeasurementPipeline
 from stipi_daemon.measurement.state_machine import MeasurementConfig, Phase, PhaseChanged

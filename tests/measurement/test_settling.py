@@ -22,14 +22,14 @@ from hypothesis import strategies as st
 from pydantic import ValidationError
 
 from stipi_daemon.analysis.flags import Flag
-from stipi_daemon.analysis.measurement import AnalysisSettings, MeasurementResult, analyze_recovery
 from stipi_daemon.analysis.pitting import RecoveryTime, recovery_time
-from stipi_daemon.analysis.settling import truncation_hold_factor
+from stipi_daemon.analysis.results import AnalysisSettings, MeasurementResult, analyze_recovery
+from stipi_daemon.analysis.settling_rules import truncation_hold_factor
 from stipi_daemon.analysis.severity import load_reference
-from stipi_daemon.config import parse_config
+from stipi_daemon.app.config import parse_config
 from stipi_daemon.errors import ConfigError
 from stipi_daemon.measurement.pipeline import MeasurementPipeline
-from stipi_daemon.measurement.settling import LEVELS_PER_BAND, SettlingTracker
+from stipi_daemon.measurement.settling_tracker import LEVELS_PER_BAND, SettlingTracker
 from stipi_daemon.measurement.state_machine import (
     Advisory,
     AdvisoryKind,

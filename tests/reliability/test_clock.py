@@ -1,6 +1,6 @@
 """Clock mapping under MCU drift of +/-0.5 % and BLE delivery jitter, through the real link.
 
-A :class:`~stipi_daemon.probe.ProbeLink` streams from an emulated probe whose MCU clock
+A :class:`~stipi_daemon.probe.link.ProbeLink` streams from an emulated probe whose MCU clock
 runs 5000 ppm fast or slow: over the serial path (pty + pyserial) and over BLE (the mock
 peripheral on a virtual radio, where notifications leave only at connection events, every
 30 ms here, a few per event: delivery jitter of up to one interval plus the host's
@@ -23,10 +23,10 @@ import numpy as np
 import pytest
 
 from stipi_daemon.clock import ScaledClock
-from stipi_daemon.probe import ForceRows, ProbeLink
-from stipi_daemon.transports import open_transport
-from stipi_daemon.transports.ble import BleEmulationConfig, BleTransportConfig
-from stipi_daemon.transports.emulated import EmulatedTransportConfig
+from stipi_daemon.probe.link import ForceRows, ProbeLink
+from stipi_daemon.probe.transports import open_transport
+from stipi_daemon.probe.transports.ble import BleEmulationConfig, BleTransportConfig
+from stipi_daemon.sim.emulated_transport import EmulatedTransportConfig
 
 from .conftest import SCENES, report
 

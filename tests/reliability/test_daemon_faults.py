@@ -1,6 +1,6 @@
 """Faults injected into a running daemon: camera stall, serial and BLE link loss.
 
-Each test runs the real daemon (:func:`stipi_daemon.daemon.run_daemon`) on a whole
+Each test runs the real daemon (:func:`stipi_daemon.app.daemon.run_daemon`) on a whole
 simulated measurement (emulated Feather on a pty, or the BLE mock peripheral on a virtual
 radio; simulator camera; accelerated) and injects the fault into the real device objects
 through ``on_running`` when the measurement reaches a given phase. The stored session is
@@ -19,8 +19,8 @@ from typing import Any
 import numpy as np
 import pytest
 
-from stipi_daemon.config import load_config
-from stipi_daemon.daemon import DaemonHandles, RunOutcome, run_daemon
+from stipi_daemon.app.config import load_config
+from stipi_daemon.app.daemon import DaemonHandles, RunOutcome, run_daemon
 from stipi_daemon.measurement.state_machine import MeasurementFlag, Phase
 from stipi_daemon.storage import SessionReader, SessionState
 

@@ -12,7 +12,7 @@ import cv2
 import numpy as np
 import pytest
 
-from stipi_daemon.daemon import _write_report
+from stipi_daemon.app.daemon import _write_report
 from stipi_daemon.errors import AnalysisError
 from stipi_daemon.report.write import (
     COMPARE_FIGURES,

@@ -14,7 +14,7 @@ from stipi_daemon.analysis.imaging import CircleROI, FrameProcessor
 from stipi_daemon.analysis.pitting import compute_pitting_parameters
 from stipi_daemon.analysis.recovery_fit import fit_recovery
 from stipi_daemon.analysis.vpr import elasticity_kpa
-from stipi_daemon.clocksync import ClockSync
+from stipi_daemon.protocol.clocksync import ClockSync
 from stipi_daemon.sim.pipeline import ForceBatch, SimFrame
 from stipi_daemon.sim.truth import GroundTruth
 

@@ -13,15 +13,15 @@ from pydantic import TypeAdapter, ValidationError
 
 from stipi_daemon.clock import ScaledClock
 from stipi_daemon.errors import DeviceNotFoundError, LinkLostError, StipiError
-from stipi_daemon.transports import (
+from stipi_daemon.probe.transports import (
     EmulatedTransportConfig,
     SerialTransportConfig,
     Transport,
     TransportConfig,
     open_transport,
 )
-from stipi_daemon.transports.emulated import EmulatedTransport
-from stipi_daemon.transports.serial import UART1_BAUD, SerialTransport
+from stipi_daemon.probe.transports.serial import UART1_BAUD, SerialTransport
+from stipi_daemon.sim.emulated_transport import EmulatedTransport
 
 
 @pytest.fixture

@@ -4,10 +4,10 @@ Owns the MCU timestamps of the load-cell samples: a sample taken at true (scene)
 is stamped ``t_mcu_us = boot + 1e6 (1 + rate_error_ppm 1e-6) t + j`` before rounding to
 the microsecond, with j ~ N(0, ``jitter_us``) independent per sample (interrupt latency
 and ``micros()`` granularity). Positive ``rate_error_ppm`` is an MCU clock that runs
-fast (the sign convention of :class:`stipi_daemon.emulator.feather.McuClock`); a ceramic
+fast (the sign convention of :class:`stipi_daemon.sim.feather.McuClock`); a ceramic
 resonator is within +-5000 ppm (0.5 %). The true times and the forces stay those of the
 clean scene; only the clock the host must map onto its own
-(:class:`stipi_daemon.clocksync.ClockSync`) changes. (On the probe the timer that
+(:class:`stipi_daemon.protocol.clocksync.ClockSync`) changes. (On the probe the timer that
 schedules samples runs on the same resonator, so real samples are evenly spaced in MCU
 time; here they are evenly spaced in true time. The two differ by the rate error times
 the interval, under 0.5 us across a 10-sample batch at 100 Hz and 5000 ppm.)

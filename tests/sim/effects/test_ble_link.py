@@ -13,7 +13,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from stipi_daemon.analysis.measurement import applied_force_n_from_samples
+from stipi_daemon.analysis.results import applied_force_n_from_samples
 from stipi_daemon.errors import AnalysisError
 from stipi_daemon.protocol.accounting import SampleAccounting
 from stipi_daemon.sim import Pipeline, ground_truth

@@ -1,7 +1,7 @@
 """BLE UART transport: the probe's Nordic UART Service through bleak's public API.
 
 This module owns :class:`BleTransportConfig` (``kind="ble"``) and :class:`BleTransport`, a
-:class:`~stipi_daemon.transports.base.Transport`. ``open()`` scans for the probe by
+:class:`~stipi_daemon.probe.transports.base.Transport`. ``open()`` scans for the probe by
 advertised name or by address (``BleakScanner``), connects (``BleakClient``), checks that
 the Nordic UART Service is there and subscribes to its TX characteristic exactly once
 (``start_notify``); every notification's bytes go to ``read()`` in order, whatever frame
@@ -10,10 +10,10 @@ connection's write size (``write_gatt_char``). A disconnect - by the peripheral,
 radio or ``close()`` - makes ``read()`` raise :class:`~stipi_daemon.errors.LinkLostError`
 once the bytes already received are read; the next ``open()`` connects afresh and
 subscribes again, once. Retrying, backoff and the heartbeat watchdog belong to
-:class:`~stipi_daemon.probe.ProbeLink`, which reopens transports of every kind.
+:class:`~stipi_daemon.probe.link.ProbeLink`, which reopens transports of every kind.
 
 bleak runs on the operating system's stack by default (BlueZ on Linux); with ``hci`` set it
-runs on Bumble's host stack instead (:mod:`stipi_daemon.ble.bleak_backend`), either on a
+runs on Bumble's host stack instead (:mod:`stipi_daemon.sim.ble.bleak_backend`), either on a
 dongle (``usb:0``, ``hci-socket:0``) or on an in-process virtual radio (``virtual:NAME``).
 With ``emulate`` set, the transport also starts an emulated probe playing a simulator
 scene on that virtual radio, so a whole measurement runs over real BLE stacks in one
@@ -31,9 +31,9 @@ from typing import TYPE_CHECKING, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from stipi_daemon.ble.nus import NUS_RX_UUID, NUS_TX_UUID
 from stipi_daemon.clock import SessionClock
 from stipi_daemon.errors import DeviceNotFoundError, LinkLostError
+from stipi_daemon.probe.nus import NUS_RX_UUID, NUS_TX_UUID
 
 if TYPE_CHECKING:
     from bleak import BleakClient
@@ -42,9 +42,9 @@ if TYPE_CHECKING:
     from bleak.backends.device import BLEDevice
     from bleak.backends.scanner import AdvertisementData, BaseBleakScanner
 
-    from stipi_daemon.ble.bleak_backend import BumbleAdapter
-    from stipi_daemon.ble.mock_probe import BleProbeEmulator
-    from stipi_daemon.ble.radio import VirtualRadio
+    from stipi_daemon.sim.ble.bleak_backend import BumbleAdapter
+    from stipi_daemon.sim.ble.mock_probe import BleProbeEmulator
+    from stipi_daemon.sim.ble.radio import VirtualRadio
 
 __all__ = ["BleEmulationConfig", "BleTransport", "BleTransportConfig"]
 
@@ -152,7 +152,7 @@ class BleTransportConfig(BaseModel):
 
 
 class BleTransport:
-    """A :class:`~stipi_daemon.transports.base.Transport` to the probe's Nordic UART Service.
+    """A :class:`~stipi_daemon.probe.transports.base.Transport` to the probe's Nordic UART Service.
 
     Parameters
     ----------
@@ -214,11 +214,11 @@ class BleTransport:
         emu = self.config.emulate
         if emu is None or self._emulator is not None:
             return
-        from stipi_daemon.ble.mock_probe import scene_core, start_ble_probe
-        from stipi_daemon.ble.peripheral import BleModuleLimits
-        from stipi_daemon.ble.radio import BleRadioError, VirtualRadio
-        from stipi_daemon.emulator.feather import McuClock
         from stipi_daemon.sim import load_scene
+        from stipi_daemon.sim.ble.mock_probe import scene_core, start_ble_probe
+        from stipi_daemon.sim.ble.peripheral import BleModuleLimits
+        from stipi_daemon.sim.ble.radio import BleRadioError, VirtualRadio
+        from stipi_daemon.sim.feather import McuClock
 
         if self._hci is None:
             self._radio = VirtualRadio(f"stipi-ble-{next(_radio_ids)}")
@@ -249,7 +249,7 @@ class BleTransport:
     ) -> tuple[type[BaseBleakScanner] | None, type[BaseBleakClient] | None]:
         if self._hci is None:
             return None, None
-        from stipi_daemon.ble.bleak_backend import BumbleAdapter
+        from stipi_daemon.sim.ble.bleak_backend import BumbleAdapter
 
         if self._adapter is None:
             self._adapter = await BumbleAdapter.acquire(self._hci)

@@ -67,7 +67,7 @@ class SerialTransportConfig(BaseModel):
 
 
 class SerialTransport:
-    """A :class:`~stipi_daemon.transports.base.Transport` over one serial port.
+    """A :class:`~stipi_daemon.probe.transports.base.Transport` over one serial port.
 
     Parameters
     ----------

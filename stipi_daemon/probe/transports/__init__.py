@@ -1,12 +1,12 @@
 """Probe transports: one module per link, chosen by the config's ``kind`` and imported lazily.
 
 Each transport module holds its pydantic config model and its
-:class:`~stipi_daemon.transports.base.Transport`: :mod:`.serial` (USB CDC / UART through
+:class:`~stipi_daemon.probe.transports.base.Transport`: :mod:`.serial` (USB CDC / UART through
 pyserial, ``kind="serial"``), :mod:`.emulated` (an emulated probe on a pty,
 ``kind="emulated"``) and :mod:`.ble` (BLE UART, ``kind="ble"``). :data:`TransportConfig`
 is their discriminated union (what the daemon config's ``probe.transport`` holds) and
 :func:`open_transport` builds the transport a config names. Nothing here frames or decodes
-bytes; :mod:`stipi_daemon.probe` does.
+bytes; :mod:`stipi_daemon.probe.link` does.
 """
 
 from __future__ import annotations
@@ -16,10 +16,10 @@ from typing import Annotated, TypeAlias
 from pydantic import Field
 
 from stipi_daemon.clock import SessionClock
-from stipi_daemon.transports.base import Releasable, Transport
-from stipi_daemon.transports.ble import BleTransportConfig
-from stipi_daemon.transports.emulated import EmulatedTransportConfig
-from stipi_daemon.transports.serial import SerialTransportConfig
+from stipi_daemon.probe.transports.base import Releasable, Transport
+from stipi_daemon.probe.transports.ble import BleTransportConfig
+from stipi_daemon.probe.transports.serial import SerialTransportConfig
+from stipi_daemon.sim.emulated_transport import EmulatedTransportConfig
 
 __all__ = [
     "BleTransportConfig",
@@ -54,18 +54,18 @@ def open_transport(
     Returns
     -------
     Transport
-        An unopened transport; :class:`~stipi_daemon.probe.ProbeLink` opens and reopens it.
+        An unopened transport; :class:`~stipi_daemon.probe.link.ProbeLink` opens and reopens it.
     """
     if config.kind == "serial":
-        from stipi_daemon.transports.serial import SerialTransport
+        from stipi_daemon.probe.transports.serial import SerialTransport
 
         return SerialTransport(config)
     if config.kind == "emulated":
-        from stipi_daemon.transports.emulated import EmulatedTransport
+        from stipi_daemon.sim.emulated_transport import EmulatedTransport
 
         return EmulatedTransport(config, clock)
     if config.kind == "ble":
-        from stipi_daemon.transports.ble import BleTransport
+        from stipi_daemon.probe.transports.ble import BleTransport
 
         return BleTransport(config, clock)
     raise ValueError(f"unknown transport kind {config.kind!r}")  # pragma: no cover

@@ -6,11 +6,11 @@ probe's name and the Nordic UART Service, accepts one central, passes the centra
 to RX on to the firmware, and sends the firmware's bytes as TX notifications with the real
 module's limits - ATT MTU 23 (20-byte notifications) unless configured otherwise, a bounded
 number of notifications per connection event, a ~1 KB transmit buffer that refuses whole
-frames when full (:mod:`stipi_daemon.ble.module`). Real ATT/GATT runs underneath, over a
-USB dongle or a :class:`~stipi_daemon.ble.radio.VirtualRadio`. It also injects link faults:
+frames when full (:mod:`stipi_daemon.sim.ble.module`). Real ATT/GATT runs underneath, over a
+USB dongle or a :class:`~stipi_daemon.sim.ble.radio.VirtualRadio`. It also injects link faults:
 drop the link, stay connected but stop notifying, delay / drop / corrupt notifications,
 disappear for a while. It knows nothing of the wire protocol or the firmware; the
-emulated probe (:mod:`stipi_daemon.ble.mock_probe`) drives it.
+emulated probe (:mod:`stipi_daemon.sim.ble.mock_probe`) drives it.
 """
 
 from __future__ import annotations
@@ -28,7 +28,17 @@ from bumble.device import Connection, Device, DeviceConfiguration
 from bumble.gatt import Characteristic, CharacteristicValue, Service
 from bumble.hci import Address, HCI_Error, Role
 
-from stipi_daemon.ble.module import (
+from stipi_daemon.clock import SessionClock
+from stipi_daemon.probe.nus import (
+    ATT_DEFAULT_MTU,
+    ATT_NOTIFY_OVERHEAD,
+    DEFAULT_PROBE_NAME,
+    NUS_RX_UUID,
+    NUS_SERVICE_UUID,
+    NUS_TX_UUID,
+    advertising_payloads,
+)
+from stipi_daemon.sim.ble.module import (
     BLUEFRUIT_TX_BUFFER_BYTES,
     ConnectionEventPacer,
     FaultInjector,
@@ -38,17 +48,7 @@ from stipi_daemon.ble.module import (
     TxChunk,
     UartTxFifo,
 )
-from stipi_daemon.ble.nus import (
-    ATT_DEFAULT_MTU,
-    ATT_NOTIFY_OVERHEAD,
-    DEFAULT_PROBE_NAME,
-    NUS_RX_UUID,
-    NUS_SERVICE_UUID,
-    NUS_TX_UUID,
-    advertising_payloads,
-)
-from stipi_daemon.ble.radio import HciEndpoint, static_address
-from stipi_daemon.clock import SessionClock
+from stipi_daemon.sim.ble.radio import HciEndpoint, static_address
 
 __all__ = ["BleModuleLimits", "LinkCounters", "NusPeripheral"]
 
@@ -145,7 +145,7 @@ class NusPeripheral:
     Parameters
     ----------
     hci : HciEndpoint
-        Controller to run on (:func:`~stipi_daemon.ble.radio.open_hci`).
+        Controller to run on (:func:`~stipi_daemon.sim.ble.radio.open_hci`).
     clock : SessionClock
         Session clock pacing connection events and fault timings.
     name : str

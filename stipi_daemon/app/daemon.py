@@ -1,7 +1,7 @@
 """The acquisition daemon: probe and camera in, one measurement's session out.
 
 ``stipi-daemon --config probe.yaml`` runs :func:`run_measurement`. It opens the probe
-(a :class:`~stipi_daemon.probe.ProbeLink` over the configured transport) and the camera
+(a :class:`~stipi_daemon.probe.link.ProbeLink` over the configured transport) and the camera
 (a :class:`~stipi_daemon.cameras.stream.CameraStream` over the configured source), creates
 the session, and then runs four asyncio tasks until the measurement ends:
 
@@ -43,9 +43,9 @@ from stipi_daemon import __version__
 from stipi_daemon.analysis.calibration import Calibration, load_calibration
 from stipi_daemon.analysis.imaging import CircleROI, FrameProcessor
 from stipi_daemon.analysis.severity import load_reference
+from stipi_daemon.app.config import DaemonConfig
+from stipi_daemon.app.console import OperatorConsole, format_results
 from stipi_daemon.clock import ScaledClock
-from stipi_daemon.config import DaemonConfig
-from stipi_daemon.console import OperatorConsole, format_results
 from stipi_daemon.errors import ConfigError, SessionError, StipiError
 from stipi_daemon.measurement.merge import TimeOrderedMerger
 from stipi_daemon.measurement.pipeline import MeasurementPipeline
@@ -239,7 +239,7 @@ async def run_daemon(
         Session seconds per wall second; default ``config.run.speed`` (1 for real
         devices; the demo accelerates its simulated devices).
     out, quiet, live
-        Console output (see :class:`~stipi_daemon.console.OperatorConsole`).
+        Console output (see :class:`~stipi_daemon.app.console.OperatorConsole`).
     clock : ScaledClock, optional
         The session clock to run on (default: a new one at ``speed``); lets a caller
         start devices of its own (an emulated probe on a pty, a firmware simulation) on
@@ -269,7 +269,7 @@ async def run_daemon(
     from stipi_daemon.cameras import CameraFrame, CameraStream, open_camera
     from stipi_daemon.cameras import CameraRecovered as CamRecovered
     from stipi_daemon.cameras import CameraStalled as CamStalled
-    from stipi_daemon.probe import (
+    from stipi_daemon.probe.link import (
         ClockProbe,
         ForceRows,
         Gap,
@@ -277,7 +277,7 @@ async def run_daemon(
         LinkUp,
         ProbeLink,
     )
-    from stipi_daemon.transports import open_transport
+    from stipi_daemon.probe.transports import open_transport
 
     if clock is None:
         clock = ScaledClock(speed if speed is not None else config.run.speed)

@@ -1,10 +1,10 @@
 """The daemon's probe-side adapter: one probe, over any transport, as a stream of events.
 
-This module owns :class:`ProbeLink`. Over a :class:`~stipi_daemon.transports.base.Transport`
+This module owns :class:`ProbeLink`. Over a :class:`~stipi_daemon.probe.transports.base.Transport`
 it decodes the probe's frames (:class:`~stipi_daemon.protocol.FrameDecoder`), accounts for
 every sample (:class:`~stipi_daemon.protocol.SampleAccounting`: gaps are exact, samples
 sent = received + lost), maps the probe's microsecond clock onto the session clock
-(:class:`~stipi_daemon.clocksync.ClockSync`, fed the last sample time of each SAMPLES
+(:class:`~stipi_daemon.protocol.clocksync.ClockSync`, fed the last sample time of each SAMPLES
 batch), converts ADC counts to force (``force_n = (adc - zero_counts) * span_un_per_count
 * 1e-6``, docs/protocol.md), sends commands and matches their ACKs (``ref_seq``), with a
 timeout and retries, configures the probe at connect (GET_INFO, SET_RATE, SET_LED, and
@@ -30,9 +30,10 @@ from dataclasses import dataclass, field, replace
 from typing import Any, Final, Literal, TypeAlias
 
 from stipi_daemon.clock import SessionClock
-from stipi_daemon.clocksync import ClockSync, ClockSyncConfig
 from stipi_daemon.errors import DeviceNotFoundError, LinkLostError, ProtocolError, StipiError
+from stipi_daemon.probe.transports.base import Releasable, Transport
 from stipi_daemon.protocol.accounting import SampleAccounting, SampleGap
+from stipi_daemon.protocol.clocksync import ClockSync, ClockSyncConfig
 from stipi_daemon.protocol.decoder import DecodedFrame, FrameDecoder
 from stipi_daemon.protocol.messages import (
     RATE_MAX_HZ,
@@ -54,7 +55,6 @@ from stipi_daemon.protocol.messages import (
     encode_frame,
 )
 from stipi_daemon.protocol.timestamps import SeqEvent
-from stipi_daemon.transports.base import Releasable, Transport
 
 __all__ = [
     "FAULT_COUNTERS",

@@ -10,7 +10,7 @@ analysed over the recovery that was kept (:func:`replay` with ``partial_recovery
 flagged and noted). It also builds the summary in the layout of the live ``summary.json``,
 compares it with a stored summary, and compares results with a simulator's ground truth.
 It does no I/O: reading sessions, CSV files and videos is
-:mod:`stipi_daemon.offline_io`'s job, printing and writing is the ``analyze`` command's.
+:mod:`stipi_daemon.app.offline_io`'s job, printing and writing is the ``analyze`` command's.
 """
 
 from __future__ import annotations
@@ -25,7 +25,7 @@ import numpy.typing as npt
 
 from stipi_daemon.analysis.calibration import Calibration
 from stipi_daemon.analysis.flags import Flag
-from stipi_daemon.analysis.measurement import AnalysisSettings, MeasurementResult
+from stipi_daemon.analysis.results import AnalysisSettings, MeasurementResult
 from stipi_daemon.analysis.severity import SeverityReference
 from stipi_daemon.errors import AnalysisError, CalibrationError
 from stipi_daemon.measurement.pipeline import LiveParameters, MeasurementPipeline

@@ -5,8 +5,8 @@ calibration pairs) with errors naming file, line and column; videos decoded with
 and counted into S_k (Eqs. 1-2) with :class:`~stipi_daemon.analysis.imaging.FrameProcessor`;
 a stored session's frames, force samples and arm time read through
 :class:`~stipi_daemon.storage.SessionReader`; a simulator's ``ground_truth.json``. It turns
-them into :class:`~stipi_daemon.offline.Recording` values and does no analysis itself
-(:mod:`stipi_daemon.offline`).
+them into :class:`~stipi_daemon.measurement.replay.Recording` values and does no analysis itself
+(:mod:`stipi_daemon.measurement.replay`).
 
 CSV conventions: a header row of column names (units in the names), comma separated,
 lines starting with ``#`` and blank lines ignored, extra columns ignored. Numbers in any
@@ -30,6 +30,7 @@ import numpy.typing as npt
 from stipi_daemon.analysis.flags import Flag
 from stipi_daemon.analysis.imaging import CircleROI, FrameProcessor, RectROI
 from stipi_daemon.errors import DataFileError
+from stipi_daemon.measurement.replay import Recording
 from stipi_daemon.measurement.state_machine import (
     CameraRecovered,
     CameraStalled,
@@ -37,7 +38,6 @@ from stipi_daemon.measurement.state_machine import (
     LinkLost,
     LinkRestored,
 )
-from stipi_daemon.offline import Recording
 from stipi_daemon.storage import SessionReader, SessionState
 
 __all__ = [

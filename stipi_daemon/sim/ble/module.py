@@ -14,7 +14,7 @@ and no Bumble objects:
   of single notifications for fault-injection tests.
 
 Link-level faults (drop the link, go silent, disappear) are actions of the Bumble
-peripheral in :mod:`stipi_daemon.ble.peripheral`, which drives these models.
+peripheral in :mod:`stipi_daemon.sim.ble.peripheral`, which drives these models.
 """
 
 from __future__ import annotations

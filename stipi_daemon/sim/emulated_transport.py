@@ -1,9 +1,9 @@
 """Emulated transport: an emulated Feather on a pty, reached through the real serial path.
 
 This module owns :class:`EmulatedTransportConfig` and :class:`EmulatedTransport`. Opening
-the transport the first time starts an :class:`~stipi_daemon.emulator.EmulatedFeather`
+the transport the first time starts an :class:`~stipi_daemon.sim.feather.EmulatedFeather`
 (its ADC fed by a simulator scene, paced on the session clock) and then opens a
-:class:`~stipi_daemon.transports.serial.SerialTransport` on the emulator's pty through
+:class:`~stipi_daemon.probe.transports.serial.SerialTransport` on the emulator's pty through
 pyserial, so the demo and the tests exercise the same code as a real ``/dev/ttyACM0``.
 ``close()`` only closes the serial side (the emulated probe keeps running, like a real one
 on its battery); ``release()`` also stops the emulator. The emulator is reachable as
@@ -19,10 +19,10 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from stipi_daemon.clock import SessionClock
 from stipi_daemon.errors import LinkLostError
-from stipi_daemon.transports.serial import SerialTransport, SerialTransportConfig
+from stipi_daemon.probe.transports.serial import SerialTransport, SerialTransportConfig
 
 if TYPE_CHECKING:
-    from stipi_daemon.emulator.feather import EmulatedFeather
+    from stipi_daemon.sim.feather import EmulatedFeather
 
 __all__ = ["EmulatedTransport", "EmulatedTransportConfig"]
 
@@ -63,7 +63,7 @@ class EmulatedTransportConfig(BaseModel):
 
 
 class EmulatedTransport:
-    """A :class:`~stipi_daemon.transports.base.Transport` to an emulated Feather.
+    """A :class:`~stipi_daemon.probe.transports.base.Transport` to an emulated Feather.
 
     Parameters
     ----------
@@ -91,8 +91,8 @@ class EmulatedTransport:
         return self._feather
 
     def _make_feather(self) -> EmulatedFeather:
-        from stipi_daemon.emulator.feather import EmulatedFeather, McuClock, scene_core
         from stipi_daemon.sim import load_scene
+        from stipi_daemon.sim.feather import EmulatedFeather, McuClock, scene_core
 
         cfg = self.config
         scene = load_scene(cfg.scene)

@@ -23,7 +23,7 @@ This module owns three pure parts and one thin I/O shell:
   injects link faults: unplug and return, garbage bursts, bit flips, silence, main-loop
   stalls (probe-side drops), and MCU clock drift.
 
-It does not decode what the host does with the frames (that is :mod:`stipi_daemon.probe`),
+It does not decode what the host does with the frames (that is :mod:`stipi_daemon.probe.link`),
 and it does not model BLE.
 """
 

@@ -1,17 +1,16 @@
 """The emulated probe over BLE: the firmware model behind the emulated Bluefruit module.
 
 This module owns :class:`BleProbeEmulator`, the glue between
-:class:`~stipi_daemon.emulator.feather.FeatherCore` (the firmware's behaviour, fed host
-bytes and advanced in MCU time, unchanged) and :class:`~stipi_daemon.ble.peripheral.NusPeripheral`
+:class:`~stipi_daemon.sim.feather.FeatherCore` (the firmware's behaviour, fed host bytes and
+advanced in MCU time, unchanged) and :class:`~stipi_daemon.sim.ble.peripheral.NusPeripheral`
 (the nRF51822 module on a Bumble stack), paced on the session clock. It reproduces what the
 firmware's BLE link does (``firmware/feather32u4/src/core/sdep.cpp``): frames go to the
 module only while a central is connected, a frame the module cannot take is lost whole (the
-host sees a ``seq`` gap), and the first frame after a central connects is preceded by a
-0x00 so the new central's decoder starts on a frame boundary. It keeps a ledger of every
-sample the probe sent and which of them left the antenna intact, so tests can hold the
-host's gap accounting to the truth. It does not decode anything the host sends beyond
-what the firmware model does, and it owns no radio (the caller passes an HCI endpoint).
-"""
+host sees a ``seq`` gap), and the first frame after a central connects is preceded by a 0x00
+so the new central's decoder starts on a frame boundary. It keeps a ledger of every sample
+the probe sent and which of them left the antenna intact, so tests can hold the host's gap
+accounting to the truth. It does not decode anything the host sends beyond what the firmware
+model does, and it owns no radio (the caller passes an HCI endpoint)."""
 
 from __future__ import annotations
 
@@ -22,15 +21,15 @@ from collections.abc import Hashable
 from dataclasses import dataclass, field
 from typing import Final
 
-from stipi_daemon.ble.module import NotificationFaults
-from stipi_daemon.ble.nus import DEFAULT_PROBE_NAME
-from stipi_daemon.ble.peripheral import BleModuleLimits, NusPeripheral
-from stipi_daemon.ble.radio import open_hci
 from stipi_daemon.clock import SessionClock
-from stipi_daemon.emulator.feather import FeatherCore, McuClock
-from stipi_daemon.emulator.feather import scene_core as feather_scene_core
+from stipi_daemon.probe.nus import DEFAULT_PROBE_NAME
 from stipi_daemon.protocol.cobs import cobs_decode
 from stipi_daemon.protocol.messages import Samples, StatusFlags, unpack_frame
+from stipi_daemon.sim.ble.module import NotificationFaults
+from stipi_daemon.sim.ble.peripheral import BleModuleLimits, NusPeripheral
+from stipi_daemon.sim.ble.radio import open_hci
+from stipi_daemon.sim.feather import FeatherCore, McuClock
+from stipi_daemon.sim.feather import scene_core as feather_scene_core
 
 __all__ = [
     "BleFeatherCore",
@@ -239,7 +238,7 @@ def scene_core(
 ) -> BleFeatherCore:
     """A firmware model reading a simulator scene, booted at session time ``now_s``.
 
-    :func:`stipi_daemon.emulator.feather.scene_core` with the BLE probe's core
+    :func:`stipi_daemon.sim.feather.scene_core` with the BLE probe's core
     (:class:`BleFeatherCore`); the parameters are that function's.
     """
     core = feather_scene_core(

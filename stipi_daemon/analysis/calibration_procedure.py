@@ -9,7 +9,7 @@ force and the mean S over the plateau (:func:`find_force_plateaus`,
 the mean S_0 (:func:`displacement_points`) - and formats the fit report
 (:func:`fit_report`). The least-squares fits, their refusals and the calibration file are
 :mod:`stipi_daemon.analysis.calibration`'s; reading files is
-:mod:`stipi_daemon.offline_io`'s. No I/O here.
+:mod:`stipi_daemon.app.offline_io`'s. No I/O here.
 """
 
 from __future__ import annotations

@@ -8,7 +8,7 @@ settings, storage and the run speed. It validates everything with pydantic (unkn
 are errors) and reports problems as one :class:`~stipi_daemon.errors.ConfigError` line
 naming the file and the field path. Paths inside the file are resolved relative to the
 file. It does not open devices or files other than the config itself. Each transport's
-and camera's own options live in their modules (:mod:`stipi_daemon.transports`,
+and camera's own options live in their modules (:mod:`stipi_daemon.probe.transports`,
 :mod:`stipi_daemon.cameras`).
 """
 
@@ -21,11 +21,11 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, ValidationInfo, field_validator
 
 from stipi_daemon.analysis.imaging import ROI
-from stipi_daemon.analysis.measurement import AnalysisSettings
+from stipi_daemon.analysis.results import AnalysisSettings
 from stipi_daemon.cameras import CameraConfig
 from stipi_daemon.errors import ConfigError
 from stipi_daemon.measurement.state_machine import MeasurementConfig
-from stipi_daemon.transports import TransportConfig
+from stipi_daemon.probe.transports import TransportConfig
 
 __all__ = [
     "CONFIG_FORMAT",
@@ -52,7 +52,7 @@ class ProbeSettings(_Model):
     Attributes
     ----------
     transport : TransportConfig
-        ``serial``, ``ble`` or ``emulated`` (see :mod:`stipi_daemon.transports`).
+        ``serial``, ``ble`` or ``emulated`` (see :mod:`stipi_daemon.probe.transports`).
     rate_hz : int
         Load-cell sample rate to configure [Hz], 16..1000.
     led_level : int

@@ -2,7 +2,7 @@
 
 This module owns :class:`BumbleAdapter` (a Bumble :class:`~bumble.device.Device` acting as
 central on an HCI endpoint - a USB dongle, an HCI socket, or a controller on a
-:class:`~stipi_daemon.ble.radio.VirtualRadio`) and the two bleak backend classes built on
+:class:`~stipi_daemon.sim.ble.radio.VirtualRadio`) and the two bleak backend classes built on
 it, :class:`BumbleBleakScanner` (a :class:`bleak.backends.scanner.BaseBleakScanner`) and
 :class:`BumbleBleakClient` (a :class:`bleak.backends.client.BaseBleakClient`). bleak accepts
 them through ``BleakScanner(..., backend=...)`` and ``BleakClient(..., backend=...)``, so
@@ -40,7 +40,7 @@ from bumble.gatt import Characteristic
 from bumble.gatt_client import CharacteristicProxy, DescriptorProxy
 from bumble.hci import Address, HCI_Error
 
-from stipi_daemon.ble.radio import HciEndpoint, open_hci, static_address
+from stipi_daemon.sim.ble.radio import HciEndpoint, open_hci, static_address
 
 __all__ = [
     "DEFAULT_CENTRAL_MTU",

@@ -7,6 +7,6 @@ Bumble software controllers), :mod:`.peripheral` (the module as a Bumble periphe
 fault injection), :mod:`.mock_probe` (the firmware model streaming through it) and
 :mod:`.bleak_backend` (a bleak backend on Bumble's host stack, so bleak's public API runs
 over a dongle or a virtual radio). The daemon's BLE transport is
-:mod:`stipi_daemon.transports.ble`. Nothing here is imported until used: Bumble and bleak
+:mod:`stipi_daemon.probe.transports.ble`. Nothing here is imported until used: Bumble and bleak
 load only when a BLE link is opened.
 """

@@ -1,7 +1,7 @@
 """The byte-stream interface every probe link implements (serial, emulated, BLE).
 
 This module owns :class:`Transport`, the small async protocol the probe adapter
-(:mod:`stipi_daemon.probe`) talks through: ``open()``, ``read()`` (waits for at least one
+(:mod:`stipi_daemon.probe.link`) talks through: ``open()``, ``read()`` (waits for at least one
 byte, raises :class:`~stipi_daemon.errors.LinkLostError` when the link goes away),
 ``write(data)``, ``close()`` and a ``name`` for messages; and :class:`Releasable`, the
 optional extra a transport that owns a device (an emulated probe) implements so that its

@@ -7,7 +7,7 @@ software controllers (:class:`bumble.controller.Controller`) sharing one in-proc
 :class:`bumble.link.LocalLink`, over which real link-layer connections, ACL data, ATT and
 GATT run between every device on that radio. Tests, the emulated probe and a central then
 talk "over the air" with no adapter present. It does not build devices or GATT services
-(:mod:`stipi_daemon.ble.peripheral`, :mod:`stipi_daemon.ble.bleak_backend` do).
+(:mod:`stipi_daemon.sim.ble.peripheral`, :mod:`stipi_daemon.sim.ble.bleak_backend` do).
 """
 
 from __future__ import annotations

@@ -3,7 +3,7 @@
 This module owns :class:`SettlingTracker`, the state machine's view of the recovery's S_k
 (Eqs. (1)-(2)) frame by frame, and its stop test (:meth:`SettlingTracker.settled`). It
 does not own the rules it applies - the still-rising test and the Kelvin-Voigt truncation
-bound are the analysis' (:mod:`~stipi_daemon.analysis.settling`), so that an early stop
+bound are the analysis' (:mod:`~stipi_daemon.analysis.settling_rules`), so that an early stop
 and the analysis of Eq. (6) agree - nor the phases and timeouts (the state machine). Pure
 and immutable: every frame returns a new tracker; a frame costs O(1) (a fixed ladder of
 about 20 levels, no history of frames).
@@ -32,7 +32,7 @@ import math
 from dataclasses import dataclass, replace
 from typing import Final
 
-from stipi_daemon.analysis.settling import LineSums, still_rising, truncation_hold_factor
+from stipi_daemon.analysis.settling_rules import LineSums, still_rising, truncation_hold_factor
 
 __all__ = ["LEVELS_PER_BAND", "SettlingTracker"]
 
