@@ -41,7 +41,7 @@ import numpy.typing as npt
 
 from stipi_daemon import __version__
 from stipi_daemon.analysis.calibration import Calibration, load_calibration
-from stipi_daemon.analysis.imaging import CircleROI, FrameProcessor
+from stipi_daemon.analysis.imaging import CircleROI, FrameProcessor, sk_kernel
 from stipi_daemon.analysis.severity import load_reference
 from stipi_daemon.app.config import DaemonConfig
 from stipi_daemon.app.console import OperatorConsole, format_results
@@ -353,6 +353,7 @@ async def run_daemon(
                 commit_interval_s=storage.commit_interval_s,
                 min_free_bytes=int(storage.min_free_mb * 1e6),
             ),
+            software={"sk_kernel": sk_kernel()},
         )
     except BaseException:
         await camera.close()

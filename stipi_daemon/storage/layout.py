@@ -17,6 +17,7 @@ import secrets
 import shutil
 import socket
 import sqlite3
+from collections.abc import Mapping
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any, Final
@@ -95,15 +96,18 @@ def check_free_space(root: Path, min_free_bytes: int) -> int:
     return free_b
 
 
-def software_versions() -> dict[str, str | None]:
+def software_versions(extra: Mapping[str, str | None] | None = None) -> dict[str, str | None]:
     """Versions of the software that records a session (``None`` if a module is missing).
 
-    ``sk_kernel`` names the routine that counted S_k (see
-    :func:`stipi_daemon.analysis.imaging.sk_kernel`); every routine gives identical counts.
+    Parameters
+    ----------
+    extra : mapping, optional
+        Further entries supplied by the caller, which knows what produced the data it
+        stores; the daemon adds ``sk_kernel``, the routine that counted S_k (see
+        :func:`stipi_daemon.analysis.imaging.sk_kernel`; every routine gives identical
+        counts). Storage records them as given.
     """
     import numpy
-
-    from stipi_daemon.analysis.imaging import sk_kernel
 
     try:
         import cv2
@@ -111,14 +115,15 @@ def software_versions() -> dict[str, str | None]:
         opencv: str | None = str(cv2.__version__)
     except ImportError:  # pragma: no cover - opencv is a dependency
         opencv = None
-    return {
+    versions: dict[str, str | None] = {
         "stipi_daemon": __version__,
         "python": platform.python_version(),
         "numpy": numpy.__version__,
         "opencv": opencv,
         "sqlite": sqlite3.sqlite_version,
-        "sk_kernel": sk_kernel(),
     }
+    versions.update(extra or {})
+    return versions
 
 
 def build_manifest(
@@ -133,8 +138,12 @@ def build_manifest(
     video: bool,
     commit_interval_s: float,
     synchronous: str,
+    software: Mapping[str, str | None] | None = None,
 ) -> dict[str, Any]:
     """The manifest of a new session (plain JSON types).
+
+    ``software`` adds the caller's entries to the manifest's software versions
+    (:func:`software_versions`).
 
     ``created_monotonic_s`` and ``created_unix_s`` are read together at creation: they tie
     the host monotonic clock of every ``t_host_s`` column to UTC
@@ -155,7 +164,7 @@ def build_manifest(
         "config": to_jsonable(config, "config"),
         "calibration": to_jsonable(calibration, "calibration"),
         "firmware": None if firmware is None else to_jsonable(firmware, "firmware"),
-        "software": software_versions(),
+        "software": software_versions(software),
         "files": {
             "database": DB_NAME,
             "summary": SUMMARY_NAME,

@@ -166,6 +166,7 @@ class SessionWriter:
         session_id: str | None = None,
         video: bool = False,
         options: StorageOptions | None = None,
+        software: Mapping[str, str | None] | None = None,
     ) -> SessionWriter:
         """Create a new session directory and start recording into it.
 
@@ -185,6 +186,9 @@ class SessionWriter:
             Reserve ``video.avi`` in the manifest; the caller writes the file.
         options : StorageOptions, optional
             Commit interval, durability, free-space minimum.
+        software : mapping, optional
+            Versions of the routines that produced the data (e.g. ``sk_kernel``), recorded
+            in the manifest beside the storage's own software versions.
 
         Raises
         ------
@@ -216,6 +220,7 @@ class SessionWriter:
             video=video,
             commit_interval_s=options.commit_interval_s,
             synchronous=options.synchronous,
+            software=software,
         )
         try:
             directory.mkdir()

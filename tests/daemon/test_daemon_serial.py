@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from stipi_daemon.analysis.imaging import sk_kernel
 from stipi_daemon.app.config import load_config
 from stipi_daemon.app.daemon import run_daemon
 from stipi_daemon.clock import ScaledClock
@@ -106,6 +107,7 @@ async def test_serial_transport_measures_the_ground_truth(rig: Rig, tmp_path: Pa
         firmware = reader.manifest["firmware"]
         assert firmware["calibration_source"] == "probe"
         assert firmware["transport"] == f"serial:{rig.feather.path}"
+        assert reader.manifest["software"]["sk_kernel"] == sk_kernel()
         assert reader.integrity_check().ok
         assert str(reader.status) == "complete"
         assert reader.counts()["gaps"] == 0

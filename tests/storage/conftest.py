@@ -14,6 +14,8 @@ from stipi_daemon.storage import SessionWriter, StorageOptions
 CONFIG: dict[str, Any] = {"transport": "sim:scenes/grade3.yaml", "camera": {"fps": 60}}
 CALIBRATION: dict[str, Any] = {"alpha1": 1.2e-9, "alpha2": 3.4e-4, "c1": 120.0, "c2": 55.0}
 FIRMWARE: dict[str, Any] = {"proto": 1, "fw": "1.0.0", "adc_bits": 10}
+#: What the caller adds to the manifest's software versions (the daemon names its S_k kernel).
+SOFTWARE: dict[str, str | None] = {"sk_kernel": "test-kernel"}
 SUMMARY: dict[str, Any] = {
     "severity": {"severity": "severe", "nearest_grade": "3+", "decay_rate_per_s": 0.02},
     "d_p_mm": 4.2,
@@ -68,7 +70,14 @@ def write_full_session(
         (t0 + 2.0, "t_r_s", math.inf),
     ]
     with SessionWriter.create(
-        root, CONFIG, CALIBRATION, FIRMWARE, session_id=session_id, video=True, options=OPTIONS
+        root,
+        CONFIG,
+        CALIBRATION,
+        FIRMWARE,
+        session_id=session_id,
+        video=True,
+        options=OPTIONS,
+        software=SOFTWARE,
     ) as writer:
         writer.add_force_samples(force)
         writer.add_frames(frames[:1])

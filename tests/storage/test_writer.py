@@ -16,7 +16,6 @@ from typing import Any
 import numpy as np
 import pytest
 
-from stipi_daemon.analysis.imaging import sk_kernel
 from stipi_daemon.errors import ConfigError, SessionError
 from stipi_daemon.storage import (
     DEFAULT_COMMIT_INTERVAL_S,
@@ -25,7 +24,15 @@ from stipi_daemon.storage import (
     SessionWriter,
     StorageOptions,
 )
-from tests.storage.conftest import CALIBRATION, CONFIG, FIRMWARE, OPTIONS, SUMMARY, Recorded
+from tests.storage.conftest import (
+    CALIBRATION,
+    CONFIG,
+    FIRMWARE,
+    OPTIONS,
+    SOFTWARE,
+    SUMMARY,
+    Recorded,
+)
 from tests.storage.writer_child import PROGRESS
 
 CHILD = Path(__file__).with_name("writer_child.py")
@@ -87,7 +94,7 @@ def test_manifest_contents(recorded: Recorded) -> None:
         "sqlite",
         "sk_kernel",
     }
-    assert manifest["software"]["sk_kernel"] == sk_kernel()
+    assert manifest["software"]["sk_kernel"] == SOFTWARE["sk_kernel"]
     assert manifest["software"]["sqlite"] == sqlite3.sqlite_version
     assert manifest["storage"]["commit_interval_s"] == DEFAULT_COMMIT_INTERVAL_S
 
@@ -401,3 +408,9 @@ def test_kill_9_loses_at_most_one_commit_interval(tmp_path: Path, interval: floa
     lost_s = last_t_s - float(force["t_host_s"][-1])
     # Loss bound: one commit interval, plus 50 ms for scheduling and the commit itself.
     assert lost_s <= interval + 0.05, f"lost {lost_s * 1e3:.0f} ms of accepted rows"
+
+
+def test_manifest_software_without_caller_entries(tmp_path: Path) -> None:
+    with SessionWriter.create(tmp_path, {}, {}, session_id="s", options=OPTIONS) as writer:
+        software = writer.manifest["software"]
+    assert set(software) == {"stipi_daemon", "python", "numpy", "opencv", "sqlite"}
