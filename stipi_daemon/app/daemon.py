@@ -40,13 +40,13 @@ import numpy as np
 import numpy.typing as npt
 
 from stipi_daemon import __version__
-from stipi_daemon.analysis.calibration import Calibration, load_calibration
-from stipi_daemon.analysis.imaging import CircleROI, FrameProcessor, sk_kernel
+from stipi_daemon.analysis.imaging import FrameProcessor, sk_kernel
 from stipi_daemon.analysis.severity import load_reference
 from stipi_daemon.app.config import DaemonConfig
 from stipi_daemon.app.console import OperatorConsole, format_results
+from stipi_daemon.app.imaging import resolve_imaging
 from stipi_daemon.clock import ScaledClock
-from stipi_daemon.errors import ConfigError, SessionError, StipiError
+from stipi_daemon.errors import SessionError, StipiError
 from stipi_daemon.measurement.merge import TimeOrderedMerger
 from stipi_daemon.measurement.pipeline import MeasurementPipeline
 from stipi_daemon.measurement.state_machine import (
@@ -161,47 +161,6 @@ class _Stop:
         self.error = error
 
 
-def _resolve_imaging(
-    config: DaemonConfig,
-) -> tuple[Calibration, int, CircleROI | Any | None, dict[str, Any] | None]:
-    """Calibration, threshold p, ROI and (for simulated devices) the scene's ground truth."""
-    scene_path = getattr(config.camera, "scene", None)
-    truth: dict[str, Any] | None = None
-    sim_cal: Calibration | None = None
-    sim_roi: CircleROI | None = None
-    sim_p: int | None = None
-    if scene_path is not None:
-        from stipi_daemon.sim.physics import scaled_calibration
-        from stipi_daemon.sim.scene import load_scene
-        from stipi_daemon.sim.truth import ground_truth
-
-        scene = load_scene(scene_path)
-        seed = getattr(config.camera, "seed", None)
-        gt = ground_truth(scene, seed)
-        truth = gt.to_json_dict()
-        sim_cal, _ = scaled_calibration(scene)
-        sim_roi = CircleROI(kind="circle", **gt.roi)
-        sim_p = int(gt.frame["threshold_p"])
-    if config.calibration is not None:
-        calibration = load_calibration(config.calibration)
-    elif sim_cal is not None:
-        calibration = sim_cal
-    else:
-        raise ConfigError(
-            "field 'calibration': a calibration file is required with a real camera "
-            "(run `stipi-daemon calibrate`)"
-        )
-    p = config.imaging.threshold_p
-    if p is None:
-        p = calibration.threshold_p if calibration.threshold_p is not None else sim_p
-    if p is None:
-        raise ConfigError(
-            "field 'imaging.threshold_p': no threshold given and the calibration has none"
-        )
-    roi = config.imaging.roi if config.imaging.roi is not None else sim_roi
-    return calibration, int(p), roi, truth
-
-
 def run_measurement(
     config: DaemonConfig,
     *,
@@ -282,7 +241,7 @@ async def run_daemon(
     if clock is None:
         clock = ScaledClock(speed if speed is not None else config.run.speed)
     run_speed = clock.speed
-    calibration, threshold, roi, truth = _resolve_imaging(config)
+    calibration, threshold, roi, truth = resolve_imaging(config)
     reference = load_reference()
     console = OperatorConsole(config.measurement, out, live=live, quiet=quiet)
     wall0 = time.monotonic()
