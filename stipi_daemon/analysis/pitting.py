@@ -366,23 +366,9 @@ def recovery_time(
     """
     series = validate_series(times_s, s_k)
     t, s = series.times_s, series.s_px
-    t0 = require_finite("t0_s", t0_s)
-    fraction = require_finite("settle_fraction", settle_fraction)
-    if not 0.0 < fraction <= 1.0:
-        raise AnalysisError(f"settle_fraction must be in (0, 1], got {fraction}")
-    window = require_finite("window_s", window_s)
-    if window <= 0.0:
-        raise AnalysisError(f"window_s must be > 0, got {window}")
-    if persist_frames < 1:
-        raise AnalysisError(f"persist_frames must be >= 1, got {persist_frames}")
-    if s_max_top_frames < 1:
-        raise AnalysisError(f"s_max_top_frames must be >= 1, got {s_max_top_frames}")
-    if not 0.0 <= end_slope_fraction < 1.0:
-        raise AnalysisError(f"end_slope_fraction must be in [0, 1), got {end_slope_fraction}")
-    if not t[0] <= t0 <= t[-1]:
-        raise AnalysisError(
-            f"t0_s = {t0} s lies outside the series' finite samples [{t[0]}, {t[-1]}] s"
-        )
+    t0, fraction, window = _check_recovery_args(
+        t, t0_s, settle_fraction, window_s, persist_frames, s_max_top_frames, end_slope_fraction
+    )
     flags: set[Flag] = set()
     if series.dropped:
         flags.add(Flag.NON_FINITE_INPUT)
@@ -414,6 +400,73 @@ def recovery_time(
         flags.add(Flag.NO_RECOVERY)
         return result(None)
 
+    ts, search_flags = _settling_crossing(
+        tw, sw, t0, s0, level, persist_frames, (1.0 - fraction) * s_max, end_slope_fraction
+    )
+    flags |= search_flags
+    return result(ts)
+
+
+def _check_recovery_args(
+    t: NDArray[np.float64],
+    t0_s: float,
+    settle_fraction: float,
+    window_s: float,
+    persist_frames: int,
+    s_max_top_frames: int,
+    end_slope_fraction: float,
+) -> tuple[float, float, float]:
+    """Check :func:`recovery_time`'s parameters against the valid frame times ``t`` [s].
+
+    Returns
+    -------
+    tuple[float, float, float]
+        T_0 [s], the settling fraction [-] and the window length [s], as floats.
+
+    Raises
+    ------
+    AnalysisError
+        A parameter out of range or T_0 outside the series.
+    """
+    t0 = require_finite("t0_s", t0_s)
+    fraction = require_finite("settle_fraction", settle_fraction)
+    if not 0.0 < fraction <= 1.0:
+        raise AnalysisError(f"settle_fraction must be in (0, 1], got {fraction}")
+    window = require_finite("window_s", window_s)
+    if window <= 0.0:
+        raise AnalysisError(f"window_s must be > 0, got {window}")
+    if persist_frames < 1:
+        raise AnalysisError(f"persist_frames must be >= 1, got {persist_frames}")
+    if s_max_top_frames < 1:
+        raise AnalysisError(f"s_max_top_frames must be >= 1, got {s_max_top_frames}")
+    if not 0.0 <= end_slope_fraction < 1.0:
+        raise AnalysisError(f"end_slope_fraction must be in [0, 1), got {end_slope_fraction}")
+    if not t[0] <= t0 <= t[-1]:
+        raise AnalysisError(
+            f"t0_s = {t0} s lies outside the series' finite samples [{t[0]}, {t[-1]}] s"
+        )
+    return t0, fraction, window
+
+
+def _settling_crossing(
+    tw: NDArray[np.float64],
+    sw: NDArray[np.float64],
+    t0: float,
+    s0: float,
+    level: float,
+    persist_frames: int,
+    band_px: float,
+    end_slope_fraction: float,
+) -> tuple[float, set[Flag]]:
+    """T_s of Eq. (6) [s] in the recovery window (times ``tw`` [s], S_k ``sw`` [px]).
+
+    The first crossing of ``level`` [px] that persists ``persist_frames`` frames, linearly
+    interpolated from the last frame below it (or from (T_0, S_0)); ``band_px`` is the
+    settling band (1 - settle_fraction) * S_max of the still-rising check. Returns T_s and
+    the flags of :func:`recovery_time`'s edge cases (``SETTLED_WITHIN_ONE_FRAME``,
+    ``EARLY_NOISY_CROSSING``, ``NOT_SETTLED``, where T_s is then a lower bound).
+    """
+    flags: set[Flag] = set()
     above = sw >= level
     # Runs of consecutive frames at or above the level: starts and (exclusive) ends.
     padded = np.concatenate(([False], above, [False])).astype(np.int8)
@@ -434,16 +487,16 @@ def recovery_time(
                 ts = float(tw[0])
             else:
                 ts = crossing_time(start)
-            if _still_rising(tw, sw, ts - t0, (1.0 - fraction) * s_max, end_slope_fraction):
+            if _still_rising(tw, sw, ts - t0, band_px, end_slope_fraction):
                 flags.add(Flag.NOT_SETTLED)
-            return result(ts)
+            return ts, flags
         if end == tw.size:
             # The window ends during a short excursion: T_s is at least its crossing.
             flags.add(Flag.NOT_SETTLED)
-            return result(float(tw[0]) if start == 0 else crossing_time(start))
+            return (float(tw[0]) if start == 0 else crossing_time(start)), flags
         flags.add(Flag.EARLY_NOISY_CROSSING)
     flags.add(Flag.NOT_SETTLED)
-    return result(float(tw[-1]))
+    return float(tw[-1]), flags
 
 
 def detect_recovery_start(

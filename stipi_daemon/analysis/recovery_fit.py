@@ -319,36 +319,8 @@ def fit_recovery(
         Bad shapes, non-finite or non-increasing times, non-finite T_0 or window, fewer than
         :data:`MIN_FIT_POINTS` finite samples in the window, or values whose range overflows.
     """
-    t = np.asarray(times_s, dtype=np.float64)
-    y = np.asarray(values, dtype=np.float64)
-    if t.ndim != 1 or t.shape != y.shape:
-        raise AnalysisError(
-            f"times_s and values must be one-dimensional and of equal length, got shapes "
-            f"{t.shape} and {y.shape}"
-        )
-    bad_t = np.flatnonzero(~np.isfinite(t))
-    if bad_t.size:
-        raise AnalysisError(f"times_s[{bad_t[0]}] is {t[bad_t[0]]}: sample times must be finite")
-    if t.size > 1 and np.any(~(np.diff(t) > 0.0)):
-        i = int(np.flatnonzero(~(np.diff(t) > 0.0))[0]) + 1
-        raise AnalysisError(f"times_s must be strictly increasing (at index {i})")
-    if not math.isfinite(t0_s):
-        raise AnalysisError(f"t0_s must be finite, got {t0_s}")
-    if not (math.isfinite(window_s) and window_s > 0.0):
-        raise AnalysisError(f"window_s must be finite and > 0, got {window_s}")
-
-    flags: set[Flag] = set()
-    finite = np.isfinite(y)
-    if not finite.all():
-        flags.add(Flag.NON_FINITE_INPUT)
-    keep = finite & (t >= t0_s) & (t <= t0_s + window_s)
-    tw, yw = t[keep], y[keep]
+    tw, yw, flags = _fit_window(times_s, values, t0_s, window_s)
     n = int(tw.size)
-    if n < MIN_FIT_POINTS:
-        raise AnalysisError(
-            f"need at least {MIN_FIT_POINTS} finite samples in the fit window "
-            f"[{t0_s}, {t0_s + window_s}] s, got {n}"
-        )
     x = tw - t0_s
     y_lo = float(np.min(yw))
     with np.errstate(over="ignore"):
@@ -380,61 +352,16 @@ def fit_recovery(
         return replace(base, offset=mean, amplitude=0.0, rmse=rmse, flags=frozenset(flags))
 
     z = (yw - y_lo) / y_span
-    start = _grid_start(x, z)
-    lo_u, hi_u = math.log(TAU_SEARCH_RANGE_S[0]), math.log(TAU_SEARCH_RANGE_S[1])
-
-    def decay(p: NDArray[np.float64]) -> NDArray[np.float64]:
-        with np.errstate(under="ignore"):
-            out: NDArray[np.float64] = np.exp(-x * math.exp(-p[2]))
-        return out
-
-    def residuals(p: NDArray[np.float64]) -> NDArray[np.float64]:
-        out: NDArray[np.float64] = p[0] - p[1] * decay(p) - z
-        return out
-
-    def jacobian(p: NDArray[np.float64]) -> NDArray[np.float64]:
-        e = decay(p)
-        jac = np.empty((n, 3))
-        jac[:, 0] = 1.0
-        jac[:, 1] = -e
-        with np.errstate(under="ignore"):
-            jac[:, 2] = -p[1] * e * x * math.exp(-p[2])
-        return jac
-
-    x_start = np.array([start[0], start[1], min(max(start[2], lo_u), hi_u)])
-    sol = least_squares(
-        residuals,
-        x_start,
-        jac=jacobian,
-        bounds=([-np.inf, -np.inf, lo_u], [np.inf, np.inf, hi_u]),
-        method="trf",
-        x_scale="jac",
-        max_nfev=200,
-    )
-    p = np.asarray(sol.x, dtype=np.float64)
-    if not sol.success or not np.all(np.isfinite(p)):
+    p = _solve_scaled(x, z)
+    if p is None:
         flags.add(Flag.FIT_NOT_CONVERGED)
         return replace(base, flags=frozenset(flags))
 
-    r = residuals(p)
+    r = _residuals(p, x, z)
     ssr = float(r @ r)
     sst = float(np.sum(np.square(z - z.mean())))
     tau = math.exp(p[2])
-    offset = y_lo + y_span * float(p[0])
-    amplitude = y_span * float(p[1])
-
-    se: list[float | None] = [None, None, None]
-    jac = jacobian(p)
-    sv = np.linalg.svd(jac, compute_uv=False)
-    if sv[-1] > 1e-6 * sv[0]:  # otherwise a parameter is (nearly) undetermined by the data
-        cov = np.linalg.inv(jac.T @ jac) * (ssr / (n - 3))
-        diag = np.diag(cov)
-        se = [math.sqrt(v) if math.isfinite(v) and v >= 0.0 else None for v in diag]
-    offset_se = None if se[0] is None else y_span * se[0]
-    amplitude_se = None if se[1] is None else y_span * se[1]
-    tau_se = None if se[2] is None else tau * se[2]
-    if tau_se is not None and not math.isfinite(tau_se):
-        tau_se = None
+    offset_se, amplitude_se, tau_se = _standard_errors(_jacobian(p, x, z), ssr, y_span, tau)
 
     span = float(x[-1])
     frame = float(np.median(np.diff(tw))) if n > 1 else span
@@ -443,8 +370,8 @@ def fit_recovery(
     return replace(
         base,
         tau_s=tau,
-        amplitude=amplitude,
-        offset=offset,
+        amplitude=y_span * float(p[1]),
+        offset=y_lo + y_span * float(p[0]),
         tau_se_s=tau_se,
         amplitude_se=amplitude_se,
         offset_se=offset_se,
@@ -452,3 +379,124 @@ def fit_recovery(
         r_squared=1.0 - ssr / sst if sst > 0.0 else None,
         flags=frozenset(flags),
     )
+
+
+def _fit_window(
+    times_s: ArrayLike, values: ArrayLike, t0_s: float, window_s: float
+) -> tuple[NDArray[np.float64], NDArray[np.float64], set[Flag]]:
+    """Check :func:`fit_recovery`'s inputs; return the window's times [s], values and flags.
+
+    The window holds the finite samples with T_0 <= t <= T_0 + ``window_s``; the flags are
+    ``NON_FINITE_INPUT`` when any value (inside the window or not) was dropped.
+
+    Raises
+    ------
+    AnalysisError
+        As listed in :func:`fit_recovery`, except the values' range overflow.
+    """
+    t = np.asarray(times_s, dtype=np.float64)
+    y = np.asarray(values, dtype=np.float64)
+    if t.ndim != 1 or t.shape != y.shape:
+        raise AnalysisError(
+            f"times_s and values must be one-dimensional and of equal length, got shapes "
+            f"{t.shape} and {y.shape}"
+        )
+    bad_t = np.flatnonzero(~np.isfinite(t))
+    if bad_t.size:
+        raise AnalysisError(f"times_s[{bad_t[0]}] is {t[bad_t[0]]}: sample times must be finite")
+    if t.size > 1 and np.any(~(np.diff(t) > 0.0)):
+        i = int(np.flatnonzero(~(np.diff(t) > 0.0))[0]) + 1
+        raise AnalysisError(f"times_s must be strictly increasing (at index {i})")
+    if not math.isfinite(t0_s):
+        raise AnalysisError(f"t0_s must be finite, got {t0_s}")
+    if not (math.isfinite(window_s) and window_s > 0.0):
+        raise AnalysisError(f"window_s must be finite and > 0, got {window_s}")
+
+    flags: set[Flag] = set()
+    finite = np.isfinite(y)
+    if not finite.all():
+        flags.add(Flag.NON_FINITE_INPUT)
+    keep = finite & (t >= t0_s) & (t <= t0_s + window_s)
+    tw, yw = t[keep], y[keep]
+    if tw.size < MIN_FIT_POINTS:
+        raise AnalysisError(
+            f"need at least {MIN_FIT_POINTS} finite samples in the fit window "
+            f"[{t0_s}, {t0_s + window_s}] s, got {int(tw.size)}"
+        )
+    return tw, yw, flags
+
+
+def _decay(p: NDArray[np.float64], x: NDArray[np.float64]) -> NDArray[np.float64]:
+    """exp(-x / tau) with tau = exp(p[2]); x = t - T_0 [s]."""
+    with np.errstate(under="ignore"):
+        out: NDArray[np.float64] = np.exp(-x * math.exp(-p[2]))
+    return out
+
+
+def _residuals(
+    p: NDArray[np.float64], x: NDArray[np.float64], z: NDArray[np.float64]
+) -> NDArray[np.float64]:
+    """Model minus data on the scaled values z, p = (offset, amplitude, ln tau)."""
+    out: NDArray[np.float64] = p[0] - p[1] * _decay(p, x) - z
+    return out
+
+
+def _jacobian(
+    p: NDArray[np.float64], x: NDArray[np.float64], z: NDArray[np.float64]
+) -> NDArray[np.float64]:
+    """Jacobian of :func:`_residuals` in p, shape (n, 3); ``z`` is unused (solver's args)."""
+    e = _decay(p, x)
+    jac = np.empty((x.size, 3))
+    jac[:, 0] = 1.0
+    jac[:, 1] = -e
+    with np.errstate(under="ignore"):
+        jac[:, 2] = -p[1] * e * x * math.exp(-p[2])
+    return jac
+
+
+def _solve_scaled(x: NDArray[np.float64], z: NDArray[np.float64]) -> NDArray[np.float64] | None:
+    """Least-squares (offset, amplitude, ln tau) of the scaled values z; None if not converged.
+
+    Starts at the best point of :func:`_grid_start` (ln tau clipped to
+    :data:`TAU_SEARCH_RANGE_S`) and runs the trust-region reflective solver within it.
+    """
+    start = _grid_start(x, z)
+    lo_u, hi_u = math.log(TAU_SEARCH_RANGE_S[0]), math.log(TAU_SEARCH_RANGE_S[1])
+    x_start = np.array([start[0], start[1], min(max(start[2], lo_u), hi_u)])
+    sol = least_squares(
+        _residuals,
+        x_start,
+        jac=_jacobian,
+        bounds=([-np.inf, -np.inf, lo_u], [np.inf, np.inf, hi_u]),
+        method="trf",
+        x_scale="jac",
+        max_nfev=200,
+        args=(x, z),
+    )
+    p = np.asarray(sol.x, dtype=np.float64)
+    if not sol.success or not np.all(np.isfinite(p)):
+        return None
+    return p
+
+
+def _standard_errors(
+    jac: NDArray[np.float64], ssr: float, y_span: float, tau_s: float
+) -> tuple[float | None, float | None, float | None]:
+    """Standard errors of (offset, amplitude, tau [s]) in the values' units.
+
+    From the Jacobian at the solution and the residual variance ``ssr / (n - 3)`` of the
+    scaled fit; tau's by the delta method, se(tau) = tau * se(ln tau). None where a
+    parameter is (nearly) undetermined by the data or the error is not finite.
+    """
+    se: list[float | None] = [None, None, None]
+    sv = np.linalg.svd(jac, compute_uv=False)
+    if sv[-1] > 1e-6 * sv[0]:  # otherwise a parameter is (nearly) undetermined by the data
+        cov = np.linalg.inv(jac.T @ jac) * (ssr / (jac.shape[0] - 3))
+        diag = np.diag(cov)
+        se = [math.sqrt(v) if math.isfinite(v) and v >= 0.0 else None for v in diag]
+    offset_se = None if se[0] is None else y_span * se[0]
+    amplitude_se = None if se[1] is None else y_span * se[1]
+    tau_se = None if se[2] is None else tau_s * se[2]
+    if tau_se is not None and not math.isfinite(tau_se):
+        tau_se = None
+    return offset_se, amplitude_se, tau_se
