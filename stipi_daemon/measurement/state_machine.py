@@ -715,12 +715,13 @@ def _advance(state: MachineState, config: MeasurementConfig) -> Result:
         stall_s = now - state.camera_stalled_since_s
         policy = CAMERA_POLICY[phase]
         if policy is Policy.FAULT:
-            return _goto(
+            state, more = _goto(
                 state,
                 Phase.CAMERA_STALLED,
                 f"camera stalled for {stall_s:.1f} s in {phase}",
                 config,
             )
+            return state, out + more
         flag = (
             MeasurementFlag.CAMERA_STALLED_IN_PITTING
             if phase is Phase.PITTING

@@ -395,6 +395,17 @@ def test_link_lost_in_recovery_still_reaches_analysis_flagged() -> None:
     assert MeasurementFlag.LINK_LOST_IN_RECOVERY in start.flags
 
 
+def test_link_flag_advisory_kept_when_the_camera_faults_in_the_same_step() -> None:
+    # both limits pass at one tick in RECOVERY: the link is flagged, then the camera faults
+    s = state_in(Phase.RECOVERY)
+    s, out = run([LinkLost(20.0), CameraStalled(20.0), Tick(20.0 + CFG.link_loss_limit_s + 0.5)], s)
+    assert s.phase is Phase.CAMERA_STALLED
+    assert MeasurementFlag.LINK_LOST_IN_RECOVERY in s.flags
+    flagged = advisories(out, AdvisoryKind.LINK_LOST_FLAGGED)
+    assert len(flagged) == 1
+    assert out.index(flagged[0]) < next(i for i, o in enumerate(out) if isinstance(o, Fault))
+
+
 @pytest.mark.parametrize("phase", NON_TERMINAL, ids=str)
 def test_camera_stall_per_phase(phase: Phase) -> None:
     s0 = state_in(phase)
