@@ -23,14 +23,18 @@ EFFECT_MODULES: dict[str, str] = {
     "vignetting": "vignetting",
     "exposure_drift": "exposure_drift",
     "led_flicker": "led_flicker",
+    "outlier_frames": "outlier_frames",
     "saturation": "saturation",
     "sensor_noise": "sensor_noise",
     "jpeg_compression": "jpeg_compression",
     "dropped_frames": "dropped_frames",
+    "frame_gap": "frame_gap",
+    "corrupt_frames": "corrupt_frames",
     "force_noise": "force_noise",
     "force_drift": "force_drift",
     "mcu_clock_drift": "mcu_clock_drift",
     "ble_link": "ble_link",
+    "force_dropout": "force_dropout",
 }
 
 

@@ -1,0 +1,63 @@
+"""Effect ``force_dropout``: the probe's link delivers no load-cell samples over a span.
+
+A real probe loses a stretch of samples when its link drops out for a moment: a USB
+cable that disconnects and reconnects, a BLE link out of range, a host that stops reading
+long enough for the firmware's 64-sample ring to overflow. Every sample taken at a true
+time in ``[t_start_s, t_end_s)`` is taken but not delivered: it appears in
+:attr:`stipi_daemon.sim.ForceBatch.lost_index`, and the delivered samples keep their
+index, so the host sees one index gap (the daemon records it as a ``force`` gap). Sample
+times, forces and the other samples are unchanged.
+
+The serial emulator's firmware model (:class:`stipi_daemon.sim.feather.SceneAdc`) samples
+every tick and reads the model's force where the scene lost a sample, so on that path the
+same dropout is produced on the link itself (``EmulatedFeather.silence``), as
+``tests/faults/matrix.py`` does.
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import numpy as np
+from numpy.typing import NDArray
+from pydantic import Field, model_validator
+
+from stipi_daemon.sim.effects.base import EffectContext, EffectParams, SampleClockEffect
+
+
+class Params(EffectParams):
+    """Span ``[t_start_s, t_end_s)`` of true time without delivered samples [s] (default:
+    empty)."""
+
+    name: Literal["force_dropout"] = "force_dropout"
+    t_start_s: float = Field(default=0.0, ge=0.0, allow_inf_nan=False)
+    t_end_s: float = Field(default=0.0, ge=0.0, allow_inf_nan=False)
+
+    @model_validator(mode="after")
+    def _ordered(self) -> Params:
+        if self.t_end_s < self.t_start_s:
+            raise ValueError(f"t_end_s {self.t_end_s} is before t_start_s {self.t_start_s}")
+        return self
+
+
+class Effect(SampleClockEffect):
+    def __init__(self, params: Params, context: EffectContext) -> None:
+        self.params = params
+        self._rate_hz = context.sample_rate_hz
+        self._t_true_s: NDArray[np.float64] | None = None
+
+    def true_time_s(
+        self, t_nominal_s: NDArray[np.float64], rng: np.random.Generator
+    ) -> NDArray[np.float64]:
+        # Remember the true times of the samples (as the previous clock effects left them)
+        # for delivered(), which is given only the indices.
+        self._t_true_s = t_nominal_s
+        return t_nominal_s
+
+    def delivered(self, index: NDArray[np.int64], rng: np.random.Generator) -> NDArray[np.bool_]:
+        p = self.params
+        t = self._t_true_s
+        if t is None or t.shape != index.shape:
+            t = index / self._rate_hz  # the nominal schedule
+        lost: NDArray[np.bool_] = (t >= p.t_start_s) & (t < p.t_end_s)
+        return ~lost
