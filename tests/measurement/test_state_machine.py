@@ -398,7 +398,9 @@ def test_link_lost_in_recovery_still_reaches_analysis_flagged() -> None:
 def test_link_flag_advisory_kept_when_the_camera_faults_in_the_same_step() -> None:
     # both limits pass at one tick in RECOVERY: the link is flagged, then the camera faults
     s = state_in(Phase.RECOVERY)
-    s, out = run([LinkLost(20.0), CameraStalled(20.0), Tick(20.0 + CFG.link_loss_limit_s + 0.5)], s)
+    s, out = run(
+        [LinkLost(20.0), CameraStalled(20.0), Tick(20.0 + CFG.link_loss_limit_s + 0.5)], state=s
+    )
     assert s.phase is Phase.CAMERA_STALLED
     assert MeasurementFlag.LINK_LOST_IN_RECOVERY in s.flags
     flagged = advisories(out, AdvisoryKind.LINK_LOST_FLAGGED)
