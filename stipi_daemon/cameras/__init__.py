@@ -4,14 +4,14 @@
 the :class:`Camera` protocol and the config models), :mod:`.threaded` the capture-thread
 machinery, :mod:`.stream` stall detection and reopening (:class:`CameraStream`), and one
 module per source: :mod:`.v4l2` (a real camera), :mod:`.video_file` (a recorded video),
-:mod:`.simulator` (the scene simulator). :func:`open_camera` builds a source from its config
-and imports only that source's module, so the daemon never loads the simulator (or OpenCV's
-V4L2 code path) unless the config asks for it.
+:mod:`stipi_daemon.sim.camera` (the scene simulator). :func:`open_camera` builds a source from
+its config and imports only that source's module, by name through :mod:`stipi_daemon.registry`
+(``camera:<kind>``), so the daemon never loads the simulator (or OpenCV's V4L2 code path)
+unless the config asks for it.
 """
 
 from __future__ import annotations
 
-from importlib import import_module
 from typing import Annotated
 
 from pydantic import Field
@@ -29,6 +29,7 @@ from stipi_daemon.cameras.base import (
 )
 from stipi_daemon.cameras.stream import CameraStream
 from stipi_daemon.clock import SessionClock
+from stipi_daemon.registry import load
 
 __all__ = [
     "Camera",
@@ -50,13 +51,6 @@ CameraConfig = Annotated[
     Field(discriminator="kind"),
 ]
 """Any camera source's config; ``kind`` selects it (``v4l2``, ``file``, ``simulator``)."""
-
-#: Module and class of each source, by config ``kind``.
-_SOURCES = {
-    "v4l2": ("stipi_daemon.cameras.v4l2", "V4L2Camera"),
-    "file": ("stipi_daemon.cameras.video_file", "VideoFileCamera"),
-    "simulator": ("stipi_daemon.sim.camera", "SimulatorCamera"),
-}
 
 
 def open_camera(
@@ -82,8 +76,7 @@ def open_camera(
     ConfigError
         A simulator scene file is missing or invalid.
     """
-    module_name, class_name = _SOURCES[config.kind]
-    cls = getattr(import_module(module_name), class_name)
+    cls = load(f"camera:{config.kind}")
     if config.kind == "v4l2":
         camera: Camera = cls.from_config(config, clock)
     else:

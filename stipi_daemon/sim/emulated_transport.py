@@ -1,6 +1,9 @@
 """Emulated transport: an emulated Feather on a pty, reached through the real serial path.
 
-This module owns :class:`EmulatedTransportConfig` and :class:`EmulatedTransport`. Opening
+This module owns :class:`EmulatedTransport`, the implementation of the config kind
+``emulated`` (its model, :class:`~stipi_daemon.probe.transports.configs.EmulatedTransportConfig`,
+lives on the runtime side and is re-exported here; the daemon reaches this class through
+:mod:`stipi_daemon.registry` as ``transport:emulated``). Opening
 the transport the first time starts an :class:`~stipi_daemon.sim.feather.EmulatedFeather`
 (its ADC fed by a simulator scene, paced on the session clock) and then opens a
 :class:`~stipi_daemon.probe.transports.serial.SerialTransport` on the emulator's pty through
@@ -12,54 +15,17 @@ on its battery); ``release()`` also stops the emulator. The emulator is reachabl
 
 from __future__ import annotations
 
-from pathlib import Path
-from typing import TYPE_CHECKING, Literal
-
-from pydantic import BaseModel, ConfigDict, Field
+from typing import TYPE_CHECKING
 
 from stipi_daemon.clock import SessionClock
 from stipi_daemon.errors import LinkLostError
+from stipi_daemon.probe.transports.configs import EmulatedTransportConfig
 from stipi_daemon.probe.transports.serial import SerialTransport, SerialTransportConfig
 
 if TYPE_CHECKING:
     from stipi_daemon.sim.feather import EmulatedFeather
 
 __all__ = ["EmulatedTransport", "EmulatedTransportConfig"]
-
-
-class EmulatedTransportConfig(BaseModel):
-    """An emulated probe playing a simulator scene.
-
-    Parameters
-    ----------
-    kind : "emulated"
-        Discriminator.
-    scene : Path
-        Scene file (``configs/scenes/*.yaml``) whose load-cell signal the probe reads.
-    seed : int, optional
-        Seed of the scene's effects and of the link faults (default: the scene's seed).
-    scene_start_s : float, optional
-        Session time of the scene's t = 0 [s]; default: the probe's first sample.
-    rate_error_ppm : float
-        MCU clock rate error against the session clock [ppm] (+: MCU clock fast).
-    boot_offset_us : int
-        ``micros()`` at the emulated boot [µs] (near 2^32 to test the wrap-around).
-    calibrated : bool
-        The probe's EEPROM holds the scene's zero and span (else span 0: uncalibrated).
-    link_path : Path, optional
-        Where the emulated serial device appears (default: a temporary directory).
-    """
-
-    model_config = ConfigDict(frozen=True, extra="forbid")
-
-    kind: Literal["emulated"] = "emulated"
-    scene: Path
-    seed: int | None = Field(None, ge=0)
-    scene_start_s: float | None = Field(None, allow_inf_nan=False)
-    rate_error_ppm: float = Field(0.0, gt=-10_000.0, lt=10_000.0)
-    boot_offset_us: int = Field(0, ge=0, lt=1 << 32)
-    calibrated: bool = True
-    link_path: Path | None = None
 
 
 class EmulatedTransport:

@@ -12,8 +12,8 @@ from stipi_daemon.clock import ScaledClock
 from stipi_daemon.probe.link import ForceRow, ForceRows, ProbeLink
 from stipi_daemon.probe.transports import TransportConfig, open_transport
 from stipi_daemon.probe.transports.ble import BleEmulationConfig, BleTransportConfig
+from stipi_daemon.probe.transports.configs import EmulatedTransportConfig
 from stipi_daemon.sim.ble.radio import VirtualRadio
-from stipi_daemon.sim.emulated_transport import EmulatedTransportConfig
 
 from .conftest import SCENES
 

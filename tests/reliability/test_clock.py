@@ -26,7 +26,7 @@ from stipi_daemon.clock import ScaledClock
 from stipi_daemon.probe.link import ForceRows, ProbeLink
 from stipi_daemon.probe.transports import open_transport
 from stipi_daemon.probe.transports.ble import BleEmulationConfig, BleTransportConfig
-from stipi_daemon.sim.emulated_transport import EmulatedTransportConfig
+from stipi_daemon.probe.transports.configs import EmulatedTransportConfig
 
 from .conftest import SCENES, report
 

@@ -1,12 +1,15 @@
-"""Probe transports: one module per link, chosen by the config's ``kind`` and imported lazily.
+"""Probe transports: one per link, chosen by the config's ``kind`` and imported lazily.
 
-Each transport module holds its pydantic config model and its
-:class:`~stipi_daemon.probe.transports.base.Transport`: :mod:`.serial` (USB CDC / UART through
-pyserial, ``kind="serial"``), :mod:`.emulated` (an emulated probe on a pty,
-``kind="emulated"``) and :mod:`.ble` (BLE UART, ``kind="ble"``). :data:`TransportConfig`
-is their discriminated union (what the daemon config's ``probe.transport`` holds) and
-:func:`open_transport` builds the transport a config names. Nothing here frames or decodes
-bytes; :mod:`stipi_daemon.probe.link` does.
+Each real transport module holds its pydantic config model and its
+:class:`~stipi_daemon.probe.transports.base.Transport`: :mod:`.serial` (USB CDC / UART
+through pyserial, ``kind="serial"``) and :mod:`.ble` (BLE UART, ``kind="ble"``). The
+simulated link (an emulated probe on a pty, ``kind="emulated"``) has its config model in
+:mod:`.configs` and its implementation in :mod:`stipi_daemon.sim.emulated_transport`.
+:data:`TransportConfig` is their discriminated union (what the daemon config's
+``probe.transport`` holds) and :func:`open_transport` builds the transport a config names,
+importing its module by name through :mod:`stipi_daemon.registry` (``transport:<kind>``),
+so nothing here imports the simulator. Nothing here frames or decodes bytes;
+:mod:`stipi_daemon.probe.link` does.
 """
 
 from __future__ import annotations
@@ -18,8 +21,9 @@ from pydantic import Field
 from stipi_daemon.clock import SessionClock
 from stipi_daemon.probe.transports.base import Releasable, Transport
 from stipi_daemon.probe.transports.ble import BleTransportConfig
+from stipi_daemon.probe.transports.configs import EmulatedTransportConfig
 from stipi_daemon.probe.transports.serial import SerialTransportConfig
-from stipi_daemon.sim.emulated_transport import EmulatedTransportConfig
+from stipi_daemon.registry import load
 
 __all__ = [
     "BleTransportConfig",
@@ -56,16 +60,6 @@ def open_transport(
     Transport
         An unopened transport; :class:`~stipi_daemon.probe.link.ProbeLink` opens and reopens it.
     """
-    if config.kind == "serial":
-        from stipi_daemon.probe.transports.serial import SerialTransport
-
-        return SerialTransport(config)
-    if config.kind == "emulated":
-        from stipi_daemon.sim.emulated_transport import EmulatedTransport
-
-        return EmulatedTransport(config, clock)
-    if config.kind == "ble":
-        from stipi_daemon.probe.transports.ble import BleTransport
-
-        return BleTransport(config, clock)
-    raise ValueError(f"unknown transport kind {config.kind!r}")  # pragma: no cover
+    cls = load(f"transport:{config.kind}")
+    transport: Transport = cls(config) if config.kind == "serial" else cls(config, clock)
+    return transport

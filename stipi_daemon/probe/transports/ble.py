@@ -13,27 +13,30 @@ subscribes again, once. Retrying, backoff and the heartbeat watchdog belong to
 :class:`~stipi_daemon.probe.link.ProbeLink`, which reopens transports of every kind.
 
 bleak runs on the operating system's stack by default (BlueZ on Linux); with ``hci`` set it
-runs on Bumble's host stack instead (:mod:`stipi_daemon.sim.ble.bleak_backend`), either on a
-dongle (``usb:0``, ``hci-socket:0``) or on an in-process virtual radio (``virtual:NAME``).
-With ``emulate`` set, the transport also starts an emulated probe playing a simulator
-scene on that virtual radio, so a whole measurement runs over real BLE stacks in one
-process (tests, demo). It does not frame or decode anything.
+runs on Bumble's host stack instead, either on a dongle (``usb:0``, ``hci-socket:0``) or on
+an in-process virtual radio (``virtual:NAME``). With ``emulate`` set
+(:class:`~stipi_daemon.probe.transports.configs.BleEmulationConfig`), the transport also
+starts an emulated probe playing a simulator scene on that virtual radio, so a whole
+measurement runs over real BLE stacks in one process (tests, demo). Both come from
+:mod:`stipi_daemon.sim.ble` through :mod:`stipi_daemon.registry` (``ble:bumble_adapter``,
+``ble:emulated_probe``), imported by name only when a config asks for them. It does not
+frame or decode anything.
 """
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
-import itertools
 import re
-from pathlib import Path
-from typing import TYPE_CHECKING, Literal
+from typing import TYPE_CHECKING, Any, Literal, Protocol
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from stipi_daemon.clock import SessionClock
 from stipi_daemon.errors import DeviceNotFoundError, LinkLostError
 from stipi_daemon.probe.nus import NUS_RX_UUID, NUS_TX_UUID
+from stipi_daemon.probe.transports.configs import BleEmulationConfig
+from stipi_daemon.registry import load
 
 if TYPE_CHECKING:
     from bleak import BleakClient
@@ -42,52 +45,32 @@ if TYPE_CHECKING:
     from bleak.backends.device import BLEDevice
     from bleak.backends.scanner import AdvertisementData, BaseBleakScanner
 
-    from stipi_daemon.sim.ble.bleak_backend import BumbleAdapter
-    from stipi_daemon.sim.ble.mock_probe import BleProbeEmulator
-    from stipi_daemon.sim.ble.radio import VirtualRadio
-
 __all__ = ["BleEmulationConfig", "BleTransport", "BleTransportConfig"]
 
 _ADDRESS_RE = re.compile(r"^([0-9A-Fa-f]{2}:){5}[0-9A-Fa-f]{2}$|^[0-9A-Fa-f-]{36}$")
-_radio_ids = itertools.count(1)
 
 
-class BleEmulationConfig(BaseModel):
-    """An emulated probe on a virtual radio, playing a simulator scene.
+class _Adapter(Protocol):
+    """bleak's backends on another host stack (registry ``"ble:bumble_adapter"``)."""
 
-    Parameters
-    ----------
-    scene : Path
-        Scene file whose load-cell signal the probe streams.
-    seed : int, optional
-        Seed of the scene's effects (default: the scene's).
-    scene_start_s : float, optional
-        Session time of the scene's t = 0 [s]; default: the probe's first sample.
-    rate_error_ppm : float
-        MCU clock rate error against the session clock [ppm].
-    boot_offset_us : int
-        ``micros()`` at the emulated boot [µs].
-    calibrated : bool
-        The probe's EEPROM holds the scene's zero and span.
-    max_mtu : int
-        Largest ATT MTU the emulated module accepts [bytes] (23: 20-byte notifications).
-    connection_interval_s : float
-        Connection interval [s] (session time).
-    notifications_per_event : int
-        Notifications the module sends per connection event.
-    """
+    def backends(self) -> tuple[type[BaseBleakScanner], type[BaseBleakClient]]:
+        """bleak backend classes bound to this adapter: ``(scanner, client)``."""
+        ...
 
-    model_config = ConfigDict(frozen=True, extra="forbid")
+    async def release(self) -> None:
+        """Drop this user's reference; the last one closes the adapter."""
+        ...
 
-    scene: Path
-    seed: int | None = Field(None, ge=0)
-    scene_start_s: float | None = Field(None, allow_inf_nan=False)
-    rate_error_ppm: float = Field(0.0, gt=-10_000.0, lt=10_000.0)
-    boot_offset_us: int = Field(0, ge=0, lt=1 << 32)
-    calibrated: bool = True
-    max_mtu: int = Field(23, ge=23, le=517)
-    connection_interval_s: float = Field(0.015, ge=0.0075, le=4.0)
-    notifications_per_event: int = Field(4, ge=1, le=64)
+
+class _EmulatedProbe(Protocol):
+    """A running emulated probe and its radio (registry ``"ble:emulated_probe"``)."""
+
+    hci: str
+    emulator: Any
+
+    async def close(self) -> None:
+        """Stop the probe and the radio created for it."""
+        ...
 
 
 class BleTransportConfig(BaseModel):
@@ -167,9 +150,8 @@ class BleTransport:
         self.clock = clock
         self._hci = config.hci
         self._client: BleakClient | None = None
-        self._adapter: BumbleAdapter | None = None
-        self._radio: VirtualRadio | None = None
-        self._emulator: BleProbeEmulator | None = None
+        self._adapter: _Adapter | None = None
+        self._emulated: _EmulatedProbe | None = None
         self._buffer = bytearray()
         self._event = asyncio.Event()
         self._connected = False
@@ -190,11 +172,15 @@ class BleTransport:
         return f"ble:{self.config.target}"
 
     @property
-    def emulator(self) -> BleProbeEmulator:
-        """The emulated probe (``emulate`` set), for fault injection; after the first open."""
-        if self._emulator is None:
+    def emulator(self) -> Any:
+        """The emulated probe (``emulate`` set), for fault injection; after the first open.
+
+        A :class:`stipi_daemon.sim.ble.mock_probe.BleProbeEmulator` (typed loosely: runtime
+        code does not import the simulator).
+        """
+        if self._emulated is None:
             raise LinkLostError(f"{self.name}: no emulated probe has been started")
-        return self._emulator
+        return self._emulated.emulator
 
     @property
     def is_connected(self) -> bool:
@@ -212,47 +198,20 @@ class BleTransport:
 
     async def _start_emulation(self) -> None:
         emu = self.config.emulate
-        if emu is None or self._emulator is not None:
+        if emu is None or self._emulated is not None:
             return
-        from stipi_daemon.sim import load_scene
-        from stipi_daemon.sim.ble.mock_probe import scene_core, start_ble_probe
-        from stipi_daemon.sim.ble.peripheral import BleModuleLimits
-        from stipi_daemon.sim.ble.radio import BleRadioError, VirtualRadio
-        from stipi_daemon.sim.feather import McuClock
-
-        if self._hci is None:
-            self._radio = VirtualRadio(f"stipi-ble-{next(_radio_ids)}")
-            self._hci = self._radio.spec
-        else:
-            with contextlib.suppress(BleRadioError):  # the radio may exist already
-                self._radio = VirtualRadio(self._hci.partition(":")[2])
-        mcu = McuClock(self.clock.now(), emu.boot_offset_us, emu.rate_error_ppm)
-        core = scene_core(
-            load_scene(emu.scene),
-            emu.seed,
-            mcu,
-            self.clock.now(),
-            calibrated=emu.calibrated,
-            scene_start_s=emu.scene_start_s,
-        )
-        limits = BleModuleLimits(
-            max_mtu=emu.max_mtu,
-            connection_interval_s=emu.connection_interval_s,
-            notifications_per_event=emu.notifications_per_event,
-        )
-        self._emulator = await start_ble_probe(
-            self._hci, self.clock, core, mcu, name=self.config.name or "STIPI-01", limits=limits
-        )
+        start = load("ble:emulated_probe")
+        name = self.config.name or "STIPI-01"
+        self._emulated = await start(emu, self._hci, self.clock, name=name)
+        self._hci = self._emulated.hci
 
     async def _backends(
         self,
     ) -> tuple[type[BaseBleakScanner] | None, type[BaseBleakClient] | None]:
         if self._hci is None:
             return None, None
-        from stipi_daemon.sim.ble.bleak_backend import BumbleAdapter
-
         if self._adapter is None:
-            self._adapter = await BumbleAdapter.acquire(self._hci)
+            self._adapter = await load("ble:bumble_adapter").acquire(self._hci)
         return self._adapter.backends()
 
     async def open(self) -> None:
@@ -385,14 +344,10 @@ class BleTransport:
     async def release(self) -> None:
         """Close, and stop the emulated probe and its radio if this transport started them."""
         await self.close()
-        emulator, self._emulator = self._emulator, None
-        if emulator is not None:
-            await emulator.close()
-        radio, self._radio = self._radio, None
-        if radio is not None:
-            radio.close()
-            if self.config.hci is None:
-                self._hci = None
+        emulated, self._emulated = self._emulated, None
+        if emulated is not None:
+            await emulated.close()
+            self._hci = self.config.hci
 
 
 def _one_line(exc: BaseException) -> str:
