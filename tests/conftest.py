@@ -1,5 +1,10 @@
 """Shared test configuration.
 
+Every test runs under :func:`no_task_left_running`: a test that leaves an asyncio task
+running at its end (its own fixtures' teardown included) fails, the way ophyd-async's
+suite does; pytest-asyncio would otherwise cancel such tasks silently when it closes the
+test's event loop, hiding a missing ``await``/``close()``.
+
 Tests that need an external toolchain (g++, avr-gcc, simavr) call :func:`require_tool`;
 it skips when the tool is missing, unless ``STIPI_REQUIRE_TOOLCHAIN=1`` (set by ``.ci/run``)
 turns the skip into a failure so that CI never passes by skipping what matters.
@@ -7,8 +12,10 @@ turns the skip into a failure so that CI never passes by skipping what matters.
 
 from __future__ import annotations
 
+import asyncio
 import os
 import shutil
+from collections.abc import AsyncIterator
 from pathlib import Path
 
 import pytest
@@ -92,3 +99,40 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
 # (speed goals live in benchmarks/).
 settings.register_profile("stipi", deadline=None, print_blob=True)
 settings.load_profile("stipi")
+
+
+# ---------------------------------------------------------------------------------------
+# No asyncio task may outlive its test
+# ---------------------------------------------------------------------------------------
+
+
+@pytest.fixture(autouse=True)
+async def no_task_left_running(request: pytest.FixtureRequest) -> AsyncIterator[None]:
+    """Fail a test that leaves asyncio tasks running in its event loop.
+
+    Autouse, so set up before and torn down after the test's other function-scoped
+    fixtures: the check sees what is still running once the test *and* its fixtures have
+    cleaned up. Leftover tasks are cancelled (and awaited, up to 5 s) either way; the test
+    fails only if it had not failed already, so that a leak does not hide the real failure.
+    """
+    loop = asyncio.get_running_loop()
+    before = asyncio.all_tasks(loop)
+    failed_before = request.session.testsfailed
+    yield
+    this = asyncio.current_task()
+    left = sorted(
+        (t for t in asyncio.all_tasks(loop) if t is not this and t not in before and not t.done()),
+        key=repr,
+    )
+    running = [repr(task) for task in left]
+    for task in left:
+        task.cancel()
+    if left:
+        await asyncio.wait(left, timeout=5.0)
+    if running and request.session.testsfailed == failed_before:
+        pytest.fail(
+            f"{len(running)} asyncio task(s) still running at the end of the test "
+            "(cancel and await them in the test or its fixture):\n"
+            + "\n".join(f"  {task}" for task in running),
+            pytrace=False,
+        )
