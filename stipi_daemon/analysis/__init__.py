@@ -1,17 +1,25 @@
-"""Pure analysis core: the paper's Eqs. 1-10 and the severity classification.
+"""Pure analysis core: the paper's Eqs. 1-10, calibration and the severity classification.
 
-One module per concern (see ``docs/analysis.md``):
+One module per concern (see ``docs/analysis.md``, ``docs/calibration.md``):
 
 * :mod:`.imaging` - Eqs. (1)-(2): ROI, inverted threshold, occluded pixel count S_k.
 * :mod:`.calibration` - Eqs. (4)-(5): fits of alpha1, alpha2, C1, C2 and calibration files.
+* :mod:`.calibration_procedure` - Section IV.B: calibration points from recorded runs,
+  fit report.
 * :mod:`.pitting` - Eqs. (3), (5), (6): D_p, F_r, T_r of a recovery series.
 * :mod:`.vpr` - Eqs. (7)-(10): elasticity, viscosity, the VPR recovery curve.
 * :mod:`.recovery_fit` - a Kelvin-Voigt recovery fitted to the whole series.
+* :mod:`.settling_rules` - when a recovery counts as settled (shared with the state
+  machine's early end).
 * :mod:`.severity` - Section IV.C: severity window, threshold, nearest grade.
-* :mod:`.measurement` - all of the above for one measurement, both estimators.
+* :mod:`.results` - all of the above for one measurement, both estimators.
+* :mod:`.flags` - the quality flags attached to results.
+* :mod:`.truth_comparison` - results against a simulator's ground truth.
+* :mod:`.summary_diff` - differences between a stored and a recomputed summary.
 
 Nothing in this package does I/O except the explicit load/save functions of
-:mod:`~stipi_daemon.analysis.calibration` and :mod:`~stipi_daemon.analysis.severity`.
+:mod:`~stipi_daemon.analysis.calibration` and :mod:`~stipi_daemon.analysis.severity`, and
+it imports no other layer of the package but :mod:`stipi_daemon.errors`.
 The names below are the public API.
 """
 

@@ -2,9 +2,11 @@
 
 Pure codec and stream state, no I/O: CRC-16/CCITT-FALSE (:mod:`.crc`), COBS framing
 (:mod:`.cobs`), messages and frames (:mod:`.messages`), the incremental stream decoder
-(:mod:`.decoder`), clock and sequence wrap-around (:mod:`.timestamps`) and exact sample
-loss accounting (:mod:`.accounting`). Transports (BLE, serial) live elsewhere and only
-feed bytes in and write :func:`encode_frame` output out.
+(:mod:`.decoder`), clock and sequence wrap-around (:mod:`.timestamps`), exact sample
+loss accounting (:mod:`.accounting`) and the mapping of the probe's microsecond clock onto
+the host's monotonic clock (:mod:`.clocksync`). The probe link and its transports (serial,
+BLE) live in :mod:`stipi_daemon.probe` and only feed bytes in and write
+:func:`encode_frame` output out.
 """
 
 from __future__ import annotations

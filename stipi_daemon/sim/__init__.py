@@ -1,12 +1,19 @@
-"""Scene simulator: a simulated STIP-I measurement that is a real backend for the daemon.
+"""Everything simulated or emulated: scenes, the simulated camera, the emulated probe.
 
 A scene file (``configs/scenes/*.yaml``) describes tissue, indenter, force profile, probe,
 camera, load cell and a list of effects. The package turns it into frames, load-cell
 samples and a ground truth: :mod:`.scene` (typed scene files), :mod:`.physics` (closed-form
 mechanics), :mod:`.render` (frames), :mod:`.loadcell` (ADC), :mod:`.pipeline` (streams and
 effects), :mod:`.truth` (ground truth), :mod:`.output` (files), :mod:`.effects` (one
-module per effect, imported only when a scene lists it). Runtime code outside ``sim``
-must not depend on it. See docs/simulator.md.
+module per effect, imported only when a scene lists it). As live devices for the daemon:
+:mod:`.camera` (the scene as a camera), :mod:`.imaging` (a scene's calibration, threshold,
+ROI and truth), :mod:`.feather` (an emulated Feather 32u4 speaking the wire protocol on a
+pty), :mod:`.emulated_transport` (that Feather behind the real serial path) and
+:mod:`.ble` (the emulated BLE module, peripheral, radio and bleak backend).
+
+Runtime code never imports this package: a config that asks for a simulated device names
+it by kind, and :mod:`stipi_daemon.registry` imports the module by name on first use. See
+docs/simulator.md and docs/architecture.md.
 """
 
 from __future__ import annotations
