@@ -13,6 +13,8 @@ from stipi_daemon.analysis.calibration import Calibration
 from stipi_daemon.analysis.flags import Flag
 from stipi_daemon.analysis.results import AnalysisSettings
 from stipi_daemon.analysis.severity import load_reference
+from stipi_daemon.analysis.summary_diff import diff_results
+from stipi_daemon.analysis.truth_comparison import compare_ground_truth
 from stipi_daemon.app.offline_io import SessionData, read_session
 from stipi_daemon.errors import AnalysisError, CalibrationError
 from stipi_daemon.measurement.replay import (
@@ -20,8 +22,6 @@ from stipi_daemon.measurement.replay import (
     ReplaySetup,
     _events,
     calibration_from_mapping,
-    compare_ground_truth,
-    diff_results,
     replay,
 )
 from stipi_daemon.measurement.state_machine import (

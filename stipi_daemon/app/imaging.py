@@ -1,54 +1,317 @@
-"""Which calibration, threshold p and ROI apply to a measurement.
+"""Which calibration, threshold p and ROI apply to a measurement: one rule for every caller.
 
-One implementation for the acquisition daemon and for the offline ``analyze`` command.
+The acquisition daemon (:func:`resolve_imaging`) and the offline ``analyze`` command
+(:mod:`stipi_daemon.app.analyze`) both ask :func:`choose_imaging`. Each source says what
+it knows as an :class:`ImagingSource`; the most specific source that sets a quantity wins:
+
+* calibration: command-line override, config (its calibration file), stored manifest,
+  simulated scene;
+* threshold p of Eq. (1): command-line override, config (``imaging.threshold_p``),
+  stored manifest (the threshold the live run counted with), the chosen calibration's own
+  ``threshold_p``, simulated scene;
+* ROI: command-line override (``full`` is a choice too: the whole frame), config
+  (``imaging.roi``), simulated scene (its waveguide disc); none: the whole frame.
+
+A simulated scene is read through the lazy registry (``"scene:imaging"``,
+:mod:`stipi_daemon.registry`), so a run on real devices never loads the simulator; a
+simulator's ``ground_truth.json`` offers the same as the scene (:func:`truth_source`).
+The manifest's calibration record is written (:func:`calibration_record`) and read back
+(:func:`recorded_source`) here, so both sides keep every field the analysis reads.
 """
 
 from __future__ import annotations
 
-from typing import Any
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Generic, TypeVar
 
+from pydantic import ValidationError
+
+from stipi_daemon import registry
 from stipi_daemon.analysis.calibration import Calibration, load_calibration
-from stipi_daemon.analysis.imaging import CircleROI
-from stipi_daemon.app.config import DaemonConfig
+from stipi_daemon.analysis.imaging import CircleROI, RectROI
+from stipi_daemon.app.config import DaemonConfig, ImagingSettings
 from stipi_daemon.errors import ConfigError
+from stipi_daemon.measurement.replay import calibration_from_mapping
+
+__all__ = [
+    "Choice",
+    "Imaging",
+    "ImagingSource",
+    "calibration_record",
+    "choose_imaging",
+    "recorded_source",
+    "resolve_imaging",
+    "roi_from_truth",
+    "scene_source",
+    "settings_source",
+    "truth_source",
+]
+
+_T = TypeVar("_T")
+
+#: Source name of a simulated scene's calibration, threshold and ROI (daemon).
+SIMULATED_SCENE = "simulated scene"
+#: Source name of the stored manifest's calibration (``analyze SESSION``).
+SESSION_MANIFEST = "session manifest"
+
+
+@dataclass(frozen=True)
+class Choice(Generic[_T]):
+    """A value and the source it came from (a file path, ``--threshold``, ...)."""
+
+    value: _T
+    source: str
+
+
+@dataclass(frozen=True)
+class ImagingSource:
+    """What one source says about the imaging; None where it says nothing.
+
+    Attributes
+    ----------
+    calibration : Choice of Calibration or None
+        Eqs. (4)-(5) coefficients.
+    threshold_p : Choice of int or None
+        Threshold p of Eq. (1) [8-bit intensity].
+    roi : Choice of (CircleROI or RectROI or None) or None
+        Region of interest [px]; ``Choice(None, ...)`` chooses the whole frame.
+    truth : dict or None
+        A simulator's ground truth (``ground_truth.json``'s document).
+    """
+
+    calibration: Choice[Calibration] | None = None
+    threshold_p: Choice[int] | None = None
+    roi: Choice[CircleROI | RectROI | None] | None = None
+    truth: dict[str, Any] | None = None
+
+
+@dataclass(frozen=True)
+class Imaging:
+    """The calibration, threshold and ROI that apply, each with its source.
+
+    Attributes
+    ----------
+    calibration : Choice of Calibration or None
+        None when no source has one.
+    threshold_p : Choice of int or None
+        None when no source has one.
+    roi : Choice of (CircleROI or RectROI or None) or None
+        None when no source sets one (the whole frame is counted).
+    truth : dict or None
+        The simulator's ground truth, when a source has one.
+    """
+
+    calibration: Choice[Calibration] | None
+    threshold_p: Choice[int] | None
+    roi: Choice[CircleROI | RectROI | None] | None
+    truth: dict[str, Any] | None
+
+    @property
+    def roi_value(self) -> CircleROI | RectROI | None:
+        """The ROI to count in (None: the whole frame)."""
+        return None if self.roi is None else self.roi.value
+
+    def need_calibration(self, message: str) -> Choice[Calibration]:
+        """The calibration; :class:`ConfigError` with ``message`` when there is none."""
+        if self.calibration is None:
+            raise ConfigError(message)
+        return self.calibration
+
+    def need_threshold(self, message: str) -> Choice[int]:
+        """The threshold; :class:`ConfigError` with ``message`` when there is none."""
+        if self.threshold_p is None:
+            raise ConfigError(message)
+        return self.threshold_p
+
+
+def _first(*choices: Choice[_T] | None) -> Choice[_T] | None:
+    return next((c for c in choices if c is not None), None)
+
+
+def choose_imaging(
+    *,
+    override: ImagingSource | None = None,
+    config: ImagingSource | None = None,
+    recorded: ImagingSource | None = None,
+    scene: ImagingSource | None = None,
+) -> Imaging:
+    """Choose the calibration, threshold and ROI from the sources (module docstring).
+
+    Parameters
+    ----------
+    override : ImagingSource, optional
+        The command line (``--calibration``, ``--threshold``, ``--roi``).
+    config : ImagingSource, optional
+        The config's calibration file and ``imaging`` settings (:func:`settings_source`).
+    recorded : ImagingSource, optional
+        A stored session's manifest (:func:`recorded_source`).
+    scene : ImagingSource, optional
+        A simulated scene (:func:`scene_source`) or its ground truth (:func:`truth_source`).
+
+    Returns
+    -------
+    Imaging
+    """
+    none = ImagingSource()
+    o, c, r, s = (x if x is not None else none for x in (override, config, recorded, scene))
+    calibration = _first(o.calibration, c.calibration, r.calibration, s.calibration)
+    own: Choice[int] | None = None
+    if calibration is not None and calibration.value.threshold_p is not None:
+        own = Choice(int(calibration.value.threshold_p), f"calibration ({calibration.source})")
+    return Imaging(
+        calibration=calibration,
+        threshold_p=_first(o.threshold_p, c.threshold_p, r.threshold_p, own, s.threshold_p),
+        roi=_first(o.roi, c.roi, r.roi, s.roi),
+        truth=next((x.truth for x in (o, c, r, s) if x.truth is not None), None),
+    )
+
+
+# --------------------------------------------------------------------------------------------
+# Sources
+# --------------------------------------------------------------------------------------------
+
+
+def settings_source(imaging: ImagingSettings, calibration_path: Path | None) -> ImagingSource:
+    """A config's source: its calibration file (loaded) and ``imaging`` settings."""
+    return ImagingSource(
+        calibration=None
+        if calibration_path is None
+        else Choice(load_calibration(calibration_path), str(calibration_path)),
+        threshold_p=None
+        if imaging.threshold_p is None
+        else Choice(int(imaging.threshold_p), "config imaging.threshold_p"),
+        roi=None if imaging.roi is None else Choice(imaging.roi, "config imaging.roi"),
+    )
+
+
+def scene_source(scene_path: str | Path, seed: int | None) -> ImagingSource:
+    """A simulated scene's source, read through the registry (``"scene:imaging"``)."""
+    calibration, threshold_p, roi, truth = registry.load("scene:imaging")(scene_path, seed)
+    return ImagingSource(
+        calibration=Choice(calibration, SIMULATED_SCENE),
+        threshold_p=Choice(int(threshold_p), SIMULATED_SCENE),
+        roi=Choice(roi, SIMULATED_SCENE),
+        truth=truth,
+    )
+
+
+def roi_from_truth(truth: Mapping[str, Any] | None) -> CircleROI | None:
+    """The waveguide disc a ground truth records (``roi``: ``cx_px``, ``cy_px``,
+    ``radius_px``), or None when it has none readable."""
+    r = None if truth is None else truth.get("roi")
+    if not isinstance(r, dict):
+        return None
+    try:
+        return CircleROI(
+            kind="circle", cx_px=r["cx_px"], cy_px=r["cy_px"], radius_px=r["radius_px"]
+        )
+    except (KeyError, ValidationError):
+        return None
+
+
+def truth_source(truth: dict[str, Any], where: str, name: str) -> ImagingSource:
+    """A simulator ground truth's source: its calibration, threshold and waveguide disc.
+
+    Parameters
+    ----------
+    truth : dict
+        The ground truth document.
+    where : str
+        Where it came from (prefix of calibration errors).
+    name : str
+        Source name of its calibration and threshold.
+    """
+    cal = truth.get("calibration")
+    frame = truth.get("frame")
+    p = frame.get("threshold_p") if isinstance(frame, dict) else None
+    roi = roi_from_truth(truth)
+    return ImagingSource(
+        calibration=None
+        if not isinstance(cal, dict)
+        else Choice(calibration_from_mapping(cal, where), name),
+        threshold_p=None if p is None else Choice(int(p), name),
+        roi=None if roi is None else Choice(roi, "simulator ground truth"),
+        truth=truth,
+    )
+
+
+def recorded_source(calibration: Mapping[str, Any], where: str) -> ImagingSource:
+    """A stored session's source: the manifest's calibration record.
+
+    The calibration is rebuilt with every field the analysis reads (valid ranges
+    included, :func:`calibration_record`); its ``threshold_p`` is the threshold the live
+    run counted S_k with.
+    """
+    p = calibration.get("threshold_p")
+    return ImagingSource(
+        calibration=Choice(calibration_from_mapping(calibration, where), SESSION_MANIFEST),
+        threshold_p=None if p is None else Choice(int(p), "session manifest calibration"),
+    )
+
+
+def calibration_record(
+    calibration: Calibration,
+    threshold_p: int,
+    roi: CircleROI | RectROI | None,
+    source: str,
+) -> dict[str, Any]:
+    """The manifest's calibration record of a live run.
+
+    Parameters
+    ----------
+    calibration : Calibration
+        The calibration used.
+    threshold_p : int
+        The threshold S_k was counted with [8-bit intensity].
+    roi : CircleROI or RectROI or None
+        The ROI S_k was counted in [px] (None: the whole frame).
+    source : str
+        Where the calibration came from (a file or ``simulated scene``).
+    """
+    return {
+        "alpha1_mm_per_px2": calibration.alpha1_mm_per_px2,
+        "alpha2_mm_per_px": calibration.alpha2_mm_per_px,
+        "c1_px": calibration.c1_px,
+        "c2_px_per_n": calibration.c2_px_per_n,
+        "indenter_length_mm": calibration.indenter_length_mm,
+        "threshold_p": threshold_p,
+        "roi": None if roi is None else roi.model_dump(),
+        "source": source,
+    }
+
+
+# --------------------------------------------------------------------------------------------
+# The daemon
+# --------------------------------------------------------------------------------------------
 
 
 def resolve_imaging(
     config: DaemonConfig,
-) -> tuple[Calibration, int, CircleROI | Any | None, dict[str, Any] | None]:
-    """Calibration, threshold p, ROI and (for simulated devices) the scene's ground truth."""
-    scene_path = getattr(config.camera, "scene", None)
-    truth: dict[str, Any] | None = None
-    sim_cal: Calibration | None = None
-    sim_roi: CircleROI | None = None
-    sim_p: int | None = None
-    if scene_path is not None:
-        from stipi_daemon.sim.physics import scaled_calibration
-        from stipi_daemon.sim.scene import load_scene
-        from stipi_daemon.sim.truth import ground_truth
+) -> tuple[Calibration, int, CircleROI | RectROI | None, dict[str, Any] | None]:
+    """Calibration, threshold p, ROI and (for simulated devices) the scene's ground truth.
 
-        scene = load_scene(scene_path)
-        seed = getattr(config.camera, "seed", None)
-        gt = ground_truth(scene, seed)
-        truth = gt.to_json_dict()
-        sim_cal, _ = scaled_calibration(scene)
-        sim_roi = CircleROI(kind="circle", **gt.roi)
-        sim_p = int(gt.frame["threshold_p"])
-    if config.calibration is not None:
-        calibration = load_calibration(config.calibration)
-    elif sim_cal is not None:
-        calibration = sim_cal
-    else:
-        raise ConfigError(
-            "field 'calibration': a calibration file is required with a real camera "
-            "(run `stipi-daemon calibrate`)"
-        )
-    p = config.imaging.threshold_p
-    if p is None:
-        p = calibration.threshold_p if calibration.threshold_p is not None else sim_p
-    if p is None:
-        raise ConfigError(
-            "field 'imaging.threshold_p': no threshold given and the calibration has none"
-        )
-    roi = config.imaging.roi if config.imaging.roi is not None else sim_roi
-    return calibration, int(p), roi, truth
+    The config's calibration file and ``imaging`` settings win over a simulated camera's
+    scene (:func:`choose_imaging`).
+
+    Raises
+    ------
+    ConfigError
+        No calibration (a real camera needs a calibration file) or no threshold.
+    """
+    scene_path = getattr(config.camera, "scene", None)
+    imaging = choose_imaging(
+        config=settings_source(config.imaging, config.calibration),
+        scene=None
+        if scene_path is None
+        else scene_source(scene_path, getattr(config.camera, "seed", None)),
+    )
+    calibration = imaging.need_calibration(
+        "field 'calibration': a calibration file is required with a real camera "
+        "(run `stipi-daemon calibrate`)"
+    )
+    p = imaging.need_threshold(
+        "field 'imaging.threshold_p': no threshold given and the calibration has none"
+    )
+    return calibration.value, p.value, imaging.roi_value, imaging.truth

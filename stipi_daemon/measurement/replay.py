@@ -7,10 +7,13 @@ feeds it (force before frame at equal times, stop as soon as the machine reaches
 terminal phase, close the session otherwise), so the same inputs give the same numbers as
 the live run. A recording that ends during the recovery (an interrupted session) can be
 analysed over the recovery that was kept (:func:`replay` with ``partial_recovery=True``,
-flagged and noted). It also builds the summary in the layout of the live ``summary.json``,
-compares it with a stored summary, and compares results with a simulator's ground truth.
-It does no I/O: reading sessions, CSV files and videos is
-:mod:`stipi_daemon.app.offline_io`'s job, printing and writing is the ``analyze`` command's.
+flagged and noted). The outcome gives its results in the layout of the live
+``summary.json`` (:meth:`ReplayOutcome.summary`); :func:`calibration_from_mapping` rebuilds
+the calibration a manifest or a ground truth records. It does no I/O: reading sessions,
+CSV files and videos is :mod:`stipi_daemon.app.offline_io`'s job; comparing with a stored
+summary or a simulator's ground truth is :mod:`stipi_daemon.analysis.summary_diff`'s and
+:mod:`stipi_daemon.analysis.truth_comparison`'s; the orchestration, the output document
+and writing it are :mod:`stipi_daemon.app.analyze`'s.
 """
 
 from __future__ import annotations
@@ -18,7 +21,7 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass, field
-from typing import Any, Final
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -46,27 +49,14 @@ from stipi_daemon.measurement.state_machine import (
 )
 
 __all__ = [
-    "GROUND_TRUTH_TOLERANCES",
-    "ParameterComparison",
     "Recording",
     "ReplayOutcome",
     "ReplaySetup",
     "calibration_from_mapping",
-    "compare_ground_truth",
-    "diff_results",
     "replay",
 ]
 
 FloatArray = npt.NDArray[np.float64]
-
-#: Relative tolerances of the simulator's acceptance test (ground truth vs analysis) [1].
-GROUND_TRUTH_TOLERANCES: Final[dict[str, float]] = {
-    "depth_mm": 0.01,
-    "rebound_force_n": 0.01,
-    "time_constant_s": 0.02,
-    "elasticity_kpa": 0.01,
-}
-
 
 # --------------------------------------------------------------------------------------------
 # Inputs
@@ -468,137 +458,3 @@ def replay(rec: Recording, setup: ReplaySetup, *, partial_recovery: bool = False
         force_samples_fed=force_fed,
         live=tuple(live),
     )
-
-
-# --------------------------------------------------------------------------------------------
-# Comparisons
-# --------------------------------------------------------------------------------------------
-
-
-def diff_results(stored: Any, recomputed: Any, path: str = "results") -> list[str]:
-    """Differences between two JSON-like values, one line per differing leaf.
-
-    Numbers are compared exactly (floats as stored in JSON round-trip exactly); ``None``
-    only equals ``None``. Lists of different lengths and keys present on one side only are
-    differences.
-    """
-    out: list[str] = []
-    if isinstance(stored, Mapping) and isinstance(recomputed, Mapping):
-        for key in sorted(set(stored) | set(recomputed)):
-            if key not in stored:
-                out.append(f"{path}.{key}: only in the recomputed results")
-            elif key not in recomputed:
-                out.append(f"{path}.{key}: only in the stored results")
-            else:
-                out.extend(diff_results(stored[key], recomputed[key], f"{path}.{key}"))
-        return out
-    if isinstance(stored, list | tuple) and isinstance(recomputed, list | tuple):
-        if len(stored) != len(recomputed):
-            return [f"{path}: {len(stored)} items stored, {len(recomputed)} recomputed"]
-        for i, (a, b) in enumerate(zip(stored, recomputed, strict=True)):
-            out.extend(diff_results(a, b, f"{path}[{i}]"))
-        return out
-    if stored != recomputed:
-        out.append(f"{path}: stored {stored!r}, recomputed {recomputed!r}")
-    return out
-
-
-@dataclass(frozen=True)
-class ParameterComparison:
-    """One parameter of the results against the simulator's ground truth.
-
-    Attributes
-    ----------
-    name : str
-        Ground-truth key (unit in the name).
-    label : str
-        Symbol as the paper writes it.
-    truth, measured : float or None
-        Ground-truth and analysed values.
-    error_percent : float or None
-        ``100 (measured - truth) / |truth|`` [%]; None when either value is missing or
-        the truth is 0.
-    tolerance_percent : float or None
-        The simulator's acceptance tolerance for this parameter [%], if it has one.
-    """
-
-    name: str
-    label: str
-    truth: float | None
-    measured: float | None
-    error_percent: float | None
-    tolerance_percent: float | None
-
-    @property
-    def within_tolerance(self) -> bool | None:
-        """Whether |error| <= tolerance; None without a tolerance or a value."""
-        if self.tolerance_percent is None or self.error_percent is None:
-            return None
-        return abs(self.error_percent) <= self.tolerance_percent
-
-
-def _get(d: Any, *keys: str) -> float | None:
-    for k in keys:
-        if not isinstance(d, Mapping):
-            return None
-        d = d.get(k)
-    if isinstance(d, bool) or not isinstance(d, int | float):
-        return None
-    return float(d)
-
-
-def compare_ground_truth(
-    summary: Mapping[str, Any], truth: Mapping[str, Any]
-) -> list[ParameterComparison]:
-    """Compare a summary's results with a simulator ground truth (``ground_truth.json``).
-
-    Parameters
-    ----------
-    summary : mapping
-        A summary as :meth:`ReplayOutcome.summary` builds it.
-    truth : mapping
-        The ground truth (keys of :class:`~stipi_daemon.sim.truth.GroundTruth`).
-
-    Returns
-    -------
-    list of ParameterComparison
-        D_p, F_r, T_r, tau, F_a, E, eta (paper, E T_r) and eta (fit, E tau); the measured
-        value is None when the summary has no results.
-    """
-    res = summary.get("results") or {}
-    rows = [
-        ("depth_mm", "D_p [mm]", _get(res, "pitting", "depth_mm")),
-        ("rebound_force_n", "F_r [N]", _get(res, "pitting", "rebound_force_n")),
-        ("recovery_time_s", "T_r [s]", _get(res, "pitting", "recovery_time_s")),
-        ("time_constant_s", "tau [s]", _get(res, "fitted_recovery", "tau_s")),
-        ("applied_force_n", "F_a [N]", _get(res, "applied_force_n")),
-        ("elasticity_kpa", "E [kPa]", _get(res, "paper_estimator", "elasticity_kpa")),
-        (
-            "viscosity_n_s_per_mm2",
-            "eta = E T_r [N s/mm^2]",
-            _get(res, "paper_estimator", "viscosity_n_s_per_mm2"),
-        ),
-        (
-            "viscosity_from_time_constant_n_s_per_mm2",
-            "eta = E tau [N s/mm^2]",
-            _get(res, "fitted_recovery", "model", "viscosity_n_s_per_mm2"),
-        ),
-    ]
-    out: list[ParameterComparison] = []
-    for name, label, measured in rows:
-        t = _get(truth, name)
-        err: float | None = None
-        if t is not None and measured is not None and t != 0.0:
-            err = 100.0 * (measured - t) / abs(t)
-        tol = GROUND_TRUTH_TOLERANCES.get(name)
-        out.append(
-            ParameterComparison(
-                name=name,
-                label=label,
-                truth=t,
-                measured=measured,
-                error_percent=err,
-                tolerance_percent=None if tol is None else 100.0 * tol,
-            )
-        )
-    return out

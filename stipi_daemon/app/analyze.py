@@ -1,0 +1,600 @@
+"""Offline analysis orchestration: recompute a measurement's results from a session or files.
+
+The library side of ``stipi-daemon analyze`` (:mod:`stipi_daemon.commands.analyze` parses
+the command line into an :class:`AnalyzeRequest` and calls :func:`analyze`). Two inputs:
+
+* a stored session (:func:`analyze_session`): its frames' S_k and force samples, read from
+  ``session.sqlite``, replayed with the settings its manifest recorded (a ``--config``
+  replaces them); with ``recompute_sk`` S_k is counted again on the session's video;
+* files (:func:`analyze_files`): a video whose S_k is counted on every decoded frame
+  (Eqs. 1-2), frame times (``frames.csv`` next to the video by default, else the video's
+  frame rate) and a force CSV.
+
+Which calibration, threshold and ROI apply is :func:`stipi_daemon.app.imaging.choose_imaging`'s
+rule, the same the daemon follows. The replay is :mod:`stipi_daemon.measurement.replay`, the
+comparisons with the stored summary and with a simulator's ground truth
+:mod:`stipi_daemon.analysis.summary_diff` and :mod:`stipi_daemon.analysis.truth_comparison`,
+file reading :mod:`stipi_daemon.app.offline_io`. This module builds the output document
+(format ``stipi-offline-analysis``), writes it (never over a recorded file) and the lines
+the command prints.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from dataclasses import dataclass
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any, TypeVar
+
+import numpy as np
+from pydantic import BaseModel, ValidationError
+
+from stipi_daemon import __version__
+from stipi_daemon.analysis.calibration import Calibration, load_calibration
+from stipi_daemon.analysis.imaging import CircleROI, RectROI
+from stipi_daemon.analysis.results import AnalysisSettings
+from stipi_daemon.analysis.severity import load_reference
+from stipi_daemon.analysis.summary_diff import diff_results
+from stipi_daemon.analysis.truth_comparison import ParameterComparison, compare_ground_truth
+from stipi_daemon.app.config import DaemonConfig, ImagingSettings
+from stipi_daemon.app.console import format_results
+from stipi_daemon.app.imaging import (
+    Choice,
+    Imaging,
+    ImagingSource,
+    choose_imaging,
+    recorded_source,
+    settings_source,
+    truth_source,
+)
+from stipi_daemon.app.offline_io import (
+    SessionData,
+    count_video,
+    load_ground_truth,
+    match_frame_times,
+    read_force_csv,
+    read_frame_times_csv,
+    read_session,
+)
+from stipi_daemon.errors import ConfigError, DataFileError, SessionError
+from stipi_daemon.measurement.replay import Recording, ReplayOutcome, ReplaySetup, replay
+from stipi_daemon.measurement.state_machine import MeasurementConfig
+from stipi_daemon.storage import SessionState, layout
+
+__all__ = [
+    "OUTPUT_FORMAT",
+    "OUTPUT_VERSION",
+    "AnalysisRun",
+    "AnalyzeRequest",
+    "analyze",
+    "analyze_files",
+    "analyze_session",
+]
+
+OUTPUT_FORMAT = "stipi-offline-analysis"
+OUTPUT_VERSION = 1
+
+#: Files of a session directory that the output may never replace.
+_PROTECTED = (
+    layout.MANIFEST_NAME,
+    layout.SUMMARY_NAME,
+    layout.DB_NAME,
+    layout.DB_NAME + "-wal",
+    layout.DB_NAME + "-shm",
+    layout.LOCK_NAME,
+    layout.VIDEO_NAME,
+)
+
+_NO_THRESHOLD = "no threshold p for Eq. (1): give --threshold P (or a calibration with threshold_p)"
+
+
+@dataclass(frozen=True)
+class AnalyzeRequest:
+    """What to analyse and how (the ``analyze`` command line, checked).
+
+    Attributes
+    ----------
+    session_dir : Path or None
+        A stored session's directory (exclusive with ``video``).
+    video, force, frame_times : Path or None
+        A video, its force CSV and frame-times CSV.
+    calibration : Path or None
+        A calibration file overriding every other source.
+    config : DaemonConfig or None
+        A config whose measurement/analysis/imaging settings (and calibration, if set)
+        replace the recorded ones.
+    threshold_p : int or None
+        Threshold p of Eq. (1) overriding every other source [8-bit intensity, 0..255].
+    roi : CircleROI or RectROI or None
+        ROI overriding every other source [px], when ``roi_given`` (None: the whole frame).
+    roi_given : bool
+        Whether an ROI was given.
+    recompute_sk : bool
+        With a session: count S_k again on its video.
+    ground_truth : Path or None
+        A simulator ground truth to compare with.
+    out : Path or None
+        Output file (default ``analysis-<UTC time>.json`` next to the input).
+    """
+
+    session_dir: Path | None = None
+    video: Path | None = None
+    force: Path | None = None
+    frame_times: Path | None = None
+    calibration: Path | None = None
+    config: DaemonConfig | None = None
+    threshold_p: int | None = None
+    roi: CircleROI | RectROI | None = None
+    roi_given: bool = False
+    recompute_sk: bool = False
+    ground_truth: Path | None = None
+    out: Path | None = None
+
+    def override(self) -> ImagingSource:
+        """The command line's imaging source (``--calibration``, ``--threshold``, ``--roi``)."""
+        p = self.threshold_p
+        if p is not None and not 0 <= p <= 255:
+            raise ConfigError(f"--threshold must be 0..255, got {p}")
+        cal = self.calibration
+        return ImagingSource(
+            calibration=None if cal is None else Choice(load_calibration(cal), str(cal)),
+            threshold_p=None if p is None else Choice(int(p), "--threshold"),
+            roi=Choice(self.roi, "--roi") if self.roi_given else None,
+        )
+
+
+@dataclass(frozen=True)
+class AnalysisRun:
+    """One analysis done and written.
+
+    Attributes
+    ----------
+    out : Path
+        The output file written.
+    document : dict
+        Its content.
+    outcome : ReplayOutcome
+        The replay.
+    header : list of str
+        The input, in one line.
+    truth_rows : list of ParameterComparison or None
+        The comparison with a simulator's ground truth, if there is one.
+    """
+
+    out: Path
+    document: dict[str, Any]
+    outcome: ReplayOutcome
+    header: list[str]
+    truth_rows: list[ParameterComparison] | None
+
+    @property
+    def exit_code(self) -> int:
+        """0 when the replay produced results, 1 otherwise."""
+        return 0 if self.outcome.result is not None else 1
+
+    def lines(self) -> list[str]:
+        """The report printed for the operator."""
+        outcome, doc = self.outcome, self.document
+        lines = list(self.header)
+        lines.append(
+            f"replayed {outcome.frames_fed} frames and {outcome.force_samples_fed} force "
+            f"samples: phase {outcome.phase} ({outcome.end_reason})"
+        )
+        lines.extend(f"note: {note}" for note in doc["notes"])
+        lines.extend(f"analysis note: {note}" for note in dict.fromkeys(doc["summary"]["notes"]))
+        lines.extend(format_results(doc["summary"]))
+        stored = doc["comparison"]["stored_summary"]
+        if stored is not None:
+            lines.append("")
+            if stored["identical"]:
+                lines.append("recorded summary: identical results")
+            else:
+                diffs = stored["differences"]
+                lines.append(f"recorded summary: {len(diffs)} difference(s)")
+                lines.extend(f"  {d}" for d in diffs[:10])
+                if len(diffs) > 10:
+                    lines.append(f"  ... and {len(diffs) - 10} more (see the output file)")
+        if self.truth_rows is not None:
+            lines.extend(_truth_lines(self.truth_rows))
+        return lines
+
+
+def analyze(request: AnalyzeRequest) -> AnalysisRun:
+    """Analyse a session or files as ``request`` says and write the output document."""
+    if request.session_dir is not None:
+        return analyze_session(request)
+    return analyze_files(request)
+
+
+# --------------------------------------------------------------------------------------------
+# settings
+# --------------------------------------------------------------------------------------------
+
+
+_M = TypeVar("_M", bound=BaseModel)
+
+
+def _validated(model: type[_M], data: Any, where: str) -> _M:
+    try:
+        return model.model_validate(data if data is not None else {})
+    except ValidationError as exc:
+        err = exc.errors()[0]
+        loc = ".".join(str(p) for p in err["loc"])
+        raise SessionError(f"{where}.{loc}: {err['msg']}") from None
+
+
+def _session_settings(
+    data: SessionData, config: DaemonConfig | None
+) -> tuple[MeasurementConfig, AnalysisSettings, ImagingSettings]:
+    """The config's settings if one is given, else those the manifest recorded."""
+    if config is not None:
+        return config.measurement, config.analysis, config.imaging
+    cfg = data.manifest.get("config") or {}
+    where = f"{data.directory / layout.MANIFEST_NAME}: field 'config"
+    return (
+        _validated(MeasurementConfig, cfg.get("measurement"), f"{where}.measurement"),
+        _validated(AnalysisSettings, cfg.get("analysis"), f"{where}.analysis"),
+        _validated(ImagingSettings, cfg.get("imaging"), f"{where}.imaging"),
+    )
+
+
+def _cal_dict(cal: Calibration, source: str) -> dict[str, Any]:
+    def pair(v: tuple[float, float] | None) -> list[float] | None:
+        return None if v is None else list(v)
+
+    return {
+        "alpha1_mm_per_px2": cal.alpha1_mm_per_px2,
+        "alpha2_mm_per_px": cal.alpha2_mm_per_px,
+        "c1_px": cal.c1_px,
+        "c2_px_per_n": cal.c2_px_per_n,
+        "indenter_length_mm": cal.indenter_length_mm,
+        "threshold_p": cal.threshold_p,
+        "s0_valid_range_px": pair(cal.s0_valid_range_px),
+        "force_valid_range_n": pair(cal.force_valid_range_n),
+        "source": source,
+    }
+
+
+def _roi_dict(roi: CircleROI | RectROI | None) -> dict[str, Any] | None:
+    return None if roi is None else roi.model_dump(mode="json")
+
+
+# --------------------------------------------------------------------------------------------
+# a session
+# --------------------------------------------------------------------------------------------
+
+
+def _session_truth(request: AnalyzeRequest, data: SessionData) -> dict[str, Any] | None:
+    if request.ground_truth is not None:
+        return load_ground_truth(request.ground_truth)
+    summary = data.summary
+    if summary is not None and isinstance(summary.get("ground_truth"), dict):
+        truth: dict[str, Any] = summary["ground_truth"]
+        return truth
+    return None
+
+
+def _status_notes(data: SessionData) -> list[str]:
+    status = data.status
+    if status is SessionState.INTERRUPTED:
+        return [
+            "session interrupted (the recorder stopped before finishing): analysed the "
+            "samples that were kept"
+        ]
+    if status is SessionState.RECORDING:
+        return ["session still recording: analysed the samples committed so far"]
+    if data.summary is None:
+        return [f"session status {status} but no summary.json"]
+    return []
+
+
+def _recount(
+    data: SessionData, imaging: Imaging, settings: ImagingSettings, notes: list[str]
+) -> tuple[SessionData, np.ndarray[Any, np.dtype[np.float64]], dict[str, Any]]:
+    """Count S_k again on the session's video: the data cut to the frames both hold,
+    the new S_k and the output's imaging record (``notes`` gets what the reader should know)."""
+    if data.video_path is None:
+        raise SessionError(f"{data.directory}: --recompute-sk: the session has no video file")
+    threshold = imaging.need_threshold(_NO_THRESHOLD)
+    roi = imaging.roi_value
+    if imaging.roi is None:
+        notes.append("ROI: none recorded, the whole frame is counted")
+    elif imaging.roi.source == "simulator ground truth":
+        notes.append("ROI: the simulator's waveguide disc (ground truth)")
+    video = count_video(
+        data.video_path,
+        threshold.value,
+        roi,
+        saturation_limit_fraction=settings.saturation_limit_fraction,
+    )
+    n_rows, n_video = data.frame_times_s.size, video.s_k_px.size
+    if n_video < n_rows:
+        notes.append(
+            f"the video holds {n_video} of the {n_rows} stored frames: the first "
+            f"{n_video} are analysed"
+        )
+    elif n_video > n_rows:
+        notes.append(
+            f"the video holds {n_video - n_rows} frame(s) more than the database "
+            f"({n_rows}): frames without a stored time are not used"
+        )
+    n = min(n_rows, n_video)
+    data = dataclasses.replace(data, frame_times_s=data.frame_times_s[:n], s_k_px=data.s_k_px[:n])
+    record = {
+        "s_k_source": f"video {data.video_path}",
+        "threshold_p": threshold.value,
+        "threshold_source": threshold.source,
+        "roi": _roi_dict(roi),
+        "saturated_frames": video.saturated_frames,
+    }
+    return data, video.s_k_px[:n], record
+
+
+def _json_roundtrip(value: Any) -> Any:
+    from stipi_daemon.storage.schema import to_jsonable
+
+    return json.loads(json.dumps(to_jsonable(value, "summary"), allow_nan=False))
+
+
+def _stored_comparison(
+    stored: dict[str, Any] | None, recomputed: dict[str, Any]
+) -> dict[str, Any] | None:
+    """The recomputed summary against the recorded one (keys both hold), as JSON stores it."""
+    if stored is None or "phase" not in stored:
+        return None
+    keys = [k for k in recomputed if k in stored]
+    diffs = diff_results(
+        {k: stored[k] for k in keys},
+        _json_roundtrip({k: recomputed[k] for k in keys}),
+        "summary",
+    )
+    return {"identical": not diffs, "differences": diffs}
+
+
+def analyze_session(request: AnalyzeRequest) -> AnalysisRun:
+    """Replay a stored session (:class:`AnalyzeRequest` ``session_dir``) and write the results."""
+    assert request.session_dir is not None
+    data = read_session(request.session_dir)
+    measurement, analysis, settings = _session_settings(data, request.config)
+    truth = _session_truth(request, data)
+    imaging = choose_imaging(
+        override=request.override(),
+        config=settings_source(
+            settings, request.config.calibration if request.config is not None else None
+        ),
+        recorded=recorded_source(
+            data.manifest.get("calibration") or {}, f"{data.directory / layout.MANIFEST_NAME}"
+        ),
+        scene=None if truth is None else truth_source(truth, "ground truth", "ground truth"),
+    )
+    calibration = imaging.need_calibration("no calibration: give --calibration CAL.json")
+    notes = _status_notes(data)
+    s_k = None
+    imaging_out: dict[str, Any] = {"s_k_source": "session"}
+    if request.recompute_sk:
+        data, s_k, imaging_out = _recount(data, imaging, settings, notes)
+    status = data.status
+    setup = ReplaySetup(measurement, analysis, calibration.value, load_reference())
+    # A complete session whose recorder ended the recovery before these settings would
+    # (an older, shorter settling rule - docs/settling.md - or a shorter hold) is analysed
+    # on the recovery it kept, as an interrupted one is.
+    kept = (SessionState.INTERRUPTED, SessionState.RECORDING, SessionState.COMPLETE)
+    outcome = replay(data.recording(s_k), setup, partial_recovery=status in kept)
+    if status is SessionState.COMPLETE and outcome.partial:
+        notes.append(
+            "the recorder ended the recovery before these settings would have (an older "
+            "settling rule, docs/settling.md): analysed the recovery it kept; T_r and F_r "
+            "may read low"
+        )
+    recomputed = outcome.summary()
+    truth_rows = compare_ground_truth(recomputed, truth) if truth is not None else None
+    inputs = {
+        "kind": "session",
+        "session_dir": str(data.directory),
+        "session_id": data.session_id,
+        "status": str(status),
+        "frames": int(data.frame_times_s.size),
+        "force_samples": int(data.force_times_s.size),
+        "t_arm_s": data.t_arm_s,
+    }
+    doc = _document(
+        inputs,
+        (measurement, analysis, _cal_dict(calibration.value, calibration.source), imaging_out),
+        outcome,
+        notes,
+        _stored_comparison(data.summary, recomputed),
+        truth_rows,
+    )
+    out = request.out if request.out is not None else _default_out(data.directory)
+    _check_out(out, [data.directory / name for name in _PROTECTED])
+    header = [f"session {data.session_id} ({status}), {data.directory}"]
+    return _write(out, doc, outcome, header, truth_rows)
+
+
+# --------------------------------------------------------------------------------------------
+# files
+# --------------------------------------------------------------------------------------------
+
+
+def _files_imaging(request: AnalyzeRequest, truth_path: Path | None) -> Imaging:
+    cfg = request.config
+    truth = None if truth_path is None else load_ground_truth(truth_path)
+    return choose_imaging(
+        override=request.override(),
+        config=settings_source(
+            cfg.imaging if cfg is not None else ImagingSettings(),
+            cfg.calibration if cfg is not None else None,
+        ),
+        scene=None
+        if truth is None
+        else truth_source(truth, str(truth_path), f"simulator ground truth {truth_path}"),
+    )
+
+
+def analyze_files(request: AnalyzeRequest) -> AnalysisRun:
+    """Count S_k on a video, replay it with its force CSV and write the results."""
+    video_path, force_path = request.video, request.force
+    assert video_path is not None and force_path is not None
+    if not video_path.is_file():
+        raise DataFileError(f"{video_path}: no such video file")
+    vdir = video_path.parent
+    truth_path = request.ground_truth
+    if truth_path is None and (vdir / "ground_truth.json").is_file():
+        truth_path = vdir / "ground_truth.json"
+    cfg = request.config
+    settings = cfg.imaging if cfg is not None else ImagingSettings()
+    imaging = _files_imaging(request, truth_path)
+    calibration = imaging.need_calibration("no calibration: give --calibration CAL.json")
+    notes: list[str] = []
+    if calibration.source == f"simulator ground truth {truth_path}":
+        notes.append(f"calibration: the scene's, from {truth_path}")
+    threshold = imaging.need_threshold(_NO_THRESHOLD)
+    roi = imaging.roi_value
+    if imaging.roi is None:
+        notes.append("ROI: none given, the whole frame is counted (give --roi)")
+    force_t, force_n, force_col = read_force_csv(force_path)
+    times_path = request.frame_times
+    if times_path is None and (vdir / "frames.csv").is_file():
+        times_path = vdir / "frames.csv"
+    frame_times = None if times_path is None else read_frame_times_csv(times_path)[0]
+    video = count_video(
+        video_path,
+        threshold.value,
+        roi,
+        saturation_limit_fraction=settings.saturation_limit_fraction,
+    )
+    t, s_k, more = match_frame_times(video, frame_times, str(times_path))
+    notes.extend(more)
+    if video.saturated_frames:
+        notes.append(f"{video.saturated_frames} frame(s) saturated (see the flags)")
+    measurement = cfg.measurement if cfg is not None else MeasurementConfig()
+    analysis = cfg.analysis if cfg is not None else AnalysisSettings()
+    setup = ReplaySetup(measurement, analysis, calibration.value, load_reference())
+    outcome = replay(Recording(t, s_k, force_t, force_n), setup, partial_recovery=True)
+    truth = imaging.truth
+    truth_rows = compare_ground_truth(outcome.summary(), truth) if truth is not None else None
+    inputs = {
+        "kind": "files",
+        "video": str(video_path),
+        "force_csv": str(force_path),
+        "force_time_column": force_col,
+        "frame_times": None if times_path is None else str(times_path),
+        "ground_truth": None if truth_path is None else str(truth_path),
+        "frames": int(s_k.size),
+        "force_samples": int(force_t.size),
+        "frame_shape": list(video.frame_shape),
+        "video_fps": video.fps,
+    }
+    imaging_out = {
+        "s_k_source": f"video {video_path}",
+        "threshold_p": threshold.value,
+        "threshold_source": threshold.source,
+        "roi": _roi_dict(roi),
+        "saturated_frames": video.saturated_frames,
+        "s_k_range_px": [float(np.min(s_k)), float(np.max(s_k))],
+    }
+    settings_out = (measurement, analysis, _cal_dict(calibration.value, calibration.source))
+    doc = _document(inputs, (*settings_out, imaging_out), outcome, notes, None, truth_rows)
+    out = request.out if request.out is not None else _default_out(vdir)
+    protected = [p for p in (video_path, force_path, times_path, truth_path) if p is not None]
+    _check_out(out, protected)
+    header = [f"video {video_path} ({s_k.size} frames), force {force_path}"]
+    return _write(out, doc, outcome, header, truth_rows)
+
+
+# --------------------------------------------------------------------------------------------
+# output
+# --------------------------------------------------------------------------------------------
+
+
+def _default_out(directory: Path) -> Path:
+    stamp = datetime.now(UTC).strftime("%Y%m%dT%H%M%SZ")
+    path = directory / f"analysis-{stamp}.json"
+    n = 2
+    while path.exists():
+        path = directory / f"analysis-{stamp}-{n}.json"
+        n += 1
+    return path
+
+
+def _check_out(out: Path, protected: list[Path]) -> None:
+    target = out.resolve()
+    for p in protected:
+        if target == p.resolve():
+            raise ConfigError(f"--out {out}: refusing to overwrite the recorded file {p}")
+    if out.exists() and out.is_dir():
+        raise ConfigError(f"--out {out}: is a directory (give a file name ending in .json)")
+
+
+def _fmt(v: float | None, digits: int = 4) -> str:
+    return "-" if v is None else f"{v:.{digits}g}"
+
+
+def _truth_lines(rows: list[ParameterComparison]) -> list[str]:
+    lines = ["", "ground truth (simulator)       truth       measured    error"]
+    for r in rows:
+        err = "-" if r.error_percent is None else f"{r.error_percent:+.3f} %"
+        mark = ""
+        if r.within_tolerance is not None:
+            ok = "ok" if r.within_tolerance else "OUTSIDE"
+            mark = f"  ({ok}, tolerance {r.tolerance_percent:g} %)"
+        lines.append(f"  {r.label:<26} {_fmt(r.truth):>10}  {_fmt(r.measured):>10}  {err}{mark}")
+    return lines
+
+
+def _document(
+    inputs: dict[str, Any],
+    settings: tuple[MeasurementConfig, AnalysisSettings, dict[str, Any], dict[str, Any]],
+    outcome: ReplayOutcome,
+    notes: list[str],
+    stored: dict[str, Any] | None,
+    truth_rows: list[ParameterComparison] | None,
+) -> dict[str, Any]:
+    """The output document: inputs, settings (measurement, analysis, calibration, imaging),
+    the replay, notes, the recomputed summary and the comparisons."""
+    measurement, analysis, calibration, imaging = settings
+    return {
+        "format": OUTPUT_FORMAT,
+        "version": OUTPUT_VERSION,
+        "created_utc": layout.utc_now_iso(),
+        "software": {"stipi_daemon": __version__},
+        "input": inputs,
+        "settings": {
+            "measurement": measurement.model_dump(mode="json"),
+            "analysis": analysis.model_dump(mode="json"),
+            "calibration": calibration,
+            "imaging": imaging,
+        },
+        "replay": {
+            "frames_fed": outcome.frames_fed,
+            "force_samples_fed": outcome.force_samples_fed,
+            "partial_recovery": outcome.partial,
+            "transitions": [
+                {"t_s": t.t_s, "old": str(t.old), "new": str(t.new), "reason": t.reason}
+                for t in outcome.transitions
+            ],
+        },
+        "notes": [*notes, *outcome.notes],
+        "summary": outcome.summary(),
+        "comparison": {
+            "stored_summary": stored,
+            "ground_truth": None
+            if truth_rows is None
+            else [
+                dataclasses.asdict(r) | {"within_tolerance": r.within_tolerance} for r in truth_rows
+            ],
+        },
+    }
+
+
+def _write(
+    out: Path,
+    doc: dict[str, Any],
+    outcome: ReplayOutcome,
+    header: list[str],
+    truth_rows: list[ParameterComparison] | None,
+) -> AnalysisRun:
+    layout.write_json_atomic(out, doc, what="analysis results")
+    return AnalysisRun(out, doc, outcome, header, truth_rows)
