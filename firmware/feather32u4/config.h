@@ -62,15 +62,17 @@
 
 // ---- BLE / SDEP ---------------------------------------------------------------------------
 #define STIPI_SDEP_CS_SETUP_US 100           // wait after asserting CS [us] (hardware.md)
-#define STIPI_SDEP_RETRY_DELAY_US 50         // wait before retrying a "not ready" module [us]
-#define STIPI_SDEP_TIMEOUT_US 250000UL       // max wait for IRQ / a ready module [us]; the
-                                             // module answers ERROR after 200 ms when full
+#define STIPI_SDEP_TIMEOUT_US 250000UL       // a command without an answer by then failed [us];
+                                             // the module answers ERROR after 200 ms when full
+#define STIPI_SDEP_PACKETS_PER_POLL 2        // SPI transactions per loop pass (~0.2 ms each)
 #define STIPI_BLE_RESET_PULSE_US 20000UL     // RST low time [us]
 #define STIPI_BLE_BOOT_US 1000000UL          // wait after reset before the first command [us]
 #define STIPI_BLE_PROBE_ATTEMPTS 2           // "AT" attempts before the module is declared absent
 #define STIPI_BLE_CONN_POLL_US 1000000UL     // AT+GAPGETCONN interval [us]
 #define STIPI_BLE_RX_POLL_US 20000UL         // BLE UART RX poll interval while connected [us]
 #define STIPI_BLE_RX_FIFO 64                 // received BLE bytes buffered [B]
+#define STIPI_BLE_TX_RING 256                // whole frames waiting for BLE [B]
+#define STIPI_BLE_TX_CHUNK 128               // most bytes in one UART TX command [B]
 
 // ---- EEPROM -------------------------------------------------------------------------------
 #define STIPI_EEPROM_CAL_ADDR 0              // first byte of the two calibration slots

@@ -13,6 +13,7 @@
 
 #include "../src/core/hal.h"
 #include "../src/core/sampler.h"
+#include "nrf51_sim.h"
 
 namespace fakes {
 
@@ -129,54 +130,36 @@ std::vector<HostFrame> take_frames(std::vector<uint8_t>& wire);
 std::vector<uint8_t> command_wire(uint16_t seq, uint8_t cmd, const std::vector<uint8_t>& args,
                                   uint32_t t_us = 0);
 
-// nRF51822 running the Bluefruit SDEP firmware, as an SPI slave (see test_sdep.cpp for the
-// behaviour it models: 0xFE until CS has been held 100 us, responses queued behind IRQ).
-class FakeNrf51 : public stipi::SpiPort {
+// The simulated nRF51 of tests/firmware/nrf51_sim (written from Adafruit's SDEP.md, proven
+// against Adafruit's own driver) behind the core's SpiPort. Every SPI byte costs 4 us of the
+// given clock (8 bits at 2 MHz), so time passes -- and samples are taken -- during SDEP traffic.
+class SimNrf51Port : public stipi::SpiPort {
  public:
-  explicit FakeNrf51(FakeClock& clock) : clock_(clock) {}
-
-  void select(bool active) override;
-  uint8_t transfer(uint8_t out) override;
-  bool irq() override { return present && !responses_.empty(); }
-  void reset(bool asserted) override {
-    if (asserted && !reset_asserted) ++resets;
-    reset_asserted = asserted;
-    if (asserted) responses_.clear();
+  explicit SimNrf51Port(stipi::Clock& clock) : clock_(clock) { nrf51_sim_init(&m); }
+  void sync() { nrf51_sim_advance(&m, clock_.micros()); }
+  void select(bool active) override {
+    sync();
+    nrf51_sim_select(&m, active ? 1 : 0);
   }
-
-  struct Packet {
-    uint8_t type;
-    uint16_t id;
-    bool more;
-    std::vector<uint8_t> payload;
-  };
-
-  bool present = true;
-  bool connected = true;
-  int not_ready_transactions = 0;  // the next N transactions answer 0xFE
-  int uart_tx_errors = 0;          // the next N UART TX packets get an error reply...
-  int uart_tx_error_skip = 0;      // ...after this many more have been accepted
-  bool reset_asserted = false;
-  int resets = 0;
-  int cs_too_early = 0;            // transactions that clocked before 100 us of CS setup
-  std::deque<uint8_t> central_to_probe;    // written by the BLE central (served by 0x0A02)
-  std::vector<uint8_t> probe_to_central;   // sent by the probe through 0x0A01
-  std::vector<Packet> commands;            // every command packet received
-  std::vector<std::string> at_commands;    // every complete AT command
-  size_t responses_pending() const { return responses_.size(); }
-  // Queue a reply of `id` carrying `data`, split into 16-byte packets with the more-data bit.
-  void queue_response(uint16_t id, const std::vector<uint8_t>& data);
+  uint8_t transfer(uint8_t out) override {
+    clock_.delay_us(4);
+    sync();
+    ++bytes;
+    return nrf51_sim_xfer(&m, out);
+  }
+  bool irq() override {
+    sync();
+    return nrf51_sim_irq(&m) != 0;
+  }
+  void reset(bool asserted) override {
+    sync();
+    nrf51_sim_reset(&m, asserted ? 1 : 0);
+  }
+  nrf51_sim m;
+  uint64_t bytes = 0;
 
  private:
-  void finish_command();
-  FakeClock& clock_;
-  std::deque<std::vector<uint8_t>> responses_;
-  std::vector<uint8_t> in_;
-  std::vector<uint8_t> at_buffer_;
-  bool selected_ = false;
-  uint32_t select_us_ = 0;
-  enum Mode { kIdle, kRejected, kCommand, kRead } mode_ = kIdle;
-  size_t read_pos_ = 0;
+  stipi::Clock& clock_;
 };
 
 }  // namespace fakes

@@ -1,8 +1,9 @@
-// test_sdep.cpp -- SDEP driver and BLE UART link against a fake nRF51822 SPI responder.
+// test_sdep.cpp -- SDEP driver and BLE UART link against the simulated nRF51 (nrf51_sim, written
+// from Adafruit's SDEP.md and checked with Adafruit's own driver in tests/firmware/vendor_driver).
 #include <string>
 #include <vector>
 
-#include "../src/core/probe.h"
+#include "../src/core/frame.h"
 #include "../src/core/sdep.h"
 #include "fakes.h"
 #include "runner.h"
@@ -10,256 +11,154 @@
 using namespace stipi;
 
 namespace {
-std::vector<uint8_t> bytes(const std::string& s) { return std::vector<uint8_t>(s.begin(), s.end()); }
+struct Rig {
+  fakes::FakeClock clock;
+  fakes::SimNrf51Port port{clock};
+  SdepDriver sdep{port, clock};
+  BleUartLink link{sdep, port, clock};
+  std::string central;  // bytes the central received
+  uint32_t max_pass_us = 0;
 
-// Run the link's life cycle until it settles (ready or absent), in 1 ms steps.
-void settle(BleUartLink& link, fakes::FakeClock& clock) {
-  for (int i = 0; i < 5000 && link.state() != BleUartLink::kReady &&
-                  link.state() != BleUartLink::kAbsent; ++i) {
-    clock.now_us += 1000;
-    link.poll();
+  Rig() {
+    port.m.on_notify = [](void* ctx, const uint8_t* d, uint16_t n) {
+      static_cast<Rig*>(ctx)->central.append(reinterpret_cast<const char*>(d), n);
+    };
+    port.m.notify_ctx = this;
+    link.begin();
   }
+  // Main-loop passes, 100 us apart, for `us` microseconds; records the longest poll().
+  void run(uint32_t us) {
+    const uint32_t end = clock.now_us + us;
+    while (static_cast<int32_t>(end - clock.now_us) > 0) {
+      const uint32_t t0 = clock.now_us;
+      link.poll();
+      if (clock.now_us - t0 > max_pass_us) max_pass_us = clock.now_us - t0;
+      clock.now_us += 100;
+      port.sync();
+    }
+  }
+  void boot() {
+    nrf51_sim_set_connected(&port.m, 1);
+    run(STIPI_BLE_RESET_PULSE_US + STIPI_BLE_BOOT_US + 100000);
+  }
+};
+
+std::vector<uint8_t> frame_bytes(uint8_t len, uint8_t salt) {
+  std::vector<uint8_t> f;
+  for (uint8_t i = 0; i + 1 < len; ++i) f.push_back(static_cast<uint8_t>(1 + (i + salt) % 250));
+  f.push_back(0);  // a COBS frame ends with its delimiter
+  return f;
 }
 }  // namespace
 
-TEST(sdep_send_packet_header_and_cs_setup_time) {
-  fakes::FakeClock clock;
-  fakes::FakeNrf51 nrf(clock);
-  SdepDriver d(nrf, clock);
-  const std::vector<uint8_t> p = bytes("ATI");
-  CHECK_EQ(d.send_packet(kSdepCommand, kSdepCmdAtWrapper, p.data(), 3, false), kSdepOk);
-  CHECK_EQ(nrf.cs_too_early, 0);
-  CHECK_EQ(nrf.commands.size(), 1u);
-  CHECK_EQ(nrf.commands[0].type, 0x10);
-  CHECK_EQ(nrf.commands[0].id, 0x0A00);
-  CHECK(!nrf.commands[0].more);
-  CHECK(nrf.commands[0].payload == p);
-  CHECK_EQ(d.send_packet(kSdepCommand, 1, p.data(), 17, false), kSdepBadPacket);
+TEST(ble_link_boots_with_echo_off_and_sees_the_central) {
+  Rig r;
+  r.boot();
+  CHECK_EQ(r.link.state(), BleUartLink::kReady);
+  CHECK_EQ(r.port.m.echo, 0);  // ATE=0 at start-up
+  CHECK(r.link.connected());
+  CHECK(r.link.is_open());
+  CHECK_EQ(r.port.m.protocol_errors, 0u);
+  CHECK(r.max_pass_us <= 1000);
 }
 
-TEST(sdep_long_command_is_split_with_more_data_bits) {
-  fakes::FakeClock clock;
-  fakes::FakeNrf51 nrf(clock);
-  SdepDriver d(nrf, clock);
-  const std::string cmd = "AT+GAPDEVNAME=STIPI-PROBE-0001-LONG";  // 35 bytes: 16 + 16 + 3
-  uint8_t resp[32];
-  uint8_t n = 0;
-  CHECK_EQ(d.command(kSdepCmdAtWrapper, bytes(cmd).data(), static_cast<uint16_t>(cmd.size()), resp,
-                     sizeof(resp), &n),
-           kSdepOk);
-  CHECK_EQ(nrf.commands.size(), 3u);
-  CHECK(nrf.commands[0].more && nrf.commands[1].more && !nrf.commands[2].more);
-  CHECK_EQ(nrf.commands[0].payload.size(), 16u);
-  CHECK_EQ(nrf.commands[2].payload.size(), 3u);
-  CHECK(nrf.at_commands.back() == cmd);
-  CHECK(std::string(resp, resp + n) == "ERROR\r\n");
+TEST(ble_link_gives_up_on_absent_module_without_blocking) {
+  Rig r;
+  r.port.m.present = 0;
+  r.run(STIPI_BLE_RESET_PULSE_US + STIPI_BLE_BOOT_US +
+        STIPI_BLE_PROBE_ATTEMPTS * STIPI_SDEP_TIMEOUT_US + 20000);
+  CHECK_EQ(r.link.state(), BleUartLink::kAbsent);
+  CHECK(!r.link.is_open());
+  CHECK(r.max_pass_us <= 1000);  // the probe waits across passes, never inside one
+  const uint64_t bytes = r.port.bytes;
+  r.run(1000000);
+  CHECK_EQ(r.port.bytes, bytes);  // absent: no more SPI traffic
 }
 
-TEST(sdep_split_response_is_reassembled_and_capped) {
-  fakes::FakeClock clock;
-  fakes::FakeNrf51 nrf(clock);
-  SdepDriver d(nrf, clock);
-  uint8_t resp[80];
-  uint8_t n = 0;
-  CHECK_EQ(d.command(kSdepCmdAtWrapper, bytes("ATI").data(), 3, resp, sizeof(resp), &n), kSdepOk);
-  const std::string want = "BLEFRIEND32\r\nnRF51822 QFACA10\r\n0.7.7\r\nS110 8.0.0\r\nOK\r\n";
-  CHECK(std::string(resp, resp + n) == want);  // 53 bytes = 4 packets
-  CHECK_EQ(nrf.responses_pending(), 0u);
-  // a smaller buffer keeps the first bytes and still drains every packet
-  CHECK_EQ(d.command(kSdepCmdAtWrapper, bytes("ATI").data(), 3, resp, 10, &n), kSdepOk);
-  CHECK_EQ(n, 10);
-  CHECK(std::string(resp, resp + n) == want.substr(0, 10));
-  CHECK_EQ(nrf.responses_pending(), 0u);
+TEST(ble_link_sends_a_frame_as_one_command_with_one_response) {
+  Rig r;
+  r.boot();
+  const uint32_t cmds = r.port.m.commands, in = r.port.m.packets_in, out = r.port.m.packets_out;
+  r.central.clear();
+  const std::vector<uint8_t> f = frame_bytes(39, 3);
+  CHECK(r.link.write_frame(f.data(), 39));
+  r.run(200000);
+  CHECK_EQ(r.port.m.commands - cmds >= 1u, true);
+  CHECK_EQ(r.port.m.packets_in - in - (r.port.m.commands - cmds - 1), 3u);  // 16 + 16 + 7
+  CHECK(r.port.m.packets_out - out >= 1u);
+  CHECK(r.central.find(std::string(f.begin(), f.end())) != std::string::npos);
+  CHECK_EQ(r.port.m.protocol_errors, 0u);
+  CHECK_EQ(r.port.m.responses_discarded, 0u);
 }
 
-TEST(sdep_retries_while_module_not_ready) {
-  fakes::FakeClock clock;
-  fakes::FakeNrf51 nrf(clock);
-  SdepDriver d(nrf, clock);
-  nrf.not_ready_transactions = 5;
-  uint8_t resp[16];
-  uint8_t n = 0;
-  CHECK_EQ(d.command(kSdepCmdAtWrapper, bytes("AT").data(), 2, resp, sizeof(resp), &n), kSdepOk);
-  CHECK(std::string(resp, resp + n) == "OK\r\n");
-  CHECK_EQ(nrf.not_ready_transactions, 0);
-}
-
-TEST(sdep_error_reply_is_reported) {
-  fakes::FakeClock clock;
-  fakes::FakeNrf51 nrf(clock);
-  SdepDriver d(nrf, clock);
-  uint8_t n = 0;
-  CHECK_EQ(d.command(0x1234, nullptr, 0, nullptr, 0, &n), kSdepErrorReply);
-  CHECK_EQ(d.last_error(), kSdepErrInvalidCommand);
-  CHECK_EQ(nrf.responses_pending(), 0u);
-}
-
-TEST(sdep_absent_module_times_out_boundedly) {
-  fakes::FakeClock clock;
-  fakes::FakeNrf51 nrf(clock);
-  nrf.present = false;
-  SdepDriver d(nrf, clock);
-  uint8_t resp[8];
-  uint8_t n = 0;
-  const uint32_t t0 = clock.now_us;
-  CHECK_EQ(d.command(kSdepCmdAtWrapper, bytes("AT").data(), 2, resp, sizeof(resp), &n),
-           kSdepTimeout);
-  const uint32_t took = clock.now_us - t0;
-  CHECK(took >= STIPI_SDEP_TIMEOUT_US);
-  CHECK(took <= STIPI_SDEP_TIMEOUT_US + 1000);
-  // a module stuck "not ready" also times out
-  nrf.present = true;
-  nrf.not_ready_transactions = 1000000;
-  CHECK_EQ(d.command(kSdepCmdAtWrapper, bytes("AT").data(), 2, resp, sizeof(resp), &n),
-           kSdepTimeout);
-}
-
-TEST(ble_link_resets_probes_and_becomes_ready) {
-  fakes::FakeClock clock;
-  fakes::FakeNrf51 nrf(clock);
-  SdepDriver d(nrf, clock);
-  BleUartLink link(d, nrf, clock);
-  link.begin();
-  CHECK(nrf.reset_asserted);
-  CHECK_EQ(nrf.resets, 1);
-  settle(link, clock);
-  CHECK(!nrf.reset_asserted);
-  CHECK_EQ(link.state(), BleUartLink::kReady);
-  CHECK(clock.now_us >= STIPI_BLE_RESET_PULSE_US + STIPI_BLE_BOOT_US);
-  CHECK(link.connected());
-  CHECK(link.is_open());
-  CHECK(nrf.at_commands.size() >= 2u);
-  CHECK(nrf.at_commands[0] == "AT");
-  CHECK(nrf.at_commands[1] == "AT+GAPGETCONN");
-  nrf.connected = false;
-  clock.now_us += STIPI_BLE_CONN_POLL_US;
-  link.poll();
-  CHECK(!link.is_open());
-  const uint8_t f[3] = {1, 2, 0};
-  CHECK(!link.write_frame(f, 3));
-}
-
-TEST(ble_link_gives_up_on_absent_module_and_stays_quiet) {
-  fakes::FakeClock clock;
-  fakes::FakeNrf51 nrf(clock);
-  nrf.present = false;
-  SdepDriver d(nrf, clock);
-  BleUartLink link(d, nrf, clock);
-  link.begin();
-  const uint32_t t0 = clock.now_us;
-  settle(link, clock);
-  CHECK_EQ(link.state(), BleUartLink::kAbsent);
-  // reset + boot + one bounded timeout per probe attempt (plus the 1 ms settle steps)
-  CHECK(clock.now_us - t0 <= STIPI_BLE_RESET_PULSE_US + STIPI_BLE_BOOT_US +
-                                 STIPI_BLE_PROBE_ATTEMPTS * (STIPI_SDEP_TIMEOUT_US + 2000) + 5000);
-  const uint32_t t1 = clock.now_us;
-  for (int i = 0; i < 100; ++i) link.poll();
-  CHECK_EQ(clock.now_us, t1);  // no more waiting
-  CHECK(!link.is_open());
-}
-
-TEST(ble_link_writes_frames_in_16_byte_packets) {
-  fakes::FakeClock clock;
-  fakes::FakeNrf51 nrf(clock);
-  SdepDriver d(nrf, clock);
-  BleUartLink link(d, nrf, clock);
-  link.begin();
-  settle(link, clock);
-  nrf.commands.clear();
-  std::vector<uint8_t> frame(39);
-  for (size_t i = 0; i < frame.size(); ++i) frame[i] = static_cast<uint8_t>(i + 1);
-  frame.back() = 0;
-  CHECK(link.write_frame(frame.data(), 39));
-  // first frame after connecting starts with a lone 0x00 (clears the central's partial frame)
-  std::vector<uint8_t> expect(1, 0);
-  expect.insert(expect.end(), frame.begin(), frame.end());
-  CHECK(nrf.probe_to_central == expect);
-  CHECK_EQ(nrf.commands.size(), 4u);
-  if (nrf.commands.size() == 4) {
-    CHECK(nrf.commands[1].more && nrf.commands[2].more && !nrf.commands[3].more);
-    CHECK_EQ(nrf.commands[1].payload.size(), 16u);
-    CHECK_EQ(nrf.commands[3].payload.size(), 7u);
+TEST(ble_link_survives_processing_delays_and_stale_irq) {
+  for (uint32_t delay_us : {0u, 1000u, 7000u, 20000u}) {
+    Rig r;
+    r.port.m.process_us = delay_us;
+    r.port.m.irq_lag_us = 300;
+    r.port.m.conn_interval_us = 7500;
+    r.port.m.tx_per_event_b = 80;
+    r.boot();
+    CHECK_EQ(r.link.state(), BleUartLink::kReady);
+    std::string sent;
+    for (int k = 0; k < 20; ++k) {
+      const std::vector<uint8_t> f = frame_bytes(static_cast<uint8_t>(20 + k * 3), static_cast<uint8_t>(k));
+      CHECK(r.link.write_frame(f.data(), static_cast<uint8_t>(f.size())));
+      sent.append(f.begin(), f.end());
+      r.run(30000);
+    }
+    r.run(500000);
+    CHECK(r.central.size() >= sent.size());
+    CHECK(r.central.substr(r.central.size() - sent.size()) == sent);
+    CHECK_EQ(r.link.frames_lost(), 0u);
+    CHECK(r.max_pass_us <= 1000);
   }
-  // module buffer full on the first packet: nothing of the frame went out, no resync needed
-  nrf.probe_to_central.clear();
-  nrf.uart_tx_errors = 1;
-  CHECK(!link.write_frame(frame.data(), 39));
-  CHECK_EQ(link.tx_failures(), 1);
-  CHECK(nrf.probe_to_central.empty());
-  CHECK(link.write_frame(frame.data(), 39));
-  CHECK(nrf.probe_to_central == frame);
-}
-
-TEST(ble_link_resyncs_after_a_fragment) {
-  fakes::FakeClock clock;
-  fakes::FakeNrf51 nrf(clock);
-  SdepDriver d(nrf, clock);
-  BleUartLink link(d, nrf, clock);
-  link.begin();
-  settle(link, clock);
-  std::vector<uint8_t> frame(39, 0x66);
-  frame.back() = 0;
-  CHECK(link.write_frame(frame.data(), 39));
-  nrf.probe_to_central.clear();
-  nrf.uart_tx_error_skip = 1;  // first packet accepted, second refused: a fragment is out
-  nrf.uart_tx_errors = 1;
-  CHECK(!link.write_frame(frame.data(), 39));
-  CHECK_EQ(nrf.probe_to_central.size(), 16u);
-  CHECK(link.write_frame(frame.data(), 39));
-  // fragment, then a lone 0x00 that ends it (the host drops it as a bad frame), then the frame
-  std::vector<uint8_t> expect(frame.begin(), frame.begin() + 16);
-  expect.push_back(0);
-  expect.insert(expect.end(), frame.begin(), frame.end());
-  CHECK(nrf.probe_to_central == expect);
 }
 
 TEST(ble_link_receives_central_bytes) {
-  fakes::FakeClock clock;
-  fakes::FakeNrf51 nrf(clock);
-  SdepDriver d(nrf, clock);
-  BleUartLink link(d, nrf, clock);
-  link.begin();
-  settle(link, clock);
-  for (uint8_t i = 1; i <= 50; ++i) nrf.central_to_probe.push_back(i);
-  std::vector<uint8_t> got;
-  for (int pass = 0; pass < 20 && got.size() < 50; ++pass) {
-    clock.now_us += STIPI_BLE_RX_POLL_US;
-    link.poll();
-    for (int16_t b = link.read(); b >= 0; b = link.read()) got.push_back(static_cast<uint8_t>(b));
-  }
-  CHECK_EQ(got.size(), 50u);
-  for (size_t i = 0; i < got.size(); ++i) CHECK_EQ(got[i], i + 1);
+  Rig r;
+  r.boot();
+  const std::string msg = "a command from the central, 3 packets";
+  nrf51_sim_central_write(&r.port.m, reinterpret_cast<const uint8_t*>(msg.data()),
+                          static_cast<uint16_t>(msg.size()));
+  r.run(100000);
+  std::string got;
+  for (int16_t b = r.link.read(); b >= 0; b = r.link.read()) got += static_cast<char>(b);
+  CHECK(got == msg);
 }
 
-TEST(probe_over_ble_answers_a_central) {
-  fakes::FakeClock clock(1000);
-  fakes::FakeNrf51 nrf(clock);
-  SdepDriver d(nrf, clock);
-  BleUartLink ble(d, nrf, clock);
-  Sampler sampler;
-  fakes::FakeBoard board(clock, sampler);
-  fakes::FakeEeprom eeprom;
-  Probe probe(clock, board, sampler, eeprom);
-  probe.set_link(kLinkBle, &ble);
-  ble.begin();
-  probe.begin();
-  settle(ble, clock);
-  const std::vector<uint8_t> cmd = fakes::command_wire(77, kCmdGetInfo, {});
-  nrf.central_to_probe.insert(nrf.central_to_probe.end(), cmd.begin(), cmd.end());
-  for (int i = 0; i < 10; ++i) {
-    clock.now_us += STIPI_BLE_RX_POLL_US;
-    ble.poll();
-    probe.poll();
+TEST(ble_link_counts_frames_the_full_module_refused) {
+  Rig r;
+  r.boot();
+  r.port.m.tx_per_event_b = 0;  // the central stops reading
+  uint32_t accepted = 0;
+  for (int k = 0; k < 60; ++k) {
+    const std::vector<uint8_t> f = frame_bytes(39, static_cast<uint8_t>(k));
+    accepted += r.link.write_frame(f.data(), 39);
+    r.run(20000);
   }
-  const auto frames = fakes::take_frames(nrf.probe_to_central);
-  bool acked = false;
-  for (const auto& f : frames) {
-    if (f.type == kMsgAck && get_u16(f.body.data()) == 77) acked = f.body[3] == kAckOk;
-  }
-  CHECK(acked);
-  bool status_ble = false;
-  for (const auto& f : frames) {
-    if (f.type == kMsgStatus) status_ble = (f.body[9] & kFlagBleConnected) != 0;
-  }
-  CHECK(status_ble);
+  r.run(1000000);
+  CHECK(r.port.m.tx_errors >= 1u);  // ERROR after ~200 ms of a full FIFO
+  CHECK(r.link.tx_failures() >= 1u);
+  CHECK(r.link.frames_lost() >= 1u);
+  CHECK(accepted > r.link.frames_lost());
+  CHECK(r.max_pass_us <= 1000);  // the 200 ms wait happened between passes
+}
+
+TEST(ble_link_disconnect_and_reconnect) {
+  Rig r;
+  r.boot();
+  nrf51_sim_set_connected(&r.port.m, 0);
+  r.run(STIPI_BLE_CONN_POLL_US + 50000);
+  CHECK(!r.link.is_open());
+  const std::vector<uint8_t> f = frame_bytes(20, 1);
+  CHECK(!r.link.write_frame(f.data(), 20));
+  r.central.clear();
+  nrf51_sim_set_connected(&r.port.m, 1);
+  r.run(STIPI_BLE_CONN_POLL_US + 50000);
+  CHECK(r.link.is_open());
+  CHECK(r.link.write_frame(f.data(), 20));
+  r.run(200000);
+  CHECK(r.central.size() == 21u);
+  CHECK_EQ(r.central[0], '\0');  // a new central starts on a frame boundary
 }

@@ -1,36 +1,24 @@
-// sdep.cpp -- SDEP driver and Bluefruit BLE UART link (see sdep.h).
+// sdep.cpp -- SDEP driver and non-blocking Bluefruit BLE UART link (see sdep.h).
 #include "sdep.h"
 
 #include <string.h>
 
 namespace stipi {
 
-namespace {
-// Upper bound on response packets read for one command (1 KB, the module's buffer size).
-const uint8_t kMaxResponsePackets = 64;
-const uint16_t kIrqPollUs = 10;
-}  // namespace
+static_assert(STIPI_BLE_TX_CHUNK >= 80 && STIPI_BLE_TX_CHUNK <= STIPI_BLE_TX_RING,
+              "a UART TX command must hold the longest wire frame (kMaxWireLen)");
 
-bool SdepDriver::wait_irq() {
-  const uint32_t start = clock_.micros();
-  while (!spi_.irq()) {
-    if (expired(start)) return false;
-    clock_.delay_us(kIrqPollUs);
-  }
-  return true;
+void SdepDriver::begin_transaction() {
+  spi_.select(true);
+  clock_.delay_us(STIPI_SDEP_CS_SETUP_US);  // SDEP.md "SPI Bus Hardware Requirements"
 }
 
-SdepStatus SdepDriver::send_packet(uint8_t type, uint16_t id, const uint8_t* payload,
-                                   uint8_t len, bool more) {
+SdepStatus SdepDriver::send_packet(uint16_t id, const uint8_t* payload, uint8_t len, bool more) {
   if (len > kSdepMaxPayload) return kSdepBadPacket;
-  const uint32_t start = clock_.micros();
-  for (;;) {
-    spi_.select(true);
-    clock_.delay_us(STIPI_SDEP_CS_SETUP_US);
-    if (spi_.transfer(type) != kSdepNotReady) break;
+  begin_transaction();
+  if (spi_.transfer(kSdepCommand) == kSdepNotReady) {  // busy: the packet was not taken
     spi_.select(false);
-    if (expired(start)) return kSdepTimeout;
-    clock_.delay_us(STIPI_SDEP_RETRY_DELAY_US);
+    return kSdepAgain;
   }
   spi_.transfer(static_cast<uint8_t>(id));
   spi_.transfer(static_cast<uint8_t>(id >> 8));
@@ -41,17 +29,13 @@ SdepStatus SdepDriver::send_packet(uint8_t type, uint16_t id, const uint8_t* pay
 }
 
 SdepStatus SdepDriver::read_packet(SdepPacket& out) {
-  if (!wait_irq()) return kSdepTimeout;
-  const uint32_t start = clock_.micros();
-  uint8_t type;
-  for (;;) {
-    spi_.select(true);
-    clock_.delay_us(STIPI_SDEP_CS_SETUP_US);
-    type = spi_.transfer(kSdepNoData);
-    if (type != kSdepNotReady && type != kSdepNoData) break;
+  if (!spi_.irq()) return kSdepAgain;
+  begin_transaction();
+  const uint8_t type = spi_.transfer(kSdepNoData);
+  // 0xFE: still processing; 0xFF: IRQ was still high after the last packet (SDEP.md "IRQ Pin").
+  if (type == kSdepNotReady || type == kSdepNoData) {
     spi_.select(false);
-    if (expired(start)) return kSdepTimeout;
-    clock_.delay_us(STIPI_SDEP_RETRY_DELAY_US);
+    return kSdepAgain;
   }
   const uint8_t b1 = spi_.transfer(kSdepNoData);
   const uint8_t b2 = spi_.transfer(kSdepNoData);
@@ -60,63 +44,33 @@ SdepStatus SdepDriver::read_packet(SdepPacket& out) {
   out.id = static_cast<uint16_t>(b1 | (static_cast<uint16_t>(b2) << 8));
   out.more = (b3 & kSdepMoreData) != 0;
   out.len = static_cast<uint8_t>(b3 & 0x1F);
+  SdepStatus st = kSdepOk;
   if (type == kSdepError) {
-    spi_.select(false);
     out.len = 0;
     out.more = false;
-    last_error_ = out.id;
-    return kSdepErrorReply;
+    st = kSdepErrorReply;
+  } else if ((type != kSdepResponse && type != kSdepAlert) || out.len > kSdepMaxPayload) {
+    st = kSdepBadPacket;
+  } else {
+    for (uint8_t i = 0; i < out.len; ++i) out.payload[i] = spi_.transfer(kSdepNoData);
   }
-  if ((type != kSdepResponse && type != kSdepAlert) || out.len > kSdepMaxPayload) {
-    spi_.select(false);
-    return kSdepBadPacket;
-  }
-  for (uint8_t i = 0; i < out.len; ++i) out.payload[i] = spi_.transfer(kSdepNoData);
   spi_.select(false);
-  return kSdepOk;
-}
-
-SdepStatus SdepDriver::read_response(uint16_t id, uint8_t* resp, uint8_t resp_cap,
-                                     uint8_t* resp_len) {
-  uint8_t stored = 0;
-  if (resp_len) *resp_len = 0;
-  SdepPacket p;
-  for (uint8_t n = 0; n < kMaxResponsePackets; ++n) {
-    const SdepStatus st = read_packet(p);
-    if (st != kSdepOk) return st;
-    if (p.type == kSdepAlert) continue;  // unsolicited event: not our answer
-    if (p.id != id) return kSdepBadPacket;
-    for (uint8_t i = 0; i < p.len && stored < resp_cap; ++i) resp[stored++] = p.payload[i];
-    if (resp_len) *resp_len = stored;
-    if (!p.more) return kSdepOk;
-  }
-  return kSdepBadPacket;
-}
-
-SdepStatus SdepDriver::command(uint16_t id, const uint8_t* payload, uint16_t len, uint8_t* resp,
-                               uint8_t resp_cap, uint8_t* resp_len) {
-  uint16_t off = 0;
-  do {
-    const uint16_t left = static_cast<uint16_t>(len - off);
-    const uint8_t n = left > kSdepMaxPayload ? kSdepMaxPayload : static_cast<uint8_t>(left);
-    const bool more = off + n < len;
-    const SdepStatus st = send_packet(kSdepCommand, id, payload + off, n, more);
-    if (st != kSdepOk) return st;
-    off = static_cast<uint16_t>(off + n);
-  } while (off < len);
-  return read_response(id, resp, resp_cap, resp_len);
-}
-
-SdepStatus SdepDriver::initialize() {
-  return send_packet(kSdepCommand, kSdepCmdInitialize, 0, 0, false);
+  return st;
 }
 
 // ------------------------------------------------------------------------------------------
 
+namespace {
+const char kAtEchoOff[] = "ATE=0";  // also the boot probe: echo is on after every reset
+const char kAtGetConn[] = "AT+GAPGETCONN";
+}  // namespace
+
 BleUartLink::BleUartLink(SdepDriver& sdep, SpiPort& spi, Clock& clock)
     : sdep_(sdep), spi_(spi), clock_(clock), state_(kReset), connected_(false), attempts_(0),
-      since_us_(0), last_conn_poll_us_(0), last_rx_poll_us_(0), tx_failures_(0), resync_(false),
-      rx_head_(0), rx_count_(0) {}
+      since_us_(0), last_conn_poll_us_(0), last_rx_poll_us_(0), tx_failures_(0),
+      frames_lost_(0), job_(kJobNone), last_job_(kJobNone), awaiting_(false), failed_(false), job_id_(0),
+      job_len_(0), job_sent_(0), job_start_us_(0), job_text_(0), reply_len_(0), tx_head_(0),
+      tx_count_(0), rx_head_(0), rx_count_(0) {}
 
 void BleUartLink::begin() {
   spi_.select(false);
@@ -125,105 +79,190 @@ void BleUartLink::begin() {
   state_ = kReset;
   connected_ = false;
   attempts_ = 0;
-}
-
-bool BleUartLink::at_command(const char* text, uint8_t* resp, uint8_t cap, uint8_t* n) {
-  const SdepStatus st = sdep_.command(kSdepCmdAtWrapper, reinterpret_cast<const uint8_t*>(text),
-                                      static_cast<uint16_t>(strlen(text)), resp, cap, n);
-  if (st != kSdepOk) return false;
-  // The Bluefruit AT layer ends a successful reply with "OK\r\n".
-  return *n >= 4 && memcmp(resp + *n - 4, "OK\r\n", 4) == 0;
+  job_ = kJobNone;
 }
 
 void BleUartLink::poll() {
   const uint32_t now = clock_.micros();
-  switch (state_) {
-    case kReset:
-      if (static_cast<uint32_t>(now - since_us_) >= STIPI_BLE_RESET_PULSE_US) {
-        spi_.reset(false);
-        since_us_ = now;
-        state_ = kBooting;
+  if (state_ == kReset) {
+    if (static_cast<uint32_t>(now - since_us_) < STIPI_BLE_RESET_PULSE_US) return;
+    spi_.reset(false);
+    since_us_ = now;
+    state_ = kBooting;
+  }
+  if (state_ == kBooting) {
+    if (static_cast<uint32_t>(now - since_us_) < STIPI_BLE_BOOT_US) return;
+    state_ = kProbing;
+  }
+  for (uint8_t k = 0; k < STIPI_SDEP_PACKETS_PER_POLL; ++k) {
+    if (job_ == kJobNone) {
+      if (state_ == kProbing) {
+        job_text_ = kAtEchoOff;
+        start_job(kJobEcho, kSdepCmdAtWrapper, sizeof(kAtEchoOff) - 1);
+      } else if (state_ == kReady) {
+        choose_job(now);
       }
-      break;
-    case kBooting:
-      if (static_cast<uint32_t>(now - since_us_) >= STIPI_BLE_BOOT_US) state_ = kProbing;
-      break;
-    case kProbing: {
-      uint8_t resp[16];
-      uint8_t n = 0;
-      if (at_command("AT", resp, sizeof(resp), &n)) {
-        state_ = kReady;
-        poll_connection();
-      } else if (++attempts_ >= STIPI_BLE_PROBE_ATTEMPTS) {
-        state_ = kAbsent;  // no module answers: the BLE link stays closed, no more SPI traffic
-      }
-      break;
     }
-    case kReady:
-      if (static_cast<uint32_t>(now - last_conn_poll_us_) >= STIPI_BLE_CONN_POLL_US) {
-        poll_connection();
-      }
-      if (connected_ && rx_count_ == 0 &&
-          static_cast<uint32_t>(now - last_rx_poll_us_) >= STIPI_BLE_RX_POLL_US) {
-        poll_rx();
-      }
-      break;
-    case kAbsent:
-      break;
+    if (job_ == kJobNone) return;
+    step();
   }
 }
 
-void BleUartLink::poll_connection() {
-  last_conn_poll_us_ = clock_.micros();
-  uint8_t resp[16];
-  uint8_t n = 0;
-  // Reply "1\r\nOK\r\n" when a central is connected, "0\r\nOK\r\n" otherwise.
-  const bool was = connected_;
-  connected_ = at_command("AT+GAPGETCONN", resp, sizeof(resp), &n) && resp[0] == '1';
-  if (connected_ && !was) resync_ = true;  // start a new central's stream on a frame boundary
+void BleUartLink::choose_job(uint32_t now) {
+  if (static_cast<uint32_t>(now - last_conn_poll_us_) >= STIPI_BLE_CONN_POLL_US) {
+    last_conn_poll_us_ = now;
+    job_text_ = kAtGetConn;
+    start_job(kJobConn, kSdepCmdAtWrapper, sizeof(kAtGetConn) - 1);
+  } else if (connected_ && rx_count_ == 0 && !(tx_count_ > 0 && last_job_ == kJobRx) &&
+             static_cast<uint32_t>(now - last_rx_poll_us_) >= STIPI_BLE_RX_POLL_US) {
+    // RX polls and TX commands alternate when both are due: neither starves the other.
+    last_rx_poll_us_ = now;
+    start_job(kJobRx, kSdepCmdUartRx, 0);
+  } else if (connected_ && tx_count_ > 0) {
+    start_tx();
+  }
 }
 
-void BleUartLink::poll_rx() {
-  last_rx_poll_us_ = clock_.micros();
-  uint8_t n = 0;
-  if (sdep_.command(kSdepCmdUartRx, 0, 0, rx_, sizeof(rx_), &n) != kSdepOk) n = 0;
-  rx_head_ = 0;
-  rx_count_ = n;
+void BleUartLink::start_job(Job job, uint16_t id, uint16_t len) {
+  job_ = job;
+  job_id_ = id;
+  job_len_ = len;
+  job_sent_ = 0;
+  awaiting_ = false;
+  failed_ = false;
+  reply_len_ = 0;
+  job_start_us_ = clock_.micros();
+}
+
+// One UART TX command carries whole frames only (up to the last 0x00 in the first
+// STIPI_BLE_TX_CHUNK bytes), so a refused command loses whole frames: seq gaps, no fragments.
+void BleUartLink::start_tx() {
+  const uint16_t limit = tx_count_ < STIPI_BLE_TX_CHUNK ? tx_count_ : STIPI_BLE_TX_CHUNK;
+  uint16_t len = 0;
+  for (uint16_t i = 0; i < limit; ++i) {
+    if (tx_at(i) == 0) len = static_cast<uint16_t>(i + 1);
+  }
+  if (len == 0) return;
+  start_job(kJobTx, kSdepCmdUartTx, len);
+}
+
+void BleUartLink::step() {
+  const uint32_t now = clock_.micros();
+  if (awaiting_) {
+    step_receive(now);
+  } else {
+    step_send(now);
+  }
+  if (job_ != kJobNone && static_cast<uint32_t>(now - job_start_us_) >= STIPI_SDEP_TIMEOUT_US) {
+    finish(false);  // no module, or no answer in time: bounded, and nothing waited for it
+  }
+}
+
+void BleUartLink::step_send(uint32_t) {
+  uint8_t buf[kSdepMaxPayload];
+  const uint16_t left = static_cast<uint16_t>(job_len_ - job_sent_);
+  const uint8_t n = left > kSdepMaxPayload ? kSdepMaxPayload : static_cast<uint8_t>(left);
+  for (uint8_t i = 0; i < n; ++i) {
+    const uint16_t at = static_cast<uint16_t>(job_sent_ + i);
+    buf[i] = job_ == kJobTx ? tx_at(at) : static_cast<uint8_t>(job_text_[at]);
+  }
+  const bool more = job_sent_ + n < job_len_;  // SDEP.md "Command Messages": More data bit
+  if (sdep_.send_packet(job_id_, buf, n, more) != kSdepOk) return;  // 0xFE: next pass
+  job_sent_ = static_cast<uint16_t>(job_sent_ + n);
+  if (!more) awaiting_ = true;  // the one response comes after the last packet
+}
+
+void BleUartLink::step_receive(uint32_t) {
+  SdepPacket p;
+  const SdepStatus st = sdep_.read_packet(p);
+  if (st == kSdepAgain) return;
+  if (st != kSdepOk) {
+    finish(false);
+    return;
+  }
+  if (p.type == kSdepAlert) return;  // unsolicited: not our answer
+  if (p.id != job_id_) {
+    finish(false);
+    return;
+  }
+  on_payload(p);
+  if (!p.more) finish(true);  // SDEP.md "Response Messages": reassembled
+}
+
+void BleUartLink::on_payload(const SdepPacket& p) {
+  for (uint8_t i = 0; i < p.len; ++i) {
+    if (job_ == kJobRx) {
+      if (rx_count_ < STIPI_BLE_RX_FIFO) {
+        rx_[(rx_head_ + rx_count_) % STIPI_BLE_RX_FIFO] = p.payload[i];
+        ++rx_count_;
+      }
+    } else if (reply_len_ < sizeof(reply_)) {
+      reply_[reply_len_++] = p.payload[i];
+    } else {  // keep the last bytes: the status line ends the reply
+      memmove(reply_, reply_ + 1, sizeof(reply_) - 1);
+      reply_[sizeof(reply_) - 1] = p.payload[i];
+    }
+  }
+}
+
+bool BleUartLink::reply_ok() const {
+  return reply_len_ >= 4 && memcmp(reply_ + reply_len_ - 4, "OK\r\n", 4) == 0;
+}
+
+void BleUartLink::drop_tx(uint16_t bytes) {
+  tx_head_ = static_cast<uint16_t>((tx_head_ + bytes) % STIPI_BLE_TX_RING);
+  tx_count_ = static_cast<uint16_t>(tx_count_ - bytes);
+}
+
+void BleUartLink::finish(bool ok) {
+  const Job job = job_;
+  job_ = kJobNone;
+  last_job_ = job;
+  if (job == kJobEcho) {
+    if (ok && reply_ok()) {
+      state_ = kReady;
+      last_conn_poll_us_ = static_cast<uint32_t>(clock_.micros() - STIPI_BLE_CONN_POLL_US);
+    } else if (++attempts_ >= STIPI_BLE_PROBE_ATTEMPTS) {
+      state_ = kAbsent;  // no module answers: the link stays closed, no more SPI traffic
+    }
+  } else if (job == kJobConn) {
+    // "1\r\nOK\r\n" when a central is connected (the last 7 bytes even if echo were on).
+    const bool now_conn = ok && reply_ok() && reply_len_ >= 7 && reply_[reply_len_ - 7] == '1';
+    if (now_conn && !connected_ && tx_count_ < STIPI_BLE_TX_RING) {
+      tx_[(tx_head_ + tx_count_) % STIPI_BLE_TX_RING] = 0;  // new central: frame boundary
+      ++tx_count_;
+    }
+    if (!now_conn && connected_) {
+      for (uint16_t i = 0; i < tx_count_; ++i) frames_lost_ += tx_at(i) == 0;
+      drop_tx(tx_count_);
+    }
+    connected_ = now_conn;
+  } else if (job == kJobTx) {
+    // An answer without "ERROR" means the module took the bytes; ERROR (FIFO still full after
+    // ~200 ms, hardware.md), an error packet or no answer: the frames in it are lost.
+    const bool refused = !ok || (reply_len_ >= 5 && memcmp(reply_, "ERROR", 5) == 0);
+    if (refused) {
+      ++tx_failures_;
+      for (uint16_t i = 0; i < job_len_; ++i) frames_lost_ += tx_at(i) == 0;
+    }
+    drop_tx(job_len_);
+  }
 }
 
 int16_t BleUartLink::read() {
   if (rx_count_ == 0) return -1;
+  const uint8_t b = rx_[rx_head_];
+  rx_head_ = static_cast<uint8_t>((rx_head_ + 1) % STIPI_BLE_RX_FIFO);
   --rx_count_;
-  return rx_[rx_head_++];
+  return b;
 }
 
 bool BleUartLink::write_frame(const uint8_t* data, uint8_t len) {
-  if (!is_open()) return false;
-  uint8_t dummy[1];
-  uint8_t n = 0;
-  if (resync_) {
-    const uint8_t zero = 0;
-    if (sdep_.send_packet(kSdepCommand, kSdepCmdUartTx, &zero, 1, false) != kSdepOk ||
-        sdep_.read_response(kSdepCmdUartTx, dummy, 0, &n) != kSdepOk) {
-      ++tx_failures_;
-      return false;
-    }
-    resync_ = false;
-  }
-  uint8_t off = 0;
-  while (off < len) {
-    const uint8_t left = static_cast<uint8_t>(len - off);
-    const uint8_t chunk = left > kSdepMaxPayload ? kSdepMaxPayload : left;
-    const bool more = off + chunk < len;
-    // As Adafruit's library does, each UART TX packet is answered before the next is sent;
-    // an error answer means the module's ~1 KB TX buffer is full (it replies after ~200 ms).
-    if (sdep_.send_packet(kSdepCommand, kSdepCmdUartTx, data + off, chunk, more) != kSdepOk ||
-        sdep_.read_response(kSdepCmdUartTx, dummy, 0, &n) != kSdepOk) {
-      ++tx_failures_;
-      if (off > 0) resync_ = true;  // the host holds a fragment: cut it off with a 0x00
-      return false;
-    }
-    off = static_cast<uint8_t>(off + chunk);
+  if (!is_open() || len == 0 || data[len - 1] != 0) return false;
+  if (len > STIPI_BLE_TX_RING - tx_count_) return false;  // no room: a counted seq gap
+  for (uint8_t i = 0; i < len; ++i) {
+    tx_[(tx_head_ + tx_count_) % STIPI_BLE_TX_RING] = data[i];
+    ++tx_count_;
   }
   return true;
 }

@@ -2,11 +2,13 @@
 //
 // Owns: SDEP packet framing (4-byte header + <= 16 payload bytes; byte 0 type 0x10 command /
 // 0x20 response / 0x40 alert / 0x80 error; bytes 1-2 command id LE; byte 3 bit 7 "more data",
-// bits 4-0 payload length), splitting long payloads, the "not ready" (0xFE) / "no data" (0xFF)
-// retries, and bounded waits for IRQ: every wait ends after STIPI_SDEP_TIMEOUT_US, so a missing
-// module (e.g. under simavr) costs a bounded delay and never hangs the probe. BleUartLink adds
-// the module's life cycle (reset, probe with "AT", connection polling) and the Nordic UART
-// service byte stream (0x0A01 TX, 0x0A02 RX). Does not own the SPI peripheral (SpiPort).
+// bits 4-0 payload length) and, in BleUartLink, a non-blocking command engine advanced from
+// loop(): per Adafruit's SDEP.md ("Command Messages") all packets of a command go out back to
+// back and ONE response (possibly several packets, "Response Messages") is read after the last;
+// 0xFE (not ready) and 0xFF (nothing / IRQ still high after the last packet) are retried on a
+// later pass, never in a wait loop. BleUartLink adds the module's life cycle (reset, boot wait,
+// "ATE=0" as the bounded boot probe, connection polling) and the Nordic UART byte stream
+// (0x0A01 TX from a ring of whole frames, 0x0A02 RX). Does not own the SPI peripheral.
 #ifndef STIPI_CORE_SDEP_H
 #define STIPI_CORE_SDEP_H
 
@@ -23,86 +25,80 @@ const uint8_t kSdepAlert = 0x40;
 const uint8_t kSdepError = 0x80;
 const uint8_t kSdepMaxPayload = 16;
 const uint8_t kSdepMoreData = 0x80;
-const uint8_t kSdepNotReady = 0xFE;  // module busy: retry after a short wait
-const uint8_t kSdepNoData = 0xFF;    // module has nothing to send
+const uint8_t kSdepNotReady = 0xFE;  // module busy: try again on a later pass
+const uint8_t kSdepNoData = 0xFF;    // module has nothing to send (over-read)
 
 const uint16_t kSdepCmdInitialize = 0xBEEF;
 const uint16_t kSdepCmdAtWrapper = 0x0A00;
 const uint16_t kSdepCmdUartTx = 0x0A01;
 const uint16_t kSdepCmdUartRx = 0x0A02;
 
-const uint16_t kSdepErrInvalidCommand = 0x0001;
-const uint16_t kSdepErrInvalidPayload = 0x0003;
-
 enum SdepStatus : uint8_t {
   kSdepOk = 0,
-  kSdepTimeout = 1,      // IRQ never rose, or the module stayed "not ready"
-  kSdepErrorReply = 2,   // the module answered with an error packet (error id in last_error())
-  kSdepBadPacket = 3,    // malformed reply: wrong type/command id, or length > 16
+  kSdepAgain = 1,        // module not ready / nothing to read yet: retry on a later pass
+  kSdepErrorReply = 2,   // the module answered with an error packet
+  kSdepBadPacket = 3,    // malformed reply: wrong type, or length > 16
 };
 
 struct SdepPacket {
   uint8_t type;
-  uint16_t id;       // command id, or error id for kSdepError
+  uint16_t id;  // command id, or error id for kSdepError
   bool more;
   uint8_t len;
   uint8_t payload[kSdepMaxPayload];
 };
 
+// One SPI transaction per call; nothing here waits for the module.
 class SdepDriver {
  public:
-  SdepDriver(SpiPort& spi, Clock& clock) : spi_(spi), clock_(clock), last_error_(0) {}
-
-  // Send one packet (len <= 16). Retries while the module answers 0xFE, up to the timeout.
-  SdepStatus send_packet(uint8_t type, uint16_t id, const uint8_t* payload, uint8_t len,
-                         bool more);
-  // Wait (bounded) for IRQ and read one packet.
+  SdepDriver(SpiPort& spi, Clock& clock) : spi_(spi), clock_(clock) {}
+  // Send one packet (len <= 16); kSdepAgain when the module answered 0xFE (nothing sent).
+  SdepStatus send_packet(uint16_t id, const uint8_t* payload, uint8_t len, bool more);
+  // Read one packet if IRQ is high; kSdepAgain when there is none yet (IRQ low, 0xFE, 0xFF).
   SdepStatus read_packet(SdepPacket& out);
-  // Send a command (payload split into 16-byte packets with the more-data bit on all but the
-  // last), then read its response packets until one without more-data. Up to resp_cap payload
-  // bytes are stored in resp (the rest is read and discarded); *resp_len gets the stored count.
-  SdepStatus command(uint16_t id, const uint8_t* payload, uint16_t len, uint8_t* resp,
-                     uint8_t resp_cap, uint8_t* resp_len);
-  // Read the response packets of command `id` (alert packets are skipped), as command() does.
-  SdepStatus read_response(uint16_t id, uint8_t* resp, uint8_t resp_cap, uint8_t* resp_len);
-  // 0xBEEF: reset the module without the RST line (no response).
-  SdepStatus initialize();
-  uint16_t last_error() const { return last_error_; }
 
  private:
-  bool wait_irq();
-  bool expired(uint32_t start_us) {
-    return static_cast<uint32_t>(clock_.micros() - start_us) >= STIPI_SDEP_TIMEOUT_US;
-  }
+  void begin_transaction();
   SpiPort& spi_;
   Clock& clock_;
-  uint16_t last_error_;
 };
 
-// The Bluefruit module as a ByteLink. Call poll() from the main loop.
+// The Bluefruit module as a ByteLink. Call poll() from the main loop: at most
+// STIPI_SDEP_PACKETS_PER_POLL SPI transactions (~0.2 ms each) per call.
 class BleUartLink : public ByteLink {
  public:
   enum State : uint8_t { kReset, kBooting, kProbing, kReady, kAbsent };
 
   BleUartLink(SdepDriver& sdep, SpiPort& spi, Clock& clock);
 
-  // Start the life cycle: pulse RST now (call once from setup).
-  void begin();
-  // Advance the life cycle, poll the connection and received bytes. Bounded time per call.
+  void begin();  // pulse RST (from setup)
   void poll();
 
   bool is_open() override { return state_ == kReady && connected_; }
   int16_t read() override;
+  // Queue a whole frame for BLE; false (nothing queued) when the TX ring has no room.
   bool write_frame(const uint8_t* data, uint8_t len) override;
 
   State state() const { return state_; }
   bool connected() const { return connected_; }
-  uint16_t tx_failures() const { return tx_failures_; }
+  uint16_t tx_failures() const { return tx_failures_; }  // UART TX commands the module refused
+  uint32_t frames_lost() const { return frames_lost_; }  // queued frames lost that way
+  uint16_t tx_queued() const { return tx_count_; }
 
  private:
-  bool at_command(const char* text, uint8_t* resp, uint8_t cap, uint8_t* n);
-  void poll_connection();
-  void poll_rx();
+  enum Job : uint8_t { kJobNone, kJobEcho, kJobConn, kJobRx, kJobTx };
+  void start_job(Job job, uint16_t id, uint16_t len);
+  void step();
+  void step_send(uint32_t now);
+  void step_receive(uint32_t now);
+  void finish(bool ok);
+  void on_payload(const SdepPacket& p);
+  void choose_job(uint32_t now);
+  void start_tx();
+  void drop_tx(uint16_t bytes);
+  bool reply_ok() const;
+  uint8_t tx_at(uint16_t i) const { return tx_[(tx_head_ + i) % STIPI_BLE_TX_RING]; }
+
   SdepDriver& sdep_;
   SpiPort& spi_;
   Clock& clock_;
@@ -113,7 +109,24 @@ class BleUartLink : public ByteLink {
   uint32_t last_conn_poll_us_;
   uint32_t last_rx_poll_us_;
   uint16_t tx_failures_;
-  bool resync_;  // a frame was cut short: send a 0x00 first so the host drops the fragment
+  uint32_t frames_lost_;
+  // command in flight
+  Job job_;
+  Job last_job_;
+  bool awaiting_;     // all packets sent, reading the response
+  bool failed_;
+  uint16_t job_id_;
+  uint16_t job_len_;  // payload bytes of the command
+  uint16_t job_sent_;
+  uint32_t job_start_us_;
+  const char* job_text_;
+  uint8_t reply_[24];  // AT reply: the last bytes received
+  uint8_t reply_len_;
+  // TX ring of whole COBS frames (each ends with 0x00)
+  uint8_t tx_[STIPI_BLE_TX_RING];
+  uint16_t tx_head_;
+  uint16_t tx_count_;
+  // received bytes
   uint8_t rx_[STIPI_BLE_RX_FIFO];
   uint8_t rx_head_;
   uint8_t rx_count_;
