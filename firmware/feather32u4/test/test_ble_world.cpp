@@ -1,0 +1,167 @@
+// test_ble_world.cpp -- the real probe core + BLE link against the simulated nRF51 with a
+// central, in simulated time: samples are taken by the fake timer while SDEP traffic runs
+// (every SPI byte and CS setup advances the clock), USB and UART take everything, and the
+// central reads at its connection-interval rate. Prints the figures docs/firmware.md quotes:
+//   make -C firmware/feather32u4 host-test | grep 'ble world'
+#include <cstdio>
+#include <string>
+#include <vector>
+
+#include "../src/core/frame.h"
+#include "../src/core/probe.h"
+#include "../src/core/sdep.h"
+#include "fakes.h"
+#include "runner.h"
+
+using namespace stipi;
+
+namespace {
+// Clock whose waits let the sampling timer fire (the ISR preempts busy waits on the chip).
+class WorldClock : public Clock {
+ public:
+  explicit WorldClock(fakes::FakeBoard& board, fakes::FakeClock& c) : board_(board), c_(c) {}
+  uint32_t micros() override { return c_.now_us; }
+  void delay_us(uint16_t us) override { board_.advance(us); }
+
+ private:
+  fakes::FakeBoard& board_;
+  fakes::FakeClock& c_;
+};
+
+struct Stream {
+  uint32_t samples = 0, gaps = 0, lost = 0, frames = 0;
+  uint32_t next_index = 0;
+  bool started = false;
+  void feed(std::vector<uint8_t>& wire) {
+    for (const fakes::HostFrame& f : fakes::take_frames(wire)) {
+      if (!f.crc_ok || f.type != kMsgSamples) continue;
+      ++frames;
+      const uint32_t first = f.body[0] | f.body[1] << 8 | f.body[2] << 16 |
+                             static_cast<uint32_t>(f.body[3]) << 24;
+      if (started && first != next_index) {
+        ++gaps;
+        lost += first - next_index;
+      }
+      started = true;
+      next_index = first + f.body[6];
+      samples += f.body[6];
+    }
+  }
+};
+
+struct World {
+  fakes::FakeClock clock;
+  Sampler sampler;
+  fakes::FakeBoard board{clock, sampler};
+  WorldClock wclock{board, clock};
+  fakes::FakeEeprom eeprom;
+  Probe probe{wclock, board, sampler, eeprom};
+  fakes::SimNrf51Port port{wclock};
+  SdepDriver sdep{port, wclock};
+  BleUartLink ble{sdep, port, wclock};
+  fakes::FakeLink usb, uart;
+  std::vector<uint8_t> central;
+  Stream s_usb, s_uart, s_ble;
+  uint32_t max_pass_us = 0;
+
+  World(uint32_t interval_us, uint16_t bytes_per_event) {
+    port.m.conn_interval_us = interval_us;
+    port.m.tx_per_event_b = bytes_per_event;
+    port.m.process_us = 5000;
+    port.m.on_notify = [](void* ctx, const uint8_t* d, uint16_t n) {
+      static_cast<World*>(ctx)->central.insert(static_cast<World*>(ctx)->central.end(), d, d + n);
+    };
+    port.m.notify_ctx = this;
+    nrf51_sim_set_connected(&port.m, 1);
+    probe.set_link(kLinkUsb, &usb);
+    probe.set_link(kLinkUart, &uart);
+    probe.set_link(kLinkBle, &ble);
+    ble.begin();
+    probe.begin();
+  }
+  // Main loop: each pass costs its SPI time plus 100 us of other work.
+  void run(uint32_t us) {
+    const uint32_t end = clock.now_us + us;
+    while (static_cast<int32_t>(end - clock.now_us) > 0) {
+      const uint32_t t0 = clock.now_us;
+      ble.poll();
+      probe.poll();
+      board.advance(100);
+      port.sync();
+      if (clock.now_us - t0 > max_pass_us) max_pass_us = clock.now_us - t0;
+      s_usb.feed(usb.tx);
+      s_uart.feed(uart.tx);
+      s_ble.feed(central);
+    }
+  }
+  void command(uint16_t seq, uint8_t cmd, const std::vector<uint8_t>& args) {
+    usb.push(fakes::command_wire(seq, cmd, args));
+  }
+};
+
+struct Result {
+  uint32_t taken, usb, uart, ble, ble_gaps, ble_lost, dropped, frames_lost, link_drops, max_pass;
+};
+
+Result stream(uint16_t rate_hz, uint32_t interval_us, uint16_t bytes_per_event, const char* name) {
+  World w(interval_us, bytes_per_event);
+  w.run(STIPI_BLE_BOOT_US + 200000);
+  CHECK(w.ble.is_open());
+  w.command(1, kCmdSetRate, {static_cast<uint8_t>(rate_hz), static_cast<uint8_t>(rate_hz >> 8)});
+  w.command(2, kCmdStreamStart, {});
+  const uint32_t first = w.sampler.taken();
+  w.run(60000000);  // 60 s simulated
+  w.command(3, kCmdStreamStop, {});
+  w.run(3000000);   // the BLE backlog drains (or is refused)
+  Result r;
+  r.taken = w.sampler.taken() - first;
+  r.usb = w.s_usb.samples;
+  r.uart = w.s_uart.samples;
+  r.ble = w.s_ble.samples;
+  r.ble_gaps = w.s_ble.gaps;
+  r.ble_lost = w.s_ble.lost;
+  r.dropped = w.sampler.dropped();
+  r.frames_lost = w.ble.frames_lost();
+  r.link_drops = w.probe.link_drops(kLinkBle);
+  r.max_pass = w.max_pass_us;
+  std::printf(
+      "ble world %s: %u Hz 60 s, central %u B per %u us: taken %u, usb %u, uart %u, ble %u "
+      "(%u gaps, %u samples missing; %u frames refused by the full module, %u not queued), "
+      "dropped %u, BLE %.0f samples/s, longest loop pass %u us\n",
+      name, rate_hz, bytes_per_event, interval_us, r.taken, r.usb, r.uart, r.ble, r.ble_gaps,
+      r.ble_lost, r.frames_lost, r.link_drops, r.dropped, r.ble / 60.0, r.max_pass);
+  return r;
+}
+
+void check_lossless_wired(const Result& r) {
+  CHECK_EQ(r.dropped, 0u);
+  CHECK_EQ(r.usb, r.taken);
+  CHECK_EQ(r.uart, r.taken);
+  CHECK(r.max_pass <= 1000);
+}
+}  // namespace
+
+TEST(ble_world_100hz_central_keeps_up) {
+  const Result r = stream(100, 30000, 20, "central");  // 1 notification per 30 ms: 667 B/s
+  check_lossless_wired(r);
+  CHECK_EQ(r.ble, r.taken);  // within budget: nothing lost on BLE either
+  CHECK_EQ(r.ble_gaps, 0u);
+}
+
+TEST(ble_world_100hz_slow_central_losses_are_counted_gaps) {
+  const Result r = stream(100, 50000, 20, "slow central");  // 400 B/s < 434 B/s needed
+  check_lossless_wired(r);
+  CHECK(r.ble < r.taken);
+  CHECK(r.ble_gaps >= 1u);
+  // Every missing sample is in a gap the host sees (first_index jumps), none silently.
+  CHECK_EQ(r.ble + r.ble_lost, r.taken);
+}
+
+TEST(ble_world_250hz_reports_what_ble_sustains) {
+  const Result r = stream(250, 30000, 20, "250 Hz");
+  check_lossless_wired(r);
+  CHECK_EQ(r.ble + r.ble_lost, r.taken);
+  const Result f = stream(250, 15000, 80, "250 Hz fast central");  // 4 notifications / 15 ms
+  check_lossless_wired(f);
+  CHECK_EQ(f.ble, f.taken);
+}
