@@ -38,21 +38,10 @@ from stipi_daemon.analysis.results import (
 from stipi_daemon.analysis.severity import SeverityReference
 from stipi_daemon.analysis.vpr import elasticity_kpa
 from stipi_daemon.errors import AnalysisError
-from stipi_daemon.measurement.state_machine import (
-    AnalysisDone,
-    Arm,
-    Event,
-    ForceSample,
-    FrameSample,
-    MachineState,
-    MeasurementConfig,
-    Output,
-    Phase,
-    StartAnalysis,
-    close,
-    initial_state,
-    transition,
-)
+from stipi_daemon.measurement.events import AnalysisDone, Arm, Event, ForceSample, FrameSample
+from stipi_daemon.measurement.outputs import Output, Phase, StartAnalysis
+from stipi_daemon.measurement.settings import MeasurementConfig
+from stipi_daemon.measurement.state_machine import MachineState, close, initial_state, transition
 
 __all__ = ["LiveParameters", "MeasurementPipeline"]
 

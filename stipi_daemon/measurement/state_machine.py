@@ -9,11 +9,20 @@ times on the host's monotonic clock [s]) and acts on the returned outputs.
 
 Design (after h11's ``_state.py``):
 
+* The vocabulary lives beside the machine: the settings in
+  :mod:`~stipi_daemon.measurement.settings` (:class:`MeasurementConfig`), the inputs in
+  :mod:`~stipi_daemon.measurement.events` and the outputs, phases and flags in
+  :mod:`~stipi_daemon.measurement.outputs`; this module re-exports them (the machine's
+  interface). It owns the state, the policies and the two tables below.
 * :func:`transition` ``(state, event, config) -> (state, outputs)`` is pure. It first runs
-  the *clock step* (:func:`_advance`: every event carries a time, and time-driven rules -
-  pitting complete, recovery timeout, band excursions, link and camera limits - fire on
+  the *clock step*: every event carries a time, and time-driven rules - pitting complete,
+  recovery timeout, band excursions, release overrun, link and camera limits - fire on
   whatever event brings the time forward, so :class:`Tick` only exists to bring it when
-  nothing else arrives), then dispatches through :data:`TABLE`.
+  nothing else arrives. Then it dispatches the event through :data:`TABLE`.
+* :data:`TIMER_RULES` lists, per non-terminal phase, the named time-driven rules in the
+  order the clock step applies them (the two watchdogs, then the phase's own clock); the
+  first rule that changes the phase ends the pass, and the clock step repeats with the new
+  phase's rules until the phase stays.
 * :data:`TABLE` maps every ``(Phase, event type)`` pair to a handler. A pair is either
   handled, explicitly ignored (:func:`_ignore`, no output), explicitly unexpected
   (:func:`_unexpected`, an :class:`Advisory` and no change) or absorbed by a terminal
@@ -88,7 +97,8 @@ Policies (all thresholds are fields of :class:`MeasurementConfig`):
   recovery is what the analysis needs); a flag in IDLE and PITTING (the pitting phase is
   measured by the load cell; a camera that is back before the release loses nothing the
   analysis uses, and one still stalled when RELEASE begins faults there at once);
-  ignored in ANALYSIS. See :data:`LINK_POLICY` and :data:`CAMERA_POLICY`.
+  ignored in ANALYSIS. See :data:`LINK_POLICY` and :data:`CAMERA_POLICY`
+  (applied by the timer rules :data:`LINK_WATCHDOG` and :data:`CAMERA_WATCHDOG`).
 * Time never goes backwards in the state: ``now_s`` is the maximum event time seen. A
   force sample or frame older than the previous one of its kind is dropped with an
   :class:`Advisory` (``out_of_order_sample``).
@@ -97,23 +107,54 @@ Policies (all thresholds are fields of :class:`MeasurementConfig`):
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, replace
 from enum import StrEnum
 from typing import Final, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
-
 from stipi_daemon.analysis.flags import Flag
+from stipi_daemon.measurement.events import (
+    EVENT_TYPES,
+    AnalysisDone,
+    Arm,
+    CameraRecovered,
+    CameraStalled,
+    Event,
+    ForceSample,
+    FrameSample,
+    LinkLost,
+    LinkRestored,
+    OperatorAbort,
+    OperatorRelease,
+    SessionClosed,
+    Tick,
+)
+from stipi_daemon.measurement.outputs import (
+    FAULT_PHASES,
+    TERMINAL_PHASES,
+    Advisory,
+    AdvisoryKind,
+    Fault,
+    MeasurementFlag,
+    OperatorPrompt,
+    Output,
+    Phase,
+    PhaseChanged,
+    StartAnalysis,
+)
+from stipi_daemon.measurement.settings import MeasurementConfig
 from stipi_daemon.measurement.settling_tracker import SettlingTracker
 
 __all__ = [
     "CAMERA_POLICY",
+    "CAMERA_WATCHDOG",
     "EVENT_TYPES",
     "FAULT_PHASES",
     "LINK_POLICY",
+    "LINK_WATCHDOG",
     "TABLE",
     "TERMINAL_PHASES",
+    "TIMER_RULES",
     "Advisory",
     "AdvisoryKind",
     "AnalysisDone",
@@ -139,137 +180,15 @@ __all__ = [
     "SessionClosed",
     "StartAnalysis",
     "Tick",
+    "TimerRule",
+    "Watchdog",
     "close",
     "initial_state",
     "transition",
 ]
 
 
-# --------------------------------------------------------------------------- config
-
-
-class MeasurementConfig(BaseModel):
-    """Thresholds and durations of one measurement (Section IV.B); immutable.
-
-    Parameters
-    ----------
-    target_force_n : float
-        Pitting force to hold [N] (paper: 16 N).
-    force_tolerance_n : float
-        Half-width of the accepted force band [N] (paper: 1.5 N).
-    contact_force_n : float
-        Force above which the probe counts as touching the tissue [N].
-    pitting_duration_s : float
-        Pitting time from the first in-band sample [s] (paper: 15 s).
-    out_of_band_grace_s : float
-        Longest *continuous* excursion outside the band that is tolerated [s].
-    out_of_band_limit_s : float
-        Largest *cumulative* out-of-band time during pitting that is tolerated [s].
-    release_force_n : float
-        Force below which the indenter counts as released [N].
-    release_debounce_s : float
-        Time the force must stay below ``release_force_n`` to detect release [s].
-    release_overrun_warn_s : float
-        Time in RELEASE after which an over-pitting advisory is issued once [s].
-    recovery_max_s : float
-        Longest recovery observed after T_0 [s] (paper: 105 s).
-    stop_when_settled : bool
-        End the recovery once S_k has settled (see the module docstring), else always
-        after ``recovery_max_s``.
-    settle_fraction : float
-        Relative band of the settling test, as in T_s at 98 % of S_max (Eq. (6)) [1]; must
-        equal the analysis' ``settle_fraction`` (checked by the daemon's config).
-    settle_hold_s : float
-        Shortest time S_k must stay inside the settling band before the recovery may end
-        early [s].
-    settle_bias_fraction : float
-        Largest relative bias of T_r (Eq. (6)) an early end may cause on a Kelvin-Voigt
-        recovery, in (0, 0.1] [1]; sets how long the recording continues after the plateau
-        starts (about 0.7 time constants more per halving).
-    link_loss_limit_s : float
-        Time the force link may be down before the phase's policy applies [s].
-    camera_stall_limit_s : float
-        Time the camera may deliver no frame before the phase's policy applies [s].
-    """
-
-    model_config = ConfigDict(frozen=True, extra="forbid")
-
-    target_force_n: float = Field(16.0, gt=0.0, allow_inf_nan=False)
-    force_tolerance_n: float = Field(1.5, gt=0.0, allow_inf_nan=False)
-    contact_force_n: float = Field(2.0, gt=0.0, allow_inf_nan=False)
-    pitting_duration_s: float = Field(15.0, gt=0.0, allow_inf_nan=False)
-    out_of_band_grace_s: float = Field(1.0, ge=0.0, allow_inf_nan=False)
-    out_of_band_limit_s: float = Field(3.0, ge=0.0, allow_inf_nan=False)
-    release_force_n: float = Field(8.0, gt=0.0, allow_inf_nan=False)
-    release_debounce_s: float = Field(0.1, ge=0.0, allow_inf_nan=False)
-    release_overrun_warn_s: float = Field(3.0, gt=0.0, allow_inf_nan=False)
-    recovery_max_s: float = Field(105.0, gt=0.0, allow_inf_nan=False)
-    stop_when_settled: bool = True
-    settle_fraction: float = Field(0.98, gt=0.0, lt=1.0, allow_inf_nan=False)
-    settle_hold_s: float = Field(10.0, gt=0.0, allow_inf_nan=False)
-    settle_bias_fraction: float = Field(0.005, gt=0.0, le=0.1, allow_inf_nan=False)
-    link_loss_limit_s: float = Field(2.0, gt=0.0, allow_inf_nan=False)
-    camera_stall_limit_s: float = Field(1.0, gt=0.0, allow_inf_nan=False)
-
-    @model_validator(mode="after")
-    def _check_consistency(self) -> MeasurementConfig:
-        low = self.band_low_n
-        if low <= 0.0:
-            raise ValueError(
-                f"force_tolerance_n ({self.force_tolerance_n} N) must be below "
-                f"target_force_n ({self.target_force_n} N)"
-            )
-        if self.contact_force_n >= low:
-            raise ValueError(
-                f"contact_force_n ({self.contact_force_n} N) must be below the band's lower "
-                f"edge target_force_n - force_tolerance_n ({low} N)"
-            )
-        if self.release_force_n >= low:
-            raise ValueError(
-                f"release_force_n ({self.release_force_n} N) must be below the band's lower "
-                f"edge target_force_n - force_tolerance_n ({low} N)"
-            )
-        if self.settle_hold_s >= self.recovery_max_s:
-            raise ValueError(
-                f"settle_hold_s ({self.settle_hold_s} s) must be shorter than "
-                f"recovery_max_s ({self.recovery_max_s} s)"
-            )
-        return self
-
-    @property
-    def band_low_n(self) -> float:
-        """Lower edge of the force band [N]."""
-        return self.target_force_n - self.force_tolerance_n
-
-    @property
-    def band_high_n(self) -> float:
-        """Upper edge of the force band [N]."""
-        return self.target_force_n + self.force_tolerance_n
-
-
-# --------------------------------------------------------------------------- phases
-
-
-class Phase(StrEnum):
-    """Phases of a measurement; the last five are terminal (absorbing)."""
-
-    IDLE = "idle"
-    ARMED = "armed"
-    PITTING = "pitting"
-    RELEASE = "release"
-    RECOVERY = "recovery"
-    ANALYSIS = "analysis"
-    DONE = "done"
-    LINK_LOST = "link_lost"
-    CAMERA_STALLED = "camera_stalled"
-    FORCE_OUT_OF_BAND = "force_out_of_band"
-    ABORTED = "aborted"
-
-
-FAULT_PHASES: Final = frozenset(
-    {Phase.LINK_LOST, Phase.CAMERA_STALLED, Phase.FORCE_OUT_OF_BAND, Phase.ABORTED}
-)
-TERMINAL_PHASES: Final = FAULT_PHASES | {Phase.DONE}
+# --------------------------------------------------------------------------- policies
 
 
 class Policy(StrEnum):
@@ -299,235 +218,6 @@ CAMERA_POLICY: Final[dict[Phase, Policy]] = {
     Phase.ANALYSIS: Policy.IGNORE,
 }
 """Camera stall longer than ``camera_stall_limit_s``, per non-terminal phase."""
-
-
-class MeasurementFlag(StrEnum):
-    """Caveats recorded on a measurement (the analysis' own flags live in ``Flag``)."""
-
-    RELEASE_CONFIRMED_BY_OPERATOR = "release_confirmed_by_operator"
-    """T_0 is the operator's button press, not a detected force drop."""
-    FORCE_EXCURSION = "force_excursion"
-    """The pitting force left the band at least once (tolerated)."""
-    PITTING_OVERRUN = "pitting_overrun"
-    """The indenter was held longer than ``release_overrun_warn_s`` after pitting ended."""
-    LINK_LOST_IN_RECOVERY = "link_lost_in_recovery"
-    """The force link was down past its limit during recovery (camera data intact)."""
-    LINK_LOST_WHILE_IDLE = "link_lost_while_idle"
-    """The force link was down past its limit before arming."""
-    CAMERA_STALLED_WHILE_IDLE = "camera_stalled_while_idle"
-    """The camera stalled past its limit before arming."""
-    CAMERA_STALLED_IN_PITTING = "camera_stalled_in_pitting"
-    """The camera stalled past its limit during pitting (and was back before release)."""
-
-
-class AdvisoryKind(StrEnum):
-    """Kinds of non-fatal :class:`Advisory` outputs."""
-
-    FORCE_OUT_OF_BAND = "force_out_of_band"
-    RELEASE_OVERRUN = "release_overrun"
-    EARLY_RELEASE_REQUEST = "early_release_request"
-    RELEASE_UNDER_FORCE = "release_under_force"
-    LINK_DOWN = "link_down"
-    LINK_RESTORED = "link_restored"
-    LINK_LOST_FLAGGED = "link_lost_flagged"
-    CAMERA_STALLED = "camera_stalled"
-    CAMERA_RECOVERED = "camera_recovered"
-    CAMERA_STALL_FLAGGED = "camera_stall_flagged"
-    OUT_OF_ORDER_SAMPLE = "out_of_order_sample"
-    UNEXPECTED_EVENT = "unexpected_event"
-
-
-# --------------------------------------------------------------------------- events
-
-
-def _finite(name: str, value: float) -> None:
-    if not math.isfinite(value):
-        raise ValueError(f"{name} must be finite, got {value!r}")
-
-
-@dataclass(frozen=True, slots=True)
-class _Timed:
-    t_s: float
-    """Host monotonic time of the event [s]."""
-
-    def __post_init__(self) -> None:
-        _finite(f"{type(self).__name__}.t_s", self.t_s)
-
-
-@dataclass(frozen=True, slots=True)
-class Arm(_Timed):
-    """The operator starts a measurement."""
-
-
-@dataclass(frozen=True, slots=True)
-class ForceSample(_Timed):
-    """One load-cell reading at ``t_s`` [s]: ``force_n`` [N] (finite; may be negative)."""
-
-    force_n: float
-
-    def __post_init__(self) -> None:
-        _finite("ForceSample.t_s", self.t_s)
-        _finite("ForceSample.force_n", self.force_n)
-
-
-@dataclass(frozen=True, slots=True)
-class FrameSample(_Timed):
-    """One camera frame at ``t_s`` [s] with its occluded-pixel sum ``s_k`` (Eq. (2)) [px]."""
-
-    s_k: float
-
-    def __post_init__(self) -> None:
-        _finite("FrameSample.t_s", self.t_s)
-        _finite("FrameSample.s_k", self.s_k)
-        if self.s_k < 0.0:
-            raise ValueError(f"FrameSample.s_k must be >= 0 (a pixel sum), got {self.s_k!r}")
-
-
-@dataclass(frozen=True, slots=True)
-class OperatorRelease(_Timed):
-    """The operator confirms that the indenter has been released."""
-
-
-@dataclass(frozen=True, slots=True)
-class OperatorAbort(_Timed):
-    """The operator aborts the measurement."""
-
-
-@dataclass(frozen=True, slots=True)
-class LinkLost(_Timed):
-    """The link watchdog saw no frame from the probe (force stream stopped)."""
-
-
-@dataclass(frozen=True, slots=True)
-class LinkRestored(_Timed):
-    """Frames from the probe arrive again."""
-
-
-@dataclass(frozen=True, slots=True)
-class CameraStalled(_Timed):
-    """The camera watchdog saw no frame."""
-
-
-@dataclass(frozen=True, slots=True)
-class CameraRecovered(_Timed):
-    """Camera frames arrive again."""
-
-
-@dataclass(frozen=True, slots=True)
-class Tick(_Timed):
-    """Time passes (drives timeouts when no other event arrives)."""
-
-
-@dataclass(frozen=True, slots=True)
-class AnalysisDone(_Timed):
-    """The analysis started by :class:`StartAnalysis` has finished (success or flagged)."""
-
-
-@dataclass(frozen=True, slots=True)
-class SessionClosed(_Timed):
-    """The session is closed; any non-terminal phase ends (see :func:`close`)."""
-
-
-Event = (
-    Arm
-    | ForceSample
-    | FrameSample
-    | OperatorRelease
-    | OperatorAbort
-    | LinkLost
-    | LinkRestored
-    | CameraStalled
-    | CameraRecovered
-    | Tick
-    | AnalysisDone
-    | SessionClosed
-)
-
-EVENT_TYPES: Final[tuple[type[Event], ...]] = (
-    Arm,
-    ForceSample,
-    FrameSample,
-    OperatorRelease,
-    OperatorAbort,
-    LinkLost,
-    LinkRestored,
-    CameraStalled,
-    CameraRecovered,
-    Tick,
-    AnalysisDone,
-    SessionClosed,
-)
-
-
-# --------------------------------------------------------------------------- outputs
-
-
-@dataclass(frozen=True, slots=True)
-class PhaseChanged:
-    """The machine moved from ``old`` to ``new`` at ``t_s`` [s] because of ``reason``."""
-
-    old: Phase
-    new: Phase
-    t_s: float
-    reason: str
-
-
-@dataclass(frozen=True, slots=True)
-class OperatorPrompt:
-    """What the operator must do next (emitted only when the text changes)."""
-
-    text: str
-
-
-@dataclass(frozen=True, slots=True)
-class Advisory:
-    """A non-fatal problem worth recording and showing (a warning)."""
-
-    kind: AdvisoryKind
-    detail: str
-    t_s: float
-
-
-@dataclass(frozen=True, slots=True)
-class Fault:
-    """The measurement stopped in the fault phase ``kind`` at ``t_s`` [s]."""
-
-    kind: Phase
-    reason: str
-    t_s: float
-
-
-@dataclass(frozen=True, slots=True)
-class StartAnalysis:
-    """Start the analysis of the recorded pitting and recovery.
-
-    Parameters
-    ----------
-    t0_s : float
-        Release time T_0 of Eq. (6) [s].
-    t_end_s : float
-        End of the recovery window [s].
-    t_pit_start_s, t_pit_end_s : float
-        Pitting interval [s].
-    settled : bool
-        Whether S_k settled before ``recovery_max_s``.
-    t_settled_s : float | None
-        Time the settling test passed [s] (the end of the hold), if it did.
-    flags : tuple[str, ...]
-        Sorted caveats: :class:`MeasurementFlag` values and ``Flag.NOT_SETTLED`` (only
-        with ``stop_when_settled``: the window ended before the settling test passed).
-    """
-
-    t0_s: float
-    t_end_s: float
-    t_pit_start_s: float
-    t_pit_end_s: float
-    settled: bool
-    t_settled_s: float | None
-    flags: tuple[str, ...]
-
-
-Output = PhaseChanged | OperatorPrompt | Advisory | Fault | StartAnalysis
 
 
 # --------------------------------------------------------------------------- state
@@ -585,7 +275,8 @@ class MachineState:
 
 def initial_state(t_s: float) -> MachineState:
     """Return the IDLE state at host time ``t_s`` [s]."""
-    _finite("initial_state t_s", t_s)
+    if not math.isfinite(t_s):
+        raise ValueError(f"initial_state t_s must be finite, got {t_s!r}")
     return MachineState(phase=Phase.IDLE, now_s=t_s, phase_entered_s=t_s)
 
 
@@ -680,92 +371,97 @@ def _with_flag(state: MachineState, flag: str) -> MachineState:
     return replace(state, flags=state.flags | {flag})
 
 
-# --------------------------------------------------------------------------- clock step
+# --------------------------------------------------------------------------- timer rules
+
+TimerRule = Callable[[MachineState, MeasurementConfig], Result]
+"""A time-driven rule: what ``state.now_s`` implies in the current phase, as a result."""
 
 
-def _advance(state: MachineState, config: MeasurementConfig) -> Result:
-    """Apply every time-driven rule of the current phase up to ``state.now_s``."""
-    now = state.now_s
-    out: list[Output] = []
-    phase = state.phase
+@dataclass(frozen=True, slots=True)
+class Watchdog:
+    """A watchdog limit (link or camera) as a timer rule; its policy decides per phase.
 
-    # watchdogs
-    if state.link_down_since_s is not None and now - state.link_down_since_s > (
-        config.link_loss_limit_s
-    ):
-        down_s = now - state.link_down_since_s
-        policy = LINK_POLICY[phase]
+    Once the watched stream has been down longer than its limit, the phase's
+    :class:`Policy` applies: ``FAULT`` enters the fault phase, ``FLAG`` records the phase's
+    flag with one :class:`Advisory`, ``IGNORE`` does nothing.
+
+    Parameters
+    ----------
+    name : str
+        Name of the rule.
+    what : str
+        The condition in words, the start of the fault reason and the advisory.
+    down_since_s : Callable[[MachineState], float | None]
+        Host time [s] the stream went down, None while it is up.
+    limit_s : Callable[[MeasurementConfig], float]
+        Time [s] the stream may be down before the policy applies.
+    policy : Mapping[Phase, Policy]
+        Policy per non-terminal phase.
+    fault : Phase
+        Fault phase of the ``FAULT`` policy.
+    flags : Mapping[Phase, MeasurementFlag]
+        Flag of each phase whose policy is ``FLAG``.
+    advisory : AdvisoryKind
+        Kind of the advisory that goes with a flag.
+    """
+
+    name: str
+    what: str
+    down_since_s: Callable[[MachineState], float | None]
+    limit_s: Callable[[MeasurementConfig], float]
+    policy: Mapping[Phase, Policy]
+    fault: Phase
+    flags: Mapping[Phase, MeasurementFlag]
+    advisory: AdvisoryKind
+
+    def __call__(self, state: MachineState, config: MeasurementConfig) -> Result:
+        """Apply the phase's policy if the stream has been down past its limit."""
+        since, now, phase = self.down_since_s(state), state.now_s, state.phase
+        if since is None or not now - since > self.limit_s(config):
+            return state, []
+        down_s = now - since
+        policy = self.policy[phase]
         if policy is Policy.FAULT:
-            return _goto(
-                state, Phase.LINK_LOST, f"probe link down for {down_s:.1f} s in {phase}", config
-            )
-        flag = (
-            MeasurementFlag.LINK_LOST_IN_RECOVERY
-            if phase is Phase.RECOVERY
-            else MeasurementFlag.LINK_LOST_WHILE_IDLE
-        )
-        if policy is Policy.FLAG and flag not in state.flags:
-            state = _with_flag(state, flag)
-            out.append(
-                Advisory(AdvisoryKind.LINK_LOST_FLAGGED, f"probe link down for {down_s:.1f} s", now)
-            )
-    if state.camera_stalled_since_s is not None and now - state.camera_stalled_since_s > (
-        config.camera_stall_limit_s
-    ):
-        stall_s = now - state.camera_stalled_since_s
-        policy = CAMERA_POLICY[phase]
-        if policy is Policy.FAULT:
-            state, more = _goto(
-                state,
-                Phase.CAMERA_STALLED,
-                f"camera stalled for {stall_s:.1f} s in {phase}",
-                config,
-            )
-            return state, out + more
-        flag = (
-            MeasurementFlag.CAMERA_STALLED_IN_PITTING
-            if phase is Phase.PITTING
-            else MeasurementFlag.CAMERA_STALLED_WHILE_IDLE
-        )
-        if policy is Policy.FLAG and flag not in state.flags:
-            state = _with_flag(state, flag)
-            out.append(
-                Advisory(
-                    AdvisoryKind.CAMERA_STALL_FLAGGED, f"camera stalled for {stall_s:.1f} s", now
-                )
-            )
-
-    if phase is Phase.PITTING:
-        state, more = _advance_pitting(state, config)
-        return state, out + more
-    if phase is Phase.RELEASE:
-        assert state.t_pit_end_s is not None
-        waited_s = now - state.t_pit_end_s
-        if not state.overrun_warned and waited_s > config.release_overrun_warn_s:
-            state = replace(_with_flag(state, MeasurementFlag.PITTING_OVERRUN), overrun_warned=True)
-            out.append(
-                Advisory(
-                    AdvisoryKind.RELEASE_OVERRUN,
-                    f"indenter still held {waited_s:.1f} s after the pitting time ended",
-                    now,
-                )
-            )
-        return state, out
-    if phase is Phase.RECOVERY:
-        assert state.t_release_s is not None
-        elapsed_s = now - state.t_release_s
-        if elapsed_s >= config.recovery_max_s:
-            state, more = _start_analysis(
-                state, state.t_release_s + config.recovery_max_s, config, settled=False
-            )
-            return state, out + more
-        state, more = _prompt(state, _recovery_prompt(elapsed_s, config))
-        return state, out + more
-    return state, out
+            return _goto(state, self.fault, f"{self.what} for {down_s:.1f} s in {phase}", config)
+        if policy is Policy.FLAG and self.flags[phase] not in state.flags:
+            state = _with_flag(state, self.flags[phase])
+            return state, [Advisory(self.advisory, f"{self.what} for {down_s:.1f} s", now)]
+        return state, []
 
 
-def _advance_pitting(state: MachineState, config: MeasurementConfig) -> Result:
-    """Band accounting up to ``now`` (or the end of pitting), faults, completion."""
+LINK_WATCHDOG: Final = Watchdog(
+    name="link watchdog",
+    what="probe link down",
+    down_since_s=lambda state: state.link_down_since_s,
+    limit_s=lambda config: config.link_loss_limit_s,
+    policy=LINK_POLICY,
+    fault=Phase.LINK_LOST,
+    flags={
+        Phase.IDLE: MeasurementFlag.LINK_LOST_WHILE_IDLE,
+        Phase.RECOVERY: MeasurementFlag.LINK_LOST_IN_RECOVERY,
+    },
+    advisory=AdvisoryKind.LINK_LOST_FLAGGED,
+)
+"""Force-link loss longer than ``link_loss_limit_s``: :data:`LINK_POLICY`."""
+
+CAMERA_WATCHDOG: Final = Watchdog(
+    name="camera watchdog",
+    what="camera stalled",
+    down_since_s=lambda state: state.camera_stalled_since_s,
+    limit_s=lambda config: config.camera_stall_limit_s,
+    policy=CAMERA_POLICY,
+    fault=Phase.CAMERA_STALLED,
+    flags={
+        Phase.IDLE: MeasurementFlag.CAMERA_STALLED_WHILE_IDLE,
+        Phase.PITTING: MeasurementFlag.CAMERA_STALLED_IN_PITTING,
+    },
+    advisory=AdvisoryKind.CAMERA_STALL_FLAGGED,
+)
+"""Camera stall longer than ``camera_stall_limit_s``: :data:`CAMERA_POLICY`."""
+
+
+def _pitting_clock(state: MachineState, config: MeasurementConfig) -> Result:
+    """PITTING: band accounting up to ``now`` (or the end of pitting), faults, completion."""
     assert state.t_pit_start_s is not None and state.oob_accounted_to_s is not None
     now = state.now_s
     accounted_s = state.oob_accounted_to_s
@@ -818,6 +514,58 @@ def _advance_pitting(state: MachineState, config: MeasurementConfig) -> Result:
     if state.oob_since_s is None:
         return _prompt(state, f"Hold {_fmt_band(config)}: {_whole_s_left(left_s)} s left")
     return state, []
+
+
+def _release_overrun(state: MachineState, config: MeasurementConfig) -> Result:
+    """RELEASE: one advisory and a flag once the indenter is held past the warning time."""
+    assert state.t_pit_end_s is not None
+    waited_s = state.now_s - state.t_pit_end_s
+    if state.overrun_warned or not waited_s > config.release_overrun_warn_s:
+        return state, []
+    state = replace(_with_flag(state, MeasurementFlag.PITTING_OVERRUN), overrun_warned=True)
+    return state, [
+        Advisory(
+            AdvisoryKind.RELEASE_OVERRUN,
+            f"indenter still held {waited_s:.1f} s after the pitting time ended",
+            state.now_s,
+        )
+    ]
+
+
+def _recovery_window(state: MachineState, config: MeasurementConfig) -> Result:
+    """RECOVERY: the window ends ``recovery_max_s`` after T_0 (ANALYSIS), else a countdown."""
+    assert state.t_release_s is not None
+    elapsed_s = state.now_s - state.t_release_s
+    if elapsed_s >= config.recovery_max_s:
+        return _start_analysis(
+            state, state.t_release_s + config.recovery_max_s, config, settled=False
+        )
+    return _prompt(state, _recovery_prompt(elapsed_s, config))
+
+
+_WATCHDOGS: Final[tuple[TimerRule, ...]] = (LINK_WATCHDOG, CAMERA_WATCHDOG)
+
+TIMER_RULES: Final[dict[Phase, tuple[TimerRule, ...]]] = {
+    Phase.IDLE: _WATCHDOGS,
+    Phase.ARMED: _WATCHDOGS,
+    Phase.PITTING: (*_WATCHDOGS, _pitting_clock),
+    Phase.RELEASE: (*_WATCHDOGS, _release_overrun),
+    Phase.RECOVERY: (*_WATCHDOGS, _recovery_window),
+    Phase.ANALYSIS: _WATCHDOGS,
+}
+"""Time-driven rules of every non-terminal phase, in the order the clock step applies them."""
+
+
+def _advance(state: MachineState, config: MeasurementConfig) -> Result:
+    """Apply the phase's :data:`TIMER_RULES` up to ``state.now_s``, until one changes it."""
+    phase = state.phase
+    out: list[Output] = []
+    for rule in TIMER_RULES[phase]:
+        state, more = rule(state, config)
+        out += more
+        if state.phase is not phase:
+            break
+    return state, out
 
 
 def _start_analysis(
@@ -965,7 +713,7 @@ def _force_armed(state: MachineState, event: Event, config: MeasurementConfig) -
             n_excursions=1 if oob is not None else 0,
         )
         out += more
-        state, more = _advance_pitting(state, config)
+        state, more = _pitting_clock(state, config)
         out += more
         if oob is not None and state.phase is Phase.PITTING:
             out.append(
@@ -996,7 +744,7 @@ def _force_pitting(state: MachineState, event: Event, config: MeasurementConfig)
     if _in_band(f, config):
         if state.oob_since_s is not None:
             state = replace(state, oob_since_s=None)
-        state, more = _advance_pitting(state, config)
+        state, more = _pitting_clock(state, config)
         return state, out + more
     if state.oob_since_s is None:
         state = _with_flag(

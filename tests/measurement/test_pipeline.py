@@ -9,8 +9,9 @@ from stipi_daemon.analysis.calibration import Calibration
 from stipi_daemon.analysis.imaging import CircleROI, FrameProcessor
 from stipi_daemon.analysis.results import AnalysisSettings
 from stipi_daemon.analysis.severity import load_reference
+from stipi_daemon.measurement.outputs import Phase, PhaseChanged
 from stipi_daemon.measurement.pipeline import MeasurementPipeline
-from stipi_daemon.measurement.state_machine import MeasurementConfig, Phase, PhaseChanged
+from stipi_daemon.measurement.settings import MeasurementConfig
 from stipi_daemon.sim.physics import scaled_calibration
 from stipi_daemon.sim.pipeline import Pipeline
 from stipi_daemon.sim.scene import load_scene

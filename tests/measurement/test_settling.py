@@ -1,6 +1,6 @@
 """Ending a recovery early: the state machine's settling test agrees with the analysis.
 
-Unit tests of the stop criterion (state_machine.py, measurement/settling.py), a property
+Unit tests of the stop criterion (state_machine.py, settling_tracker.py), a property
 test over Kelvin-Voigt recoveries (an early stop leaves Eq. (6) within its tolerance of the
 paper's full 105 s window), and the simulator's grade scenes replayed offline through the
 real measurement pipeline (stop time; D_p, F_r, T_r, tau, E, eta from the truncated record
@@ -28,24 +28,13 @@ from stipi_daemon.analysis.settling_rules import truncation_hold_factor
 from stipi_daemon.analysis.severity import load_reference
 from stipi_daemon.app.config import parse_config
 from stipi_daemon.errors import ConfigError
+from stipi_daemon.measurement.events import Arm, FrameSample, OperatorRelease, Tick
+from stipi_daemon.measurement.events import ForceSample as MachineForce
+from stipi_daemon.measurement.outputs import Advisory, AdvisoryKind, Output, Phase, StartAnalysis
 from stipi_daemon.measurement.pipeline import MeasurementPipeline
+from stipi_daemon.measurement.settings import MeasurementConfig
 from stipi_daemon.measurement.settling_tracker import LEVELS_PER_BAND, SettlingTracker
-from stipi_daemon.measurement.state_machine import (
-    Advisory,
-    AdvisoryKind,
-    Arm,
-    FrameSample,
-    MachineState,
-    MeasurementConfig,
-    OperatorRelease,
-    Output,
-    Phase,
-    StartAnalysis,
-    Tick,
-    initial_state,
-    transition,
-)
-from stipi_daemon.measurement.state_machine import ForceSample as MachineForce
+from stipi_daemon.measurement.state_machine import MachineState, initial_state, transition
 from stipi_daemon.sim import Pipeline, ground_truth, load_scene
 from tests.conftest import REPO_ROOT
 from tests.sim._analysis import calibration_of, count_frames

@@ -15,38 +15,45 @@ from hypothesis.stateful import RuleBasedStateMachine, invariant, precondition, 
 from pydantic import ValidationError
 
 from stipi_daemon.analysis.flags import Flag
-from stipi_daemon.measurement.state_machine import (
-    CAMERA_POLICY,
+from stipi_daemon.measurement.events import (
     EVENT_TYPES,
-    FAULT_PHASES,
-    LINK_POLICY,
-    TABLE,
-    TERMINAL_PHASES,
-    Advisory,
-    AdvisoryKind,
     AnalysisDone,
     Arm,
     CameraRecovered,
     CameraStalled,
     Event,
-    Fault,
     ForceSample,
     FrameSample,
     LinkLost,
     LinkRestored,
-    MachineState,
-    MeasurementConfig,
-    MeasurementFlag,
     OperatorAbort,
-    OperatorPrompt,
     OperatorRelease,
+    SessionClosed,
+    Tick,
+)
+from stipi_daemon.measurement.outputs import (
+    FAULT_PHASES,
+    TERMINAL_PHASES,
+    Advisory,
+    AdvisoryKind,
+    Fault,
+    MeasurementFlag,
+    OperatorPrompt,
     Output,
     Phase,
     PhaseChanged,
-    Policy,
-    SessionClosed,
     StartAnalysis,
-    Tick,
+)
+from stipi_daemon.measurement.settings import MeasurementConfig
+from stipi_daemon.measurement.state_machine import (
+    CAMERA_POLICY,
+    CAMERA_WATCHDOG,
+    LINK_POLICY,
+    LINK_WATCHDOG,
+    TABLE,
+    TIMER_RULES,
+    MachineState,
+    Policy,
     _absorb,
     _unexpected,
     close,
@@ -147,6 +154,20 @@ def test_terminal_phases_absorb_and_others_do_not() -> None:
         assert (handler is _absorb) == (phase in TERMINAL_PHASES)
     assert TERMINAL_PHASES == FAULT_PHASES | {Phase.DONE}
     assert set(LINK_POLICY) == set(CAMERA_POLICY) == set(NON_TERMINAL)
+
+
+def test_timer_rules_cover_the_non_terminal_phases_watchdogs_first() -> None:
+    assert set(TIMER_RULES) == set(NON_TERMINAL)
+    for rules in TIMER_RULES.values():
+        assert rules[:2] == (LINK_WATCHDOG, CAMERA_WATCHDOG)
+    assert {p for p, rules in TIMER_RULES.items() if len(rules) > 2} == {
+        Phase.PITTING,
+        Phase.RELEASE,
+        Phase.RECOVERY,
+    }
+    for watchdog in (LINK_WATCHDOG, CAMERA_WATCHDOG):
+        assert set(watchdog.flags) == {p for p, v in watchdog.policy.items() if v is Policy.FLAG}
+        assert watchdog.fault in FAULT_PHASES
 
 
 @pytest.mark.parametrize(
