@@ -29,11 +29,14 @@ def short_scene(directory: Path, name: str = "grade1", recovery_s: float = 14.0)
     return path
 
 
-def record_session(directory: Path, scene: Path | None = None) -> Path:
+def record_session(
+    directory: Path, scene: Path | None = None, calibration: Path | None = None
+) -> Path:
     """Record one simulated measurement with the live daemon; returns the session dir.
 
     The probe is the emulated Feather on a pty (real pyserial path), the camera the
-    simulator; both accelerated.
+    simulator; both accelerated. ``calibration`` (a calibration file) replaces the
+    scene's own.
     """
     if scene is None:
         # Grade I with an operator who follows the daemon's prompts: the daemon's 15 s
@@ -45,12 +48,14 @@ def record_session(directory: Path, scene: Path | None = None) -> Path:
         scene = directory / "grade1_daemon.yaml"
         scene.write_text(yaml.safe_dump(doc))
     scene_path = str(scene)
-    cfg = {
+    cfg: dict[str, object] = {
         "probe": {"transport": {"kind": "emulated", "scene": scene_path}},
         "camera": {"kind": "simulator", "scene": scene_path},
         "storage": {"root": str(directory / "sessions"), "min_free_mb": 0},
         "run": {"speed": 8.0},
     }
+    if calibration is not None:
+        cfg["calibration"] = str(calibration)
     path = directory / "config.yaml"
     path.write_text(yaml.safe_dump(cfg))
     outcome = run_measurement(load_config(path), quiet=True)

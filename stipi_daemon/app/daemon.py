@@ -44,7 +44,7 @@ from stipi_daemon.analysis.imaging import FrameProcessor, sk_kernel
 from stipi_daemon.analysis.severity import load_reference
 from stipi_daemon.app.config import DaemonConfig
 from stipi_daemon.app.console import OperatorConsole, format_results
-from stipi_daemon.app.imaging import resolve_imaging
+from stipi_daemon.app.imaging import calibration_record, resolve_imaging
 from stipi_daemon.clock import ScaledClock
 from stipi_daemon.errors import SessionError, StipiError
 from stipi_daemon.measurement.merge import TimeOrderedMerger
@@ -297,16 +297,12 @@ async def run_daemon(
         writer = SessionWriter.create(
             storage.root,
             config.model_dump(mode="json"),
-            {
-                "alpha1_mm_per_px2": calibration.alpha1_mm_per_px2,
-                "alpha2_mm_per_px": calibration.alpha2_mm_per_px,
-                "c1_px": calibration.c1_px,
-                "c2_px_per_n": calibration.c2_px_per_n,
-                "indenter_length_mm": calibration.indenter_length_mm,
-                "threshold_p": threshold,
-                "roi": None if roi is None else roi.model_dump(),
-                "source": str(config.calibration) if config.calibration else "simulated scene",
-            },
+            calibration_record(
+                calibration,
+                threshold,
+                roi,
+                str(config.calibration) if config.calibration else "simulated scene",
+            ),
             probe.info_dict(),
             options=StorageOptions(
                 commit_interval_s=storage.commit_interval_s,

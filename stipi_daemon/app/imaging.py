@@ -259,6 +259,10 @@ def calibration_record(
 ) -> dict[str, Any]:
     """The manifest's calibration record of a live run.
 
+    It holds every field :func:`recorded_source` reads back, the valid ranges included:
+    the analysis flags results outside them ``calibration_extrapolated``, and
+    ``analyze SESSION`` must flag what the live run flagged.
+
     Parameters
     ----------
     calibration : Calibration
@@ -277,9 +281,15 @@ def calibration_record(
         "c2_px_per_n": calibration.c2_px_per_n,
         "indenter_length_mm": calibration.indenter_length_mm,
         "threshold_p": threshold_p,
+        "s0_valid_range_px": _pair(calibration.s0_valid_range_px),
+        "force_valid_range_n": _pair(calibration.force_valid_range_n),
         "roi": None if roi is None else roi.model_dump(),
         "source": source,
     }
+
+
+def _pair(rng: tuple[float, float] | None) -> list[float] | None:
+    return None if rng is None else [float(rng[0]), float(rng[1])]
 
 
 # --------------------------------------------------------------------------------------------

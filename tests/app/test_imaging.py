@@ -18,7 +18,9 @@ from stipi_daemon.app.config import ImagingSettings, load_config
 from stipi_daemon.app.imaging import (
     Choice,
     ImagingSource,
+    calibration_record,
     choose_imaging,
+    recorded_source,
     resolve_imaging,
     settings_source,
     truth_source,
@@ -107,6 +109,18 @@ def test_settings_source_reads_the_config(tmp_path: Path) -> None:
     assert src.threshold_p == Choice(70, "config imaging.threshold_p")
     assert src.roi == Choice(rect, "config imaging.roi")
     assert settings_source(ImagingSettings(), None) == ImagingSource()
+
+
+def test_manifest_record_round_trips_every_field_the_analysis_reads() -> None:
+    cal = _cal(7.0, threshold_p=None)
+    record = calibration_record(cal, 101, _roi(9.0), "cal.json")
+    src = recorded_source(record, "manifest.json")
+    assert src.threshold_p == Choice(101, "session manifest calibration")
+    assert src.calibration is not None and src.calibration.source == "session manifest"
+    back = src.calibration.value
+    assert back.s0_valid_range_px == cal.s0_valid_range_px
+    assert back.force_valid_range_n == cal.force_valid_range_n
+    assert (back.c1_px, back.c2_px_per_n, back.alpha2_mm_per_px) == (7.0, 100.0, 0.001)
 
 
 def test_truth_source_offers_the_scenes_calibration_threshold_and_disc() -> None:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import dataclasses
 import json
 from pathlib import Path
 
@@ -15,7 +16,7 @@ from stipi_daemon.sim import load_scene
 from stipi_daemon.sim.physics import scaled_calibration
 from stipi_daemon.storage import SessionWriter, StorageOptions
 from stipi_daemon.storage.reader import SessionReader
-from tests._offline import interrupted_copy, record_session, short_scene
+from tests._offline import SCENES, interrupted_copy, record_session, short_scene
 
 
 @pytest.fixture(scope="module")
@@ -284,3 +285,28 @@ def test_refusals_are_one_line(
     (lone / "video.avi").write_bytes((sim_dir / "video.avi").read_bytes())
     err = _error(capsys, ["analyze", "--video", str(lone / "video.avi"), "--force", force])
     assert "no calibration: give --calibration CAL.json" in err
+
+
+def test_session_keeps_the_calibration_extrapolated_flag_the_live_run_set(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The manifest records the calibration's valid ranges, so the replay flags as live did."""
+    scene_cal, _ = scaled_calibration(load_scene(SCENES / "grade1.yaml"))
+    # Valid ranges the measurement falls outside of: the live run flags its results.
+    narrow = dataclasses.replace(
+        scene_cal, s0_valid_range_px=(0.0, 1.0), force_valid_range_n=(0.0, 1e-3)
+    )
+    cal_path = save_calibration(tmp_path / "narrow.json", narrow)
+    session = record_session(tmp_path, calibration=cal_path)
+    stored = json.loads((session / "summary.json").read_text())
+    assert "calibration_extrapolated" in stored["results"]["pitting"]["flags"]
+    manifest = json.loads((session / "manifest.json").read_text())
+    assert manifest["calibration"]["s0_valid_range_px"] == [0.0, 1.0]
+    assert manifest["calibration"]["force_valid_range_n"] == [0.0, 1e-3]
+    out = tmp_path / "a.json"
+    assert main(["analyze", str(session), "--out", str(out)]) == 0
+    capsys.readouterr()
+    doc = json.loads(out.read_text())
+    assert "calibration_extrapolated" in doc["summary"]["results"]["pitting"]["flags"]
+    assert doc["settings"]["calibration"]["s0_valid_range_px"] == [0.0, 1.0]
+    assert doc["comparison"]["stored_summary"] == {"identical": True, "differences": []}
