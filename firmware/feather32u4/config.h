@@ -53,12 +53,13 @@
 // i.e. rate >= 16 Hz (62500 us). Lower rates are refused with status 2 (docs/firmware.md).
 #define STIPI_MIN_RATE_HZ 16
 #define STIPI_BATCH_SIZE 10          // samples per SAMPLES frame (1..24); 10 -> 39 B on the wire
-#define STIPI_RING_CAPACITY 64       // ISR -> main ring buffer [samples], power of two
+#define STIPI_RING_CAPACITY 128      // ISR -> main ring buffer [samples], power of two (<= 128)
 #define STIPI_TARE_SAMPLES 16        // samples averaged by TARE (power of two)
 
 // ---- timing -------------------------------------------------------------------------------
 #define STIPI_HEARTBEAT_PERIOD_US 500000UL   // STATUS period [us]; protocol requires <= 1 s
 #define STIPI_LINK_READ_BUDGET 32            // bytes read per link per loop pass [B]
+#define STIPI_USB_TX_RING 160                // USB CDC frames waiting for the endpoint [B]
 
 // ---- BLE / SDEP ---------------------------------------------------------------------------
 #define STIPI_SDEP_CS_SETUP_US 100           // wait after asserting CS [us] (hardware.md)

@@ -200,13 +200,28 @@ bool UsbCdcLink::is_open() { return USBDevice.configured() && Serial.dtr(); }
 
 int16_t UsbCdcLink::read() { return static_cast<int16_t>(Serial.read()); }
 
+namespace {
+struct CdcWriter {
+  uint16_t operator()(const uint8_t* data, uint16_t n) {
+    const int room = Serial.availableForWrite();
+    if (room <= 0) return 0;
+    const uint16_t k = n < static_cast<uint16_t>(room) ? n : static_cast<uint16_t>(room);
+    return static_cast<uint16_t>(Serial.write(data, k));  // fits: does not wait
+  }
+};
+}  // namespace
+
 bool UsbCdcLink::write_frame(const uint8_t* data, uint8_t len) {
   if (!is_open()) return false;
-  const int room = Serial.availableForWrite();
-  // A frame longer than one 64-byte bank is sent when the bank is empty (it then waits at most
-  // for one bank to drain, which the host does every 1 ms USB frame).
-  if (room < len && !(len > 64 && room >= 64)) return false;
-  return Serial.write(data, len) == len;
+  const bool queued = queue_.push(data, len);
+  service();
+  return queued;
+}
+
+void UsbCdcLink::service() {
+  if (queue_.count() == 0 || !is_open()) return;
+  CdcWriter writer;
+  queue_.drain(writer);
 }
 
 int16_t Uart1Link::read() { return static_cast<int16_t>(Serial1.read()); }

@@ -11,6 +11,8 @@
 
 #include "core/hal.h"
 #include "core/sampler.h"
+#include "core/tx_queue.h"
+#include "../config.h"
 
 namespace stipi {
 
@@ -48,13 +50,19 @@ class AvrEeprom : public Eeprom {
   void write(uint16_t addr, uint8_t value) override;
 };
 
-// USB CDC: open while the host holds DTR; never blocks (a frame that does not fit in the USB
-// endpoint bank is not sent and shows up on the host as a seq gap).
+// USB CDC: open while the host holds DTR; never blocks. Frames go through a ring
+// (STIPI_USB_TX_RING) and leave in pieces of whatever room the endpoint bank has, so a frame
+// larger than the space left waits and is split, never dropped; only a host that stops reading
+// for long enough to fill the ring loses frames (seq gaps).
 class UsbCdcLink : public ByteLink {
  public:
   bool is_open() override;
   int16_t read() override;
   bool write_frame(const uint8_t* data, uint8_t len) override;
+  void service() override;
+
+ private:
+  TxQueue<STIPI_USB_TX_RING> queue_;
 };
 
 // Serial1 at STIPI_UART1_BAUD: always open; writes wait for TX buffer room, which is bounded by

@@ -437,7 +437,7 @@ TEST(probe_overflow_is_reported_in_status_and_first_index_gap) {
   r.command(1, kCmdSetRate, le16(1000));
   r.command(2, kCmdStreamStart);
   r.run(20000);
-  r.board.advance(100000);  // main loop stalled 100 ms: 100 samples into a 64-sample ring
+  r.board.advance(200000);  // main loop stalled 200 ms: 200 samples into a 128-sample ring
   r.run(400000);
   const auto fs = r.frames();
   uint32_t expect = 0, gaps = 0;

@@ -41,6 +41,8 @@ class ByteLink {
   virtual int16_t read() = 0;  // next received byte, or -1 when none
   // Queue a whole wire frame; returns false (and sends nothing) when it cannot be queued now.
   virtual bool write_frame(const uint8_t* data, uint8_t len) = 0;
+  // Move queued bytes on (called every main-loop pass); must not wait.
+  virtual void service() {}
 };
 
 // Board controls the probe logic needs.

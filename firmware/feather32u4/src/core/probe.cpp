@@ -42,7 +42,9 @@ uint8_t Probe::status_flags() {
 
 void Probe::poll() {
   for (uint8_t i = 0; i < kLinkCount; ++i) {
-    if (links_[i]) read_link(i);
+    if (!links_[i]) continue;
+    links_[i]->service();
+    read_link(i);
   }
   service_samples();
   const uint32_t now = clock_.micros();
