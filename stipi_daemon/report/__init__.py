@@ -7,11 +7,21 @@ reference grades with the severity window and threshold (the paper's Figs. 10-12
 parameter table and representative frames with their thresholding. ``--compare`` overlays
 several sessions and tabulates mean and spread per parameter (the paper's Tables I-II).
 
-Figure data: :mod:`.data` (pure); drawing: :mod:`.render` (matplotlib); page: :mod:`.html`;
-files: :mod:`.write` (:func:`~.write.write_session_report`,
-:func:`~.write.write_compare_report`); representative frames: :mod:`.frames`. This package
-module imports only :mod:`.frames`, so the daemon can keep frames without loading
-matplotlib until the report is drawn.
+One module per concept. Pure (no files, no drawing):
+
+- :mod:`.inputs`: what the report reads from a session (:class:`~.inputs.ReportInput`);
+- :mod:`.figures`: the arrays each figure plots (force, S_k, recovery fit, VPR curves,
+  window search);
+- :mod:`.parameter_table`: the parameter table, its rows as data, and the flags' meanings;
+- :mod:`.panels`: the representative frames thresholded again with the session's p and ROI;
+- :mod:`.compare`: several sessions side by side (``--compare``), overlays and statistics.
+
+Shell: :mod:`.load` reads a session directory into a ``ReportInput``; :mod:`.render` draws
+(matplotlib); :mod:`.html` builds the page; :mod:`.write` writes the files
+(:func:`~.write.write_session_report`, :func:`~.write.write_compare_report`);
+:mod:`.frames` chooses and stores the representative frames. This package module imports
+only :mod:`.frames`, so the daemon can keep frames without loading matplotlib until the
+report is drawn.
 """
 
 from stipi_daemon.report.frames import (

@@ -17,7 +17,8 @@ from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 
 from stipi_daemon import __version__
-from stipi_daemon.report.data import CompareGroup, CompareTable, ParameterRow
+from stipi_daemon.report.compare import CompareGroup, CompareTable
+from stipi_daemon.report.parameter_table import ParameterRow
 
 __all__ = ["EmbeddedFigure", "compare_page", "format_number", "session_page"]
 

@@ -1,4 +1,4 @@
-"""Reading one session directory into a :class:`~stipi_daemon.report.data.ReportInput`.
+"""Reading one session directory into a :class:`~stipi_daemon.report.inputs.ReportInput`.
 
 The I/O side of the report's data: the session's rows are read in one database snapshot
 through :class:`~stipi_daemon.storage.SessionReader` (read-only, so a report never changes
@@ -13,8 +13,8 @@ from pathlib import Path
 
 import numpy as np
 
-from stipi_daemon.report.data import ReportInput
 from stipi_daemon.report.frames import read_representative_frames
+from stipi_daemon.report.inputs import ReportInput
 from stipi_daemon.storage import SessionReader
 
 __all__ = ["load_report_input"]

@@ -1,10 +1,11 @@
 """Drawing the report's figures with matplotlib (Agg canvas, no display, no pyplot state).
 
-One function per figure turns the arrays of :mod:`stipi_daemon.report.data` into a
-:class:`matplotlib.figure.Figure`; :func:`png_bytes` encodes it. Every data-bearing artist
-carries a ``gid`` (``"force"``, ``"s_k"``, ``"fit_model"``, ``"vpr_paper"``...) so that a
-test can read back exactly what was plotted. This module chooses looks only (colours,
-labels with units, legends); it computes nothing about the measurement.
+One function per figure turns the arrays of :mod:`.figures`, :mod:`.panels` and
+:mod:`.compare` into a :class:`matplotlib.figure.Figure`; :func:`png_bytes` encodes it.
+Every data-bearing artist carries a ``gid`` (``"force"``, ``"s_k"``, ``"fit_model"``,
+``"vpr_paper"``...) so that a test can read back exactly what was plotted. This module
+chooses looks only (colours, labels with units, legends); it computes nothing about the
+measurement.
 """
 
 from __future__ import annotations
@@ -21,17 +22,17 @@ from matplotlib.figure import Figure
 from matplotlib.patches import Circle, Patch, Rectangle
 
 from stipi_daemon.analysis.imaging import CircleROI, RectROI
-from stipi_daemon.report.data import (
+from stipi_daemon.report.compare import OverlaySeries
+from stipi_daemon.report.figures import (
     FitFigure,
     ForceFigure,
-    FramePanel,
     NormalisedCurve,
-    OverlaySeries,
     PhaseSpan,
     SkFigure,
     VprFigure,
     WindowSearchFigure,
 )
+from stipi_daemon.report.panels import FramePanel
 
 __all__ = [
     "DPI",

@@ -1,7 +1,8 @@
 """Writing reports: one session's page and PNGs, or a comparison of several sessions.
 
 This module is the report's shell: it reads sessions (:mod:`.load`), asks
-:mod:`.data` for the arrays, :mod:`.render` for the figures and :mod:`.html` for the page,
+:mod:`.figures`, :mod:`.panels`, :mod:`.parameter_table` and :mod:`.compare` for the
+arrays and tables, :mod:`.render` for the figures and :mod:`.html` for the page,
 and writes ``report.html`` (self-contained) with the same figures as PNG files next to it.
 A figure whose data the session lacks (no results, no stored frame) is listed as not drawn
 with the reason, on the page and in :attr:`WrittenReport.missing`. Files are replaced
@@ -21,10 +22,21 @@ from matplotlib.figure import Figure
 
 from stipi_daemon.analysis.severity import SeverityReference, load_reference
 from stipi_daemon.errors import AnalysisError, SessionError, StipiError
-from stipi_daemon.report import data as d
 from stipi_daemon.report import render as r
+from stipi_daemon.report.compare import compare_table, overlay_force, overlay_s_k
+from stipi_daemon.report.figures import (
+    fit_figure,
+    force_figure,
+    measurement_curves,
+    s_k_figure,
+    vpr_figure,
+    window_search_figure,
+)
 from stipi_daemon.report.html import EmbeddedFigure, compare_page, format_number, session_page
+from stipi_daemon.report.inputs import ReportInput
 from stipi_daemon.report.load import load_report_input
+from stipi_daemon.report.panels import frame_panels
+from stipi_daemon.report.parameter_table import flag_descriptions, parameter_table
 
 __all__ = [
     "COMPARE_FIGURES",
@@ -125,7 +137,7 @@ def _unique(items: Sequence[str]) -> list[str]:
     return list(dict.fromkeys(i for i in items if i))
 
 
-def _notes(inp: d.ReportInput) -> list[str]:
+def _notes(inp: ReportInput) -> list[str]:
     s = inp.summary or {}
     out = [str(n) for n in s.get("notes") or []]
     res = inp.results or {}
@@ -140,7 +152,7 @@ def _notes(inp: d.ReportInput) -> list[str]:
     return _unique(out)
 
 
-def _headline(inp: d.ReportInput) -> str:
+def _headline(inp: ReportInput) -> str:
     res = inp.results
     if res is None:
         err = (inp.summary or {}).get("analysis_error")
@@ -163,7 +175,7 @@ def _headline(inp: d.ReportInput) -> str:
     return "; ".join(parts) + "."
 
 
-def _meta(inp: d.ReportInput) -> list[tuple[str, str]]:
+def _meta(inp: ReportInput) -> list[tuple[str, str]]:
     s = inp.summary or {}
     run = s.get("run") or {}
     cam = ((run.get("camera") or {}).get("source") or {}).get("name")
@@ -190,23 +202,11 @@ def _meta(inp: d.ReportInput) -> list[tuple[str, str]]:
     return meta
 
 
-def render_session_report(
-    inp: d.ReportInput, out_dir: Path, reference: SeverityReference | None = None
-) -> WrittenReport:
-    """Write the report of ``inp`` into ``out_dir`` (created if needed).
-
-    Raises
-    ------
-    SessionError
-        ``out_dir`` or a file in it cannot be written.
-    """
-    out_dir = Path(out_dir)
-    try:
-        out_dir.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise SessionError(f"{out_dir}: cannot create report directory: {exc}") from exc
-    ref = reference if reference is not None else load_reference()
-    vpr = d.vpr_figure(inp.results, ref)
+def _session_makers(
+    inp: ReportInput, ref: SeverityReference
+) -> list[tuple[str, str, str, FigureMaker]]:
+    """The figures of :data:`SESSION_FIGURES` for ``inp``: name, title, caption, maker."""
+    vpr = vpr_figure(inp.results, ref)
     no_results = "the session has no results" + (
         f" ({inp.summary['analysis_error']})"
         if inp.summary and inp.summary.get("analysis_error")
@@ -216,21 +216,21 @@ def render_session_report(
     def force() -> Figure | str:
         if inp.force_times_s.size == 0:
             return "the session holds no force sample"
-        return r.draw_force(d.force_figure(inp))
+        return r.draw_force(force_figure(inp))
 
     def s_k() -> Figure | str:
         if inp.frame_times_s.size == 0:
             return "the session holds no frame"
-        return r.draw_s_k(d.s_k_figure(inp))
+        return r.draw_s_k(s_k_figure(inp))
 
     def fit() -> Figure | str:
-        data = d.fit_figure(inp)
+        data = fit_figure(inp)
         if data is None:
             return "no fitted recovery" if inp.results is not None else no_results
         return r.draw_fit(data)
 
     def frames() -> Figure | str:
-        panels = d.frame_panels(inp)
+        panels = frame_panels(inp)
         if not panels:
             return (
                 "the session stores no representative frame (frames/representative.json): "
@@ -240,7 +240,7 @@ def render_session_report(
         return r.draw_frames(panels)
 
     vpr_note = "" if vpr.measurements else f" This session's curves are missing: {no_results}."
-    makers: list[tuple[str, str, str, FigureMaker]] = [
+    return [
         (
             "force",
             SESSION_FIGURES["force"],
@@ -276,7 +276,7 @@ def render_session_report(
             SESSION_FIGURES["window_search"],
             "Mean distance between the normalised curves of adjacent grades for every 10 s "
             "window; the severity window maximises it between the mild and severe grades.",
-            lambda: r.draw_window_search(d.window_search_figure(ref)),
+            lambda: r.draw_window_search(window_search_figure(ref)),
         ),
         (
             "vpr_normalised",
@@ -296,8 +296,26 @@ def render_session_report(
             frames,
         ),
     ]
-    embedded, written, missing = _make_figures(makers, out_dir)
-    rows = d.parameter_table(inp.summary)
+
+
+def render_session_report(
+    inp: ReportInput, out_dir: Path, reference: SeverityReference | None = None
+) -> WrittenReport:
+    """Write the report of ``inp`` into ``out_dir`` (created if needed).
+
+    Raises
+    ------
+    SessionError
+        ``out_dir`` or a file in it cannot be written.
+    """
+    out_dir = Path(out_dir)
+    try:
+        out_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise SessionError(f"{out_dir}: cannot create report directory: {exc}") from exc
+    ref = reference if reference is not None else load_reference()
+    embedded, written, missing = _make_figures(_session_makers(inp, ref), out_dir)
+    rows = parameter_table(inp.summary)
     page = session_page(
         session_id=inp.session_id,
         status=inp.status,
@@ -305,7 +323,7 @@ def render_session_report(
         headline=_headline(inp),
         figures=embedded,
         rows=rows,
-        flag_descriptions=d.flag_descriptions(),
+        flag_descriptions=flag_descriptions(),
         notes=_notes(inp),
     )
     html_path = out_dir / REPORT_HTML
@@ -394,14 +412,14 @@ def write_compare_report(
         raise AnalysisError(f"{len(labels)} labels for {len(session_dirs)} sessions")
     inputs = [load_report_input(p) for p in session_dirs]
     names = list(labels) if labels is not None else [i.session_id for i in inputs]
-    table = d.compare_table(inputs, names)
+    table = compare_table(inputs, names)
     ref = reference if reference is not None else load_reference()
-    vpr = d.vpr_figure(None, ref)
+    vpr = vpr_figure(None, ref)
     t = vpr.t_s
     window_t = vpr.window_sample_times_s
     wt = np.asarray(window_t, dtype=np.float64)
     curves = [
-        (name, d.measurement_curves(inp.results, t, wt, name))
+        (name, measurement_curves(inp.results, t, wt, name))
         for name, inp in zip(names, inputs, strict=True)
     ]
     out = Path(out_dir)
@@ -411,7 +429,7 @@ def write_compare_report(
         raise SessionError(f"{out}: cannot create report directory: {exc}") from exc
 
     def overlay(which: str) -> Figure | str:
-        series = d.overlay_s_k(inputs, names) if which == "s_k" else d.overlay_force(inputs, names)
+        series = overlay_s_k(inputs, names) if which == "s_k" else overlay_force(inputs, names)
         if not series:
             return "no session has a T_0 to align on"
         if which == "s_k":

@@ -14,25 +14,41 @@ from hypothesis import strategies as st
 
 from stipi_daemon.analysis.severity import find_severity_window, load_reference
 from stipi_daemon.errors import AnalysisError
-from stipi_daemon.report import data as d
+from stipi_daemon.report.compare import (
+    COMPARE_PARAMETERS,
+    compare_table,
+    overlay_force,
+    overlay_s_k,
+)
+from stipi_daemon.report.figures import (
+    fit_figure,
+    force_figure,
+    phase_spans,
+    s_k_figure,
+    vpr_figure,
+    window_search_figure,
+)
+from stipi_daemon.report.inputs import ReportInput
 from stipi_daemon.report.load import load_report_input
+from stipi_daemon.report.panels import frame_panels
+from stipi_daemon.report.parameter_table import PARAMETER_ROWS, flag_descriptions, parameter_table
 from stipi_daemon.storage import SessionReader, Transition
 
 
 @pytest.fixture(scope="module")
-def inp(demo_session: Path) -> d.ReportInput:
+def inp(demo_session: Path) -> ReportInput:
     return load_report_input(demo_session)
 
 
-def test_time_series_are_the_sessions_rows(demo_session: Path, inp: d.ReportInput) -> None:
+def test_time_series_are_the_sessions_rows(demo_session: Path, inp: ReportInput) -> None:
     with SessionReader(demo_session) as reader:
         frames = reader.frames()
         force = reader.force_samples()
         transitions = reader.transitions()
-    sk = d.s_k_figure(inp)
+    sk = s_k_figure(inp)
     np.testing.assert_array_equal(sk.t_s, frames["t_capture_host_s"])
     np.testing.assert_array_equal(sk.s_k_px, frames["s_k"])
-    f = d.force_figure(inp)
+    f = force_figure(inp)
     np.testing.assert_array_equal(f.t_s, force["t_host_s"])
     np.testing.assert_array_equal(f.force_n, force["force_n"])
     # Phases: one span per transition into a phase that lasted, in order, contiguous.
@@ -43,10 +59,10 @@ def test_time_series_are_the_sessions_rows(demo_session: Path, inp: d.ReportInpu
         assert a.end_s == b.start_s
 
 
-def test_markers_are_the_summarys(inp: d.ReportInput) -> None:
+def test_markers_are_the_summarys(inp: ReportInput) -> None:
     assert inp.summary is not None
     pit = inp.summary["results"]["pitting"]
-    sk = d.s_k_figure(inp)
+    sk = s_k_figure(inp)
     assert (sk.t0_s, sk.ts_s, sk.s0_px, sk.s_max_px) == (
         pit["t0_s"],
         pit["ts_s"],
@@ -56,7 +72,7 @@ def test_markers_are_the_summarys(inp: d.ReportInput) -> None:
     assert sk.settle_level_px == pytest.approx(0.98 * pit["s_max_px"], rel=1e-15)
     assert sk.ts_s is not None and sk.t0_s is not None
     assert sk.ts_s - sk.t0_s == pytest.approx(pit["recovery_time_s"], abs=1e-9)
-    f = d.force_figure(inp)
+    f = force_figure(inp)
     m = inp.summary["measurement"]
     assert f.applied_force_n == inp.summary["results"]["applied_force_n"]
     assert f.hold_s == (m["t_pit_start_s"], min(m["t_pit_end_s"], pit["t0_s"]))
@@ -66,10 +82,10 @@ def test_markers_are_the_summarys(inp: d.ReportInput) -> None:
     assert float(np.nanmean(f.force_n[hold])) == pytest.approx(f.applied_force_n, rel=1e-12)
 
 
-def test_fit_figure_is_the_fit(inp: d.ReportInput) -> None:
+def test_fit_figure_is_the_fit(inp: ReportInput) -> None:
     assert inp.summary is not None
     fr = inp.summary["results"]["fitted_recovery"]
-    fit = d.fit_figure(inp)
+    fit = fit_figure(inp)
     assert fit is not None
     assert fit.t_since_t0_s.size == fr["n_points"]
     np.testing.assert_array_equal(fit.residual_px, fit.s_k_px - fit.model_px)
@@ -83,11 +99,11 @@ def test_fit_figure_is_the_fit(inp: d.ReportInput) -> None:
     assert fit.tau_se_s == fr["tau_se_s"]
 
 
-def test_vpr_curves_reproduce_the_classification(inp: d.ReportInput) -> None:
+def test_vpr_curves_reproduce_the_classification(inp: ReportInput) -> None:
     assert inp.summary is not None
     res = inp.summary["results"]
     ref = load_reference()
-    vpr = d.vpr_figure(res, ref)
+    vpr = vpr_figure(res, ref)
     # The paper's window and threshold (Section IV.C): 11-20 s, 62.0 % recovered.
     assert (vpr.window_start_s, vpr.window_end_s) == (11.0, 20.0)
     assert vpr.window_sample_times_s == tuple(float(v) for v in range(11, 21))
@@ -124,13 +140,13 @@ def test_vpr_curves_reproduce_the_classification(inp: d.ReportInput) -> None:
 
 
 def test_vpr_without_results_shows_the_references_only() -> None:
-    vpr = d.vpr_figure(None, load_reference())
+    vpr = vpr_figure(None, load_reference())
     assert vpr.measurements == ()
     assert len(vpr.references) == 4
 
 
 def test_window_search_is_fig_11() -> None:
-    ws = d.window_search_figure(load_reference())
+    ws = window_search_figure(load_reference())
     assert [p[0] for p in ws.pairs] == ["I-II", "II-III", "III-IV"]
     _, starts, diffs = ws.pairs[1]
     assert float(starts[int(np.argmax(diffs))]) == 11.0 == ws.window_start_s
@@ -138,11 +154,11 @@ def test_window_search_is_fig_11() -> None:
 
 
 def test_parameter_table_carries_values_uncertainties_flags_and_truth(
-    inp: d.ReportInput,
+    inp: ReportInput,
 ) -> None:
     assert inp.summary is not None
     res = inp.summary["results"]
-    rows = {r.key: r for r in d.parameter_table(inp.summary)}
+    rows = {r.key: r for r in parameter_table(inp.summary)}
     assert rows["depth_mm"].value == res["pitting"]["depth_mm"]
     assert rows["time_constant_s"].value == res["fitted_recovery"]["tau_s"]
     assert rows["time_constant_s"].uncertainty == res["fitted_recovery"]["tau_se_s"]
@@ -167,20 +183,51 @@ def test_parameter_table_carries_values_uncertainties_flags_and_truth(
 
 
 def test_parameter_table_without_results_is_empty() -> None:
-    assert d.parameter_table(None) == ()
-    assert d.parameter_table({"results": None}) == ()
+    assert parameter_table(None) == ()
+    assert parameter_table({"results": None}) == ()
+
+
+def test_parameter_table_rows_follow_their_specs(inp: ReportInput) -> None:
+    rows = parameter_table(inp.summary)
+    assert [r.key for r in rows[: len(PARAMETER_ROWS)]] == [s.key for s in PARAMETER_ROWS]
+    assert len({s.key for s in PARAMETER_ROWS}) == len(PARAMETER_ROWS)
+    assert [r.key for r in rows[len(PARAMETER_ROWS) :]] == [
+        "severity_paper_estimator",
+        "recovered_percent_paper_estimator",
+        "severity_fitted_recovery",
+        "recovered_percent_fitted_recovery",
+    ]
+
+
+def test_parameter_table_notes_say_why_a_value_is_missing_or_bounded(inp: ReportInput) -> None:
+    summary: dict[str, Any] = copy.deepcopy(dict(inp.summary or {}))
+    res = summary["results"]
+    res["pitting"]["flags"] = ["not_settled"]
+    res["paper_estimator"] = None
+    res["fitted_recovery"]["tau_s"] = None
+    res["severity"]["fitted_recovery"] = None
+    rows = {r.key: r for r in parameter_table(summary)}
+    assert rows["recovery_time_s"].note == "lower bound: S_k had not settled"
+    assert rows["recovery_time_s"].flags == ("not_settled",)
+    for key in ("elasticity_kpa", "viscosity_n_s_per_mm2"):
+        assert rows[key].value is None and rows[key].note == "undefined (see notes)"
+    assert rows["time_constant_s"].note == "no fit (see flags and notes)"
+    assert rows["viscosity_from_time_constant_n_s_per_mm2"].uncertainty is None
+    fit_class = rows["severity_fitted_recovery"]
+    assert fit_class.value is None and fit_class.note == "undefined (see notes)"
+    assert "recovered_percent_fitted_recovery" not in rows
 
 
 def test_flag_descriptions_come_from_the_enum() -> None:
-    desc = d.flag_descriptions()
+    desc = flag_descriptions()
     assert desc["not_settled"].startswith("S_k never reached 98 %")
     from stipi_daemon.analysis.flags import Flag
 
     assert set(desc) == {f.value for f in Flag}
 
 
-def test_frame_panels_recount_the_stored_s_k(inp: d.ReportInput) -> None:
-    panels = d.frame_panels(inp)
+def test_frame_panels_recount_the_stored_s_k(inp: ReportInput) -> None:
+    panels = frame_panels(inp)
     assert [p.kind for p in panels] == ["pitting", "recovery_start", "recovered"]
     for p in panels:
         assert p.s_k_recount_px == p.s_k_live_px == p.s_k_table_px
@@ -188,21 +235,21 @@ def test_frame_panels_recount_the_stored_s_k(inp: d.ReportInput) -> None:
         assert p.threshold_p == inp.calibration["threshold_p"]
 
 
-def _variant(inp: d.ReportInput, sid: str, scale: float) -> d.ReportInput:
+def _variant(inp: ReportInput, sid: str, scale: float) -> ReportInput:
     """A copy of ``inp`` whose result values are scaled (for the comparison arithmetic)."""
     summary: dict[str, Any] = copy.deepcopy(dict(inp.summary or {}))
     res = summary["results"]
-    for _, _, _, path in d.COMPARE_PARAMETERS:
+    for _, _, _, path in COMPARE_PARAMETERS:
         node = res
         for k in path[:-1]:
             node = node[k]
         node[path[-1]] = node[path[-1]] * scale
-    return d.ReportInput(**{**inp.__dict__, "session_id": sid, "summary": summary})
+    return ReportInput(**{**inp.__dict__, "session_id": sid, "summary": summary})
 
 
-def test_compare_table_mean_and_spread(inp: d.ReportInput) -> None:
+def test_compare_table_mean_and_spread(inp: ReportInput) -> None:
     inputs = [_variant(inp, f"s{i}", scale) for i, scale in enumerate((1.0, 1.1, 0.8, 1.3))]
-    table = d.compare_table(inputs, ["A", "A", "B", "B"])
+    table = compare_table(inputs, ["A", "A", "B", "B"])
     assert table.session_ids == ("s0", "s1", "s2", "s3")
     assert [g.label for g in table.groups] == ["A", "B"]
     assert table.groups[0].session_ids == ("s0", "s1")
@@ -221,28 +268,28 @@ def test_compare_table_mean_and_spread(inp: d.ReportInput) -> None:
     assert table.severities[0] is not None and "(" in table.severities[0]
 
 
-def test_compare_table_handles_missing_values_and_bad_labels(inp: d.ReportInput) -> None:
-    bare = d.ReportInput(**{**inp.__dict__, "session_id": "bare", "summary": {"results": None}})
-    table = d.compare_table([inp, bare])
+def test_compare_table_handles_missing_values_and_bad_labels(inp: ReportInput) -> None:
+    bare = ReportInput(**{**inp.__dict__, "session_id": "bare", "summary": {"results": None}})
+    table = compare_table([inp, bare])
     stat = {s.key: s for s in table.overall.stats}["depth_mm"]
     assert stat.values[1] is None and stat.n == 1 and stat.sd is None and stat.cv_percent is None
     assert table.labels == (inp.session_id, "bare")
     assert table.severities[1] is None
     with pytest.raises(AnalysisError, match="2 labels for 1 sessions"):
-        d.compare_table([inp], ["a", "b"])
+        compare_table([inp], ["a", "b"])
     with pytest.raises(AnalysisError, match="no session"):
-        d.compare_table([])
+        compare_table([])
 
 
-def test_overlays_are_aligned_on_each_t0(inp: d.ReportInput) -> None:
-    (s,) = d.overlay_s_k([inp], ["x"])
+def test_overlays_are_aligned_on_each_t0(inp: ReportInput) -> None:
+    (s,) = overlay_s_k([inp], ["x"])
     assert inp.t0_s is not None
     np.testing.assert_array_equal(s.t_since_t0_s, inp.frame_times_s - inp.t0_s)
     np.testing.assert_array_equal(s.values, inp.s_k_px)
-    (f,) = d.overlay_force([inp])
+    (f,) = overlay_force([inp])
     np.testing.assert_array_equal(f.values, inp.force_n)
-    no_t0 = d.ReportInput(**{**inp.__dict__, "summary": None})
-    assert d.overlay_s_k([no_t0]) == ()
+    no_t0 = ReportInput(**{**inp.__dict__, "summary": None})
+    assert overlay_s_k([no_t0]) == ()
 
 
 @settings(max_examples=50, deadline=None)
@@ -254,7 +301,7 @@ def test_phase_spans_partition_the_time(times: list[float], end: float) -> None:
     times = sorted(times)
     names = ["armed", "pitting", "release", "recovery", "analysis", "done", "x", "y"]
     transitions = [Transition(t, "a", names[i], "r") for i, t in enumerate(times)]
-    spans = d.phase_spans(transitions, end)
+    spans = phase_spans(transitions, end)
     for s in spans:
         assert s.end_s > s.start_s
     if end > times[-1]:

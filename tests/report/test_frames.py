@@ -12,7 +12,6 @@ import pytest
 from stipi_daemon.analysis.imaging import CircleROI, occluded_pixel_count
 from stipi_daemon.errors import SessionError
 from stipi_daemon.measurement.state_machine import Phase
-from stipi_daemon.report.data import roi_from_mapping
 from stipi_daemon.report.frames import (
     FRAMES_DIR,
     FRAMES_INDEX,
@@ -21,6 +20,7 @@ from stipi_daemon.report.frames import (
     read_representative_frames,
     write_representative_frames,
 )
+from stipi_daemon.report.panels import roi_from_mapping
 from stipi_daemon.storage import SessionReader
 
 

@@ -6,8 +6,8 @@ import math
 
 import pytest
 
-from stipi_daemon.report.data import ParameterRow
 from stipi_daemon.report.html import EmbeddedFigure, format_number, session_page
+from stipi_daemon.report.parameter_table import ParameterRow
 
 
 @pytest.mark.parametrize(

@@ -10,14 +10,22 @@ from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
 
 from stipi_daemon.analysis.severity import load_reference
-from stipi_daemon.report import data as d
 from stipi_daemon.report import render as r
+from stipi_daemon.report.figures import (
+    fit_figure,
+    force_figure,
+    s_k_figure,
+    vpr_figure,
+    window_search_figure,
+)
+from stipi_daemon.report.inputs import ReportInput
 from stipi_daemon.report.load import load_report_input
+from stipi_daemon.report.panels import frame_panels
 from stipi_daemon.storage import SessionReader
 
 
 @pytest.fixture(scope="module")
-def inp(demo_session: Path) -> d.ReportInput:
+def inp(demo_session: Path) -> ReportInput:
     return load_report_input(demo_session)
 
 
@@ -36,12 +44,12 @@ def _labels(fig: Figure) -> list[str]:
 
 
 def test_force_and_s_k_figures_plot_every_stored_sample(
-    demo_session: Path, inp: d.ReportInput
+    demo_session: Path, inp: ReportInput
 ) -> None:
     with SessionReader(demo_session) as reader:
         frames = reader.frames()
         force = reader.force_samples()
-    fig = r.draw_force(d.force_figure(inp))
+    fig = r.draw_force(force_figure(inp))
     x, y = _xy(_line(fig, "force"))
     np.testing.assert_array_equal(x, force["t_host_s"])
     np.testing.assert_array_equal(y, force["force_n"])
@@ -49,7 +57,7 @@ def test_force_and_s_k_figures_plot_every_stored_sample(
     assert "[s]" in fig.axes[0].get_xlabel()
     labels = _labels(fig)
     assert {"pitting", "recovery"} <= set(labels)  # shaded phases are in the legend
-    fig = r.draw_s_k(d.s_k_figure(inp))
+    fig = r.draw_s_k(s_k_figure(inp))
     x, y = _xy(_line(fig, "s_k"))
     np.testing.assert_array_equal(x, frames["t_capture_host_s"])
     np.testing.assert_array_equal(y, frames["s_k"])
@@ -61,8 +69,8 @@ def test_force_and_s_k_figures_plot_every_stored_sample(
     assert any("$T_0$" in t for t in _labels(fig)) and any("$T_s$" in t for t in _labels(fig))
 
 
-def test_fit_figure_plots_data_model_and_residuals(inp: d.ReportInput) -> None:
-    data = d.fit_figure(inp)
+def test_fit_figure_plots_data_model_and_residuals(inp: ReportInput) -> None:
+    data = fit_figure(inp)
     assert data is not None
     fig = r.draw_fit(data)
     for gid, want in (
@@ -76,8 +84,8 @@ def test_fit_figure_plots_data_model_and_residuals(inp: d.ReportInput) -> None:
     assert fig.axes[1].get_ylabel() == "residual [px]"
 
 
-def test_vpr_figures_plot_the_curves_window_and_threshold(inp: d.ReportInput) -> None:
-    vpr = d.vpr_figure(inp.results, load_reference())
+def test_vpr_figures_plot_the_curves_window_and_threshold(inp: ReportInput) -> None:
+    vpr = vpr_figure(inp.results, load_reference())
     fig10 = r.draw_vpr(vpr)
     for i, c in enumerate(vpr.references):
         _, y = _xy(_line(fig10, f"vpr_reference_{i}"))
@@ -104,7 +112,7 @@ def test_vpr_figures_plot_the_curves_window_and_threshold(inp: d.ReportInput) ->
 
 
 def test_window_search_figure_plots_every_pair() -> None:
-    ws = d.window_search_figure(load_reference())
+    ws = window_search_figure(load_reference())
     fig = r.draw_window_search(ws)
     for i, (_, _, diffs) in enumerate(ws.pairs):
         heights = [
@@ -113,8 +121,8 @@ def test_window_search_figure_plots_every_pair() -> None:
         np.testing.assert_array_equal(heights, diffs)
 
 
-def test_frames_figure_shows_raw_and_thresholded(inp: d.ReportInput) -> None:
-    panels = d.frame_panels(inp)
+def test_frames_figure_shows_raw_and_thresholded(inp: ReportInput) -> None:
+    panels = frame_panels(inp)
     fig = r.draw_frames(panels)
     images = {im.get_gid(): im for ax in fig.axes for im in ax.get_images()}
     for p in panels:

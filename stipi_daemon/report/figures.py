@@ -1,0 +1,547 @@
+"""Figure data of the session report: the arrays each figure plots.
+
+Force and S_k over time with the measurement's phases, the Kelvin-Voigt recovery fitted to
+S_k with its residuals, the VPR curves of Eq. (10) and their normalised form against the
+reference grades with the severity window and threshold (Fig. 10 and 12), and the window
+search (Fig. 11), each built from one :class:`~.inputs.ReportInput` (or its results) as a
+frozen record of arrays. It is pure: no file access, no drawing (:mod:`.render`), so tests
+can compare every plotted sample with the session's rows. Times are on the session clock
+[s] unless a name says "since T_0".
+"""
+
+from __future__ import annotations
+
+import itertools
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any, Final, Literal
+
+import numpy as np
+
+from stipi_daemon.analysis.pitting import DEFAULT_SETTLE_FRACTION, DEFAULT_WINDOW_S
+from stipi_daemon.analysis.recovery_fit import (
+    kelvin_voigt_recovery,
+    settling_time_from_time_constant,
+)
+from stipi_daemon.analysis.severity import (
+    SeverityReference,
+    find_severity_window,
+    normalised_depth,
+)
+from stipi_daemon.analysis.vpr import KPA_PER_N_PER_MM2
+from stipi_daemon.errors import AnalysisError
+from stipi_daemon.report.inputs import FloatArray, ReportInput, number_at, value_at
+from stipi_daemon.storage.schema import Transition
+
+__all__ = [
+    "VPR_HORIZON_S",
+    "VPR_SAMPLES",
+    "FitFigure",
+    "ForceFigure",
+    "NormalisedCurve",
+    "PhaseSpan",
+    "SkFigure",
+    "VprFigure",
+    "WindowSearchFigure",
+    "fit_figure",
+    "force_figure",
+    "measurement_curves",
+    "phase_spans",
+    "s_k_figure",
+    "vpr_figure",
+    "window_search_figure",
+]
+
+#: Time span of the VPR curves (Figs. 10 and 12) [s since T_0]: the paper's recovery window.
+VPR_HORIZON_S: Final = DEFAULT_WINDOW_S
+#: Samples of the VPR curves over :data:`VPR_HORIZON_S` (0.1 s apart).
+VPR_SAMPLES: Final = 1051
+
+
+# --------------------------------------------------------------------------------------------
+# Force and S_k over time
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class PhaseSpan:
+    """The measurement was in ``phase`` from ``start_s`` to ``end_s`` [s]."""
+
+    phase: str
+    start_s: float
+    end_s: float
+
+
+def phase_spans(transitions: Sequence[Transition], t_end_s: float) -> tuple[PhaseSpan, ...]:
+    """The phases between consecutive transitions; the last lasts until ``t_end_s`` [s].
+
+    Spans of zero or negative length (a terminal phase entered at the last sample) are
+    left out.
+    """
+    out: list[PhaseSpan] = []
+    for i, tr in enumerate(transitions):
+        end = transitions[i + 1].t_host_s if i + 1 < len(transitions) else t_end_s
+        if end > tr.t_host_s:
+            out.append(PhaseSpan(tr.new_state, float(tr.t_host_s), float(end)))
+    return tuple(out)
+
+
+@dataclass(frozen=True)
+class ForceFigure:
+    """Force over time with the phases shaded.
+
+    Attributes
+    ----------
+    t_s, force_n : numpy.ndarray
+        Every force sample as stored [s], [N] (NaN: lost, drawn as a gap).
+    phases : tuple of PhaseSpan
+        Phases of the measurement.
+    target_n, tolerance_n : float or None
+        The pitting force band target +- tolerance [N] the state machine enforced.
+    release_n : float or None
+        Force below which the release is detected [N].
+    applied_force_n : float or None
+        F_a of Eq. (7) (mean over the pitting hold) [N].
+    hold_s : tuple of float or None
+        The pitting hold [s] over which F_a was averaged: from its start to its end or
+        T_0, whichever comes first.
+    t0_s : float or None
+        T_0, the start of the recovery [s].
+    """
+
+    t_s: FloatArray
+    force_n: FloatArray
+    phases: tuple[PhaseSpan, ...]
+    target_n: float | None
+    tolerance_n: float | None
+    release_n: float | None
+    applied_force_n: float | None
+    hold_s: tuple[float, float] | None
+    t0_s: float | None
+
+
+def force_figure(inp: ReportInput) -> ForceFigure:
+    """Data of the force-over-time figure."""
+    m = value_at(inp.config, "measurement")
+    start = number_at(inp.summary, "measurement", "t_pit_start_s")
+    end = number_at(inp.summary, "measurement", "t_pit_end_s")
+    t0 = inp.t0_s
+    return ForceFigure(
+        t_s=inp.force_times_s,
+        force_n=inp.force_n,
+        phases=phase_spans(inp.transitions, inp.t_end_s),
+        target_n=number_at(m, "target_force_n"),
+        tolerance_n=number_at(m, "force_tolerance_n"),
+        release_n=number_at(m, "release_force_n"),
+        applied_force_n=number_at(inp.results, "applied_force_n"),
+        # The hold F_a averages over ends at T_0 at the latest (the pipeline's rule).
+        hold_s=None if start is None or end is None else (start, min(end, t0 or end)),
+        t0_s=inp.t0_s,
+    )
+
+
+@dataclass(frozen=True)
+class SkFigure:
+    """S_k over time with T_0, T_s and the settling line (Eq. 6).
+
+    Attributes
+    ----------
+    t_s, s_k_px : numpy.ndarray
+        Every frame as stored: capture time [s], S_k [px].
+    phases : tuple of PhaseSpan
+        Phases of the measurement.
+    t0_s, ts_s : float or None
+        T_0 (start of recovery) and T_s (S_k settled) [s].
+    s0_px, s_max_px : float or None
+        S_0 (at T_0) and S_max [px].
+    settle_fraction : float
+        f of Eq. (6) [-] (0.98).
+    settle_level_px : float or None
+        f * S_max [px], the line S_k must reach for T_s.
+    recovery_time_s : float or None
+        T_r = T_s - T_0 [s].
+    flags : tuple of str
+        The pitting parameters' flags.
+    """
+
+    t_s: FloatArray
+    s_k_px: FloatArray
+    phases: tuple[PhaseSpan, ...]
+    t0_s: float | None
+    ts_s: float | None
+    s0_px: float | None
+    s_max_px: float | None
+    settle_fraction: float
+    settle_level_px: float | None
+    recovery_time_s: float | None
+    flags: tuple[str, ...]
+
+
+def s_k_figure(inp: ReportInput) -> SkFigure:
+    """Data of the S_k-over-time figure."""
+    p = value_at(inp.results, "pitting")
+    fraction = number_at(inp.config, "analysis", "settle_fraction") or DEFAULT_SETTLE_FRACTION
+    s_max = number_at(p, "s_max_px")
+    flags = value_at(p, "flags")
+    return SkFigure(
+        t_s=inp.frame_times_s,
+        s_k_px=inp.s_k_px,
+        phases=phase_spans(inp.transitions, inp.t_end_s),
+        t0_s=inp.t0_s,
+        ts_s=number_at(p, "ts_s"),
+        s0_px=number_at(p, "s0_px"),
+        s_max_px=s_max,
+        settle_fraction=fraction,
+        settle_level_px=None if s_max is None else fraction * s_max,
+        recovery_time_s=number_at(p, "recovery_time_s"),
+        flags=tuple(flags) if isinstance(flags, list) else (),
+    )
+
+
+# --------------------------------------------------------------------------------------------
+# Recovery fit
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class FitFigure:
+    """The fitted Kelvin-Voigt recovery against the data, with residuals.
+
+    Attributes
+    ----------
+    t_since_t0_s : numpy.ndarray
+        Times of the fitted frames since T_0 [s].
+    s_k_px, model_px, residual_px : numpy.ndarray
+        Data, model offset - amplitude exp(-(t - T_0)/tau) and data - model [px].
+    t0_s : float
+        T_0 [s].
+    tau_s, tau_se_s, amplitude_px, offset_px : float or None
+        Fitted parameters and tau's standard error.
+    rmse_px : float or None
+        Root-mean-square residual [px] as the fit reported it.
+    r_squared : float or None
+        Coefficient of determination.
+    n_points : int or None
+        Points the fit reported using (equals ``t_since_t0_s.size`` for a stored session).
+    flags : tuple of str
+        The fit's flags.
+    """
+
+    t_since_t0_s: FloatArray
+    s_k_px: FloatArray
+    model_px: FloatArray
+    residual_px: FloatArray
+    t0_s: float
+    tau_s: float
+    tau_se_s: float | None
+    amplitude_px: float
+    offset_px: float
+    rmse_px: float | None
+    r_squared: float | None
+    n_points: int | None
+    flags: tuple[str, ...]
+
+
+def fit_figure(inp: ReportInput) -> FitFigure | None:
+    """Data of the recovery-fit figure; None when the session has no fitted recovery."""
+    fr = value_at(inp.results, "fitted_recovery")
+    t0 = number_at(inp.results, "pitting", "t0_s")
+    tau, amp, off = (
+        number_at(fr, "tau_s"),
+        number_at(fr, "amplitude_px"),
+        number_at(fr, "offset_px"),
+    )
+    window = value_at(fr, "window_s")
+    if t0 is None or tau is None or amp is None or off is None or not isinstance(window, list):
+        return None
+    lo, hi = float(window[0]), float(window[1])
+    t, s = inp.frame_times_s, inp.s_k_px
+    sel = (t >= lo) & (t <= hi) & (t >= t0) & np.isfinite(s)
+    ts, ss = t[sel], s[sel]
+    model = kelvin_voigt_recovery(ts, t0, off, amp, tau)
+    n = value_at(fr, "n_points")
+    flags = value_at(fr, "flags")
+    return FitFigure(
+        t_since_t0_s=ts - t0,
+        s_k_px=ss,
+        model_px=model,
+        residual_px=ss - model,
+        t0_s=t0,
+        tau_s=tau,
+        tau_se_s=number_at(fr, "tau_se_s"),
+        amplitude_px=amp,
+        offset_px=off,
+        rmse_px=number_at(fr, "rmse_px"),
+        r_squared=number_at(fr, "r_squared"),
+        n_points=n if isinstance(n, int) else None,
+        flags=tuple(flags) if isinstance(flags, list) else (),
+    )
+
+
+# --------------------------------------------------------------------------------------------
+# VPR curves (Figs. 10-12)
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class NormalisedCurve:
+    """One VPR curve D(t) = D_p exp(-r t) (Eq. 10), in mm and normalised.
+
+    Attributes
+    ----------
+    label : str
+        Legend text.
+    kind : {"reference", "paper", "fitted"}
+        A reference grade, or this session's paper (eta = E T_r) or fitted estimator.
+    severe : bool or None
+        The grade's clinical class (references), or the session's class from this estimator.
+    decay_rate_per_s : float
+        r [1/s] of the depth curve.
+    depth_mm : float or None
+        D_p [mm] (None: the reference has no depth; only the normalised curve is drawn).
+    depth_curve_mm : numpy.ndarray or None
+        D(t) [mm] on :attr:`VprFigure.t_s`.
+    normalised_rate_per_s : float
+        Decay rate of the normalised curve used for the severity [1/s]: r itself, except for
+        the fitted estimator, classified at 1/T_r with T_r the settling time its tau implies
+        (:func:`~stipi_daemon.analysis.severity.classify_fit`).
+    normalised : numpy.ndarray
+        exp(-r' t) on :attr:`VprFigure.t_s` [-].
+    window_mean_depth_fraction : float
+        Mean normalised depth over the severity window's samples [-].
+    """
+
+    label: str
+    kind: Literal["reference", "paper", "fitted"]
+    severe: bool | None
+    decay_rate_per_s: float
+    depth_mm: float | None
+    depth_curve_mm: FloatArray | None
+    normalised_rate_per_s: float
+    normalised: FloatArray
+    window_mean_depth_fraction: float
+
+
+@dataclass(frozen=True)
+class VprFigure:
+    """The VPR curves of Eq. (10) (Fig. 10) and their normalised form (Fig. 12).
+
+    Attributes
+    ----------
+    t_s : numpy.ndarray
+        Times since T_0 [s], 0 to :data:`VPR_HORIZON_S`.
+    references : tuple of NormalisedCurve
+        The reference grades (mildest first).
+    measurements : tuple of NormalisedCurve
+        This session's curves (paper estimator, fitted estimator) when it has them.
+    window_start_s, window_end_s : float
+        The severity window [s since T_0] (the paper's 11-20 s).
+    window_sample_times_s : tuple of float
+        Its samples [s].
+    threshold_depth_fraction : float
+        The mild/severe threshold as a normalised depth [-].
+    threshold_recovered_percent : float
+        The same as a recovered percentage [%] (the paper's 62 %).
+    mild_grade, severe_grade : str
+        The grades the window separates.
+    """
+
+    t_s: FloatArray
+    references: tuple[NormalisedCurve, ...]
+    measurements: tuple[NormalisedCurve, ...]
+    window_start_s: float
+    window_end_s: float
+    window_sample_times_s: tuple[float, ...]
+    threshold_depth_fraction: float
+    threshold_recovered_percent: float
+    mild_grade: str
+    severe_grade: str
+
+
+def _curve(
+    label: str,
+    kind: Literal["reference", "paper", "fitted"],
+    severe: bool | None,
+    rate: float,
+    depth_mm: float | None,
+    t: FloatArray,
+    window_t: FloatArray,
+    normalised_rate: float | None = None,
+) -> NormalisedCurve:
+    nrate = rate if normalised_rate is None else normalised_rate
+    return NormalisedCurve(
+        label=label,
+        kind=kind,
+        severe=severe,
+        decay_rate_per_s=rate,
+        depth_mm=depth_mm,
+        depth_curve_mm=None if depth_mm is None else depth_mm * normalised_depth(t, rate),
+        normalised_rate_per_s=nrate,
+        normalised=normalised_depth(t, nrate),
+        window_mean_depth_fraction=float(np.mean(normalised_depth(window_t, nrate))),
+    )
+
+
+def measurement_curves(
+    results: Mapping[str, Any] | None,
+    t: FloatArray,
+    window_t: FloatArray,
+    label_prefix: str = "this session",
+) -> tuple[NormalisedCurve, ...]:
+    """This session's VPR curves from its results (none without E and eta)."""
+    out: list[NormalisedCurve] = []
+    if results is None:
+        return ()
+    depth = number_at(results, "pitting", "depth_mm")
+    paper = value_at(results, "paper_estimator")
+    e, eta = number_at(paper, "elasticity_kpa"), number_at(paper, "viscosity_n_s_per_mm2")
+    sev = value_at(results, "severity", "paper_estimator", "severity")
+    if e is not None and eta is not None and e > 0.0 and eta > 0.0:
+        t_r = number_at(results, "pitting", "recovery_time_s")
+        out.append(
+            _curve(
+                f"{label_prefix}: η = E·T_r (Eq. 8)"
+                + ("" if t_r is None else f", T_r = {t_r:.2f} s"),
+                "paper",
+                None if sev is None else sev == "severe",
+                e / KPA_PER_N_PER_MM2 / eta,
+                depth,
+                t,
+                window_t,
+            )
+        )
+    fr = value_at(results, "fitted_recovery")
+    tau, amp, off = (
+        number_at(fr, "tau_s"),
+        number_at(fr, "amplitude_px"),
+        number_at(fr, "offset_px"),
+    )
+    if tau is not None and tau > 0.0:
+        nrate: float | None = None
+        if amp is not None and off is not None and off > 0.0 and off - amp >= 0.0:
+            try:
+                t_r_equiv = settling_time_from_time_constant(tau, off - amp, off)
+            except AnalysisError:
+                t_r_equiv = 0.0
+            nrate = 1.0 / t_r_equiv if t_r_equiv > 0.0 else None
+        sev_fit = value_at(results, "severity", "fitted_recovery", "severity")
+        label = f"{label_prefix}: η = E·τ (fit), τ = {tau:.2f} s"
+        if nrate is not None:
+            label += f", T_r(τ) = {1.0 / nrate:.2f} s"
+        out.append(
+            _curve(
+                label,
+                "fitted",
+                None if sev_fit is None else sev_fit == "severe",
+                1.0 / tau,
+                depth,
+                t,
+                window_t,
+                normalised_rate=nrate,
+            )
+        )
+    return tuple(out)
+
+
+def _window(
+    results: Mapping[str, Any] | None, reference: SeverityReference
+) -> tuple[float, float, FloatArray, float, str, str]:
+    """Window [s], its samples, threshold depth fraction, grades: as classified, else reference."""
+    sw = find_severity_window(reference)
+    start, end = sw.start_s, sw.end_s
+    threshold = sw.threshold_depth_fraction
+    for est in ("paper_estimator", "fitted_recovery"):
+        sev = value_at(results, "severity", est)
+        w = value_at(sev, "window_s")
+        pct = number_at(sev, "threshold_recovered_percent")
+        if isinstance(w, list) and len(w) == 2 and pct is not None:
+            start, end, threshold = float(w[0]), float(w[1]), 1.0 - pct / 100.0
+            break
+    step = reference.window.step_s
+    n = round((end - start) / step) + 1
+    samples = start + step * np.arange(max(n, 1), dtype=np.float64)
+    return start, end, samples, threshold, sw.mild_grade, sw.severe_grade
+
+
+def vpr_figure(
+    results: Mapping[str, Any] | None,
+    reference: SeverityReference,
+    *,
+    horizon_s: float = VPR_HORIZON_S,
+    samples: int = VPR_SAMPLES,
+) -> VprFigure:
+    """Data of the VPR figures (Figs. 10 and 12) for one session's results.
+
+    The severity window and threshold are the ones the session was classified with
+    (``results.severity``), or the reference's when the session has none.
+    """
+    t = np.linspace(0.0, horizon_s, samples)
+    start, end, window_t, threshold, mild, severe = _window(results, reference)
+    refs = tuple(
+        _curve(
+            f"grade {g.name} ({'severe' if g.severe else 'mild'}), "
+            f"E = {g.elasticity_kpa:g} kPa, η = {g.viscosity_n_s_per_mm2:g} N·s/mm²",
+            "reference",
+            g.severe,
+            g.decay_rate_per_s,
+            g.depth_mm,
+            t,
+            window_t,
+        )
+        for g in reference.grades
+    )
+    return VprFigure(
+        t_s=t,
+        references=refs,
+        measurements=measurement_curves(results, t, window_t),
+        window_start_s=start,
+        window_end_s=end,
+        window_sample_times_s=tuple(float(v) for v in window_t),
+        threshold_depth_fraction=threshold,
+        threshold_recovered_percent=100.0 * (1.0 - threshold),
+        mild_grade=mild,
+        severe_grade=severe,
+    )
+
+
+@dataclass(frozen=True)
+class WindowSearchFigure:
+    """Mean distance between adjacent grades per window start (the paper's Fig. 11).
+
+    Attributes
+    ----------
+    pairs : tuple of (str, numpy.ndarray, numpy.ndarray)
+        (label "I-II", window starts [s since T_0], mean |difference| of the normalised
+        depths [-]) for each pair of adjacent reference grades.
+    window_start_s, window_end_s : float
+        The chosen window (largest difference between the mild and severe grades) [s].
+    length_s : float
+        Window length [s] (10 s).
+    """
+
+    pairs: tuple[tuple[str, FloatArray, FloatArray], ...]
+    window_start_s: float
+    window_end_s: float
+    length_s: float
+
+
+def window_search_figure(reference: SeverityReference) -> WindowSearchFigure:
+    """Data of the window-search figure (Fig. 11)."""
+    pairs: list[tuple[str, FloatArray, FloatArray]] = []
+    for a, b in itertools.pairwise(reference.grades):
+        search = reference.window.model_copy(update={"mild_grade": a.name, "severe_grade": b.name})
+        sw = find_severity_window(reference, search)
+        pairs.append(
+            (
+                f"{a.name}-{b.name}",
+                np.asarray(sw.candidate_starts_s, dtype=np.float64),
+                np.asarray(sw.candidate_differences, dtype=np.float64),
+            )
+        )
+    chosen = find_severity_window(reference)
+    return WindowSearchFigure(
+        pairs=tuple(pairs),
+        window_start_s=chosen.start_s,
+        window_end_s=chosen.end_s,
+        length_s=reference.window.length_s,
+    )
