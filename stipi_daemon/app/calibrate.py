@@ -1,0 +1,288 @@
+"""Calibration orchestration: points for Eqs. (4)-(5) from files or recordings, fit, write.
+
+The library side of ``stipi-daemon calibrate`` (:mod:`stipi_daemon.commands.calibrate`
+parses the command line into a :class:`CalibrateRequest` and calls :func:`calibrate`).
+Each equation takes its points from one source: Eq. (4) from measured pairs
+(``s0_px``, ``depth_change_mm``) or from a recording held at known displacements
+(:func:`~stipi_daemon.analysis.calibration_procedure.displacement_points`); Eq. (5) from
+measured pairs (``s_px``, ``force_n``) or from the force plateaus of a recording
+(:func:`~stipi_daemon.analysis.calibration_procedure.find_force_plateaus`). A recording is a
+session directory (stored S_k) or a directory holding ``video.avi``, ``frames.csv`` and
+``force.csv`` as ``stipi-daemon simulate`` writes them (S_k counted with the request's
+threshold and ROI, :mod:`stipi_daemon.app.offline_io`). The fits and the file format are
+:mod:`stipi_daemon.analysis.calibration`'s. Progress and the fit report go to ``emit``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import numpy.typing as npt
+
+from stipi_daemon.analysis.calibration import (
+    DEFAULT_INDENTER_LENGTH_MM,
+    Calibration,
+    calibration_from_fits,
+    fit_depth_calibration,
+    fit_force_calibration,
+    load_calibration,
+    save_calibration,
+)
+from stipi_daemon.analysis.calibration_procedure import (
+    DEFAULT_MIN_FORCE_N,
+    DEFAULT_MIN_PLATEAU_S,
+    DEFAULT_PLATEAU_TOLERANCE_N,
+    DEFAULT_TRIM_S,
+    DisplacementInterval,
+    displacement_points,
+    find_force_plateaus,
+    fit_report,
+    force_points,
+)
+from stipi_daemon.analysis.imaging import CircleROI, RectROI
+from stipi_daemon.app.offline_io import (
+    count_video,
+    match_frame_times,
+    read_csv_table,
+    read_force_csv,
+    read_frame_times_csv,
+    read_session,
+)
+from stipi_daemon.errors import CalibrationError, ConfigError, DataFileError
+
+__all__ = ["CalibrateRequest", "calibrate"]
+
+FloatArray = npt.NDArray[np.float64]
+Emit = Callable[[str], None]
+
+
+@dataclass(frozen=True)
+class CalibrateRequest:
+    """What to fit from and where to write (the ``calibrate`` command line, checked).
+
+    Attributes
+    ----------
+    out : Path
+        The calibration file to write.
+    depth_pairs : Path or None
+        Eq. (4) pairs CSV (exclusive with ``depth_recording``).
+    depth_recording, displacements : Path or None
+        A recording held at known displacements and its intervals CSV
+        (``t_start_s``, ``t_end_s``, ``depth_change_mm``).
+    force_pairs : Path or None
+        Eq. (5) pairs CSV (exclusive with ``force_recording``).
+    force_recording : Path or None
+        A recording with force plateaus.
+    indenter_length_mm : float
+        Indenter length l of Eq. (3) [mm].
+    threshold_p : int or None
+        Threshold p of Eq. (1) the S values were counted with [8-bit intensity].
+    roi : CircleROI or RectROI or None
+        ROI to count S on a video [px] (None: the whole frame).
+    probe_id : str or None
+        Probe identifier recorded in the file.
+    plateau_tolerance_n, plateau_min_s, min_force_n, trim_s : float
+        Plateau search: force band [N], shortest plateau [s], lowest mean force [N],
+        time cut from each end [s].
+    """
+
+    out: Path
+    depth_pairs: Path | None = None
+    depth_recording: Path | None = None
+    displacements: Path | None = None
+    force_pairs: Path | None = None
+    force_recording: Path | None = None
+    indenter_length_mm: float = DEFAULT_INDENTER_LENGTH_MM
+    threshold_p: int | None = None
+    roi: CircleROI | RectROI | None = None
+    probe_id: str | None = None
+    plateau_tolerance_n: float = DEFAULT_PLATEAU_TOLERANCE_N
+    plateau_min_s: float = DEFAULT_MIN_PLATEAU_S
+    min_force_n: float = DEFAULT_MIN_FORCE_N
+    trim_s: float = DEFAULT_TRIM_S
+
+
+@dataclass(frozen=True)
+class _Series:
+    frame_t: FloatArray
+    s_k: FloatArray
+    force_t: FloatArray
+    force_n: FloatArray
+    threshold_p: int | None
+    what: str
+
+
+def _load_recording(
+    path: Path, threshold: int | None, roi: CircleROI | RectROI | None, need_force: bool
+) -> _Series:
+    """S_k and force series of a session directory or a simulator-style directory."""
+    if (path / "manifest.json").is_file():
+        data = read_session(path)
+        cal = data.manifest.get("calibration") or {}
+        imaging = (data.manifest.get("config") or {}).get("imaging") or {}
+        p = imaging.get("threshold_p", cal.get("threshold_p"))
+        return _Series(
+            data.frame_times_s,
+            data.s_k_px,
+            data.force_times_s,
+            data.force_n,
+            None if p is None else int(p),
+            f"session {data.session_id}",
+        )
+    video = path / "video.avi"
+    if not path.is_dir() or not video.is_file():
+        raise DataFileError(
+            f"{path}: not a recording (expected a session directory with manifest.json, or a "
+            "directory with video.avi, frames.csv and force.csv)"
+        )
+    if threshold is None:
+        raise ConfigError(f"{path}: counting S on the video needs --threshold P")
+    frame_times = None
+    if (path / "frames.csv").is_file():
+        frame_times, _ = read_frame_times_csv(path / "frames.csv")
+    counted = count_video(video, threshold, roi)
+    t, s, _notes = match_frame_times(counted, frame_times, str(path / "frames.csv"))
+    if need_force:
+        ft, fn, _ = read_force_csv(path / "force.csv")
+    else:
+        ft, fn = np.empty(0), np.empty(0)
+    return _Series(t, s, ft, fn, threshold, f"video {video}")
+
+
+def _depth_points(
+    request: CalibrateRequest, thresholds: list[int], emit: Emit
+) -> tuple[FloatArray, FloatArray]:
+    """Eq. (4) points: S_0 [px] and depth change d_s [mm]."""
+    if request.depth_pairs is not None:
+        table = read_csv_table(request.depth_pairs, ["s0_px", "depth_change_mm"])
+        emit(f"Eq. (4): {len(table)} pairs from {request.depth_pairs}")
+        return table.columns["s0_px"], table.columns["depth_change_mm"]
+    assert request.depth_recording is not None and request.displacements is not None
+    rec = _load_recording(request.depth_recording, request.threshold_p, request.roi, False)
+    if rec.threshold_p is not None:
+        thresholds.append(rec.threshold_p)
+    table = read_csv_table(request.displacements, ["t_start_s", "t_end_s", "depth_change_mm"])
+    intervals = [
+        DisplacementInterval(float(a), float(b), float(d))
+        for a, b, d in zip(
+            table.columns["t_start_s"],
+            table.columns["t_end_s"],
+            table.columns["depth_change_mm"],
+            strict=True,
+        )
+    ]
+    try:
+        points = displacement_points(rec.frame_t, rec.s_k, intervals)
+    except CalibrationError as exc:
+        raise CalibrationError(f"{request.displacements}: {exc}") from None
+    emit(f"Eq. (4): {len(points)} displacement(s) from {rec.what}")
+    emit("   t_start_s  t_end_s   d_s [mm]   S0 [px]  sd [px]  frames")
+    for pt in points:
+        iv = pt.interval
+        emit(
+            f"  {iv.t_start_s:9.3f} {iv.t_end_s:8.3f} {iv.depth_change_mm:10.4g}"
+            f" {pt.s0_px:9.1f} {pt.s0_sd_px:8.1f} {pt.n_frames:7d}"
+        )
+    return (
+        np.asarray([p.s0_px for p in points]),
+        np.asarray([p.interval.depth_change_mm for p in points]),
+    )
+
+
+def _force_points(
+    request: CalibrateRequest, thresholds: list[int], emit: Emit
+) -> tuple[FloatArray, FloatArray]:
+    """Eq. (5) points: S [px] and force F [N]."""
+    if request.force_pairs is not None:
+        table = read_csv_table(request.force_pairs, ["s_px", "force_n"])
+        emit(f"Eq. (5): {len(table)} pairs from {request.force_pairs}")
+        return table.columns["s_px"], table.columns["force_n"]
+    assert request.force_recording is not None
+    rec = _load_recording(request.force_recording, request.threshold_p, request.roi, True)
+    if rec.threshold_p is not None:
+        thresholds.append(rec.threshold_p)
+    plateaus = find_force_plateaus(
+        rec.force_t,
+        rec.force_n,
+        tolerance_n=request.plateau_tolerance_n,
+        min_duration_s=request.plateau_min_s,
+        min_force_n=request.min_force_n,
+    )
+    fpoints = force_points(
+        rec.force_t, rec.force_n, rec.frame_t, rec.s_k, plateaus, trim_s=request.trim_s
+    )
+    emit(f"Eq. (5): {len(fpoints)} force plateau(s) found in {rec.what}")
+    emit("   t_start_s  t_end_s    F [N]  sd [N]     S [px]  sd [px]  frames")
+    for fp in fpoints:
+        emit(
+            f"  {fp.t_start_s:9.3f} {fp.t_end_s:8.3f} {fp.force_n:8.3f} {fp.force_sd_n:7.3f}"
+            f" {fp.s_px:10.1f} {fp.s_sd_px:8.1f} {fp.n_frames:7d}"
+        )
+    return np.asarray([p.s_px for p in fpoints]), np.asarray([p.force_n for p in fpoints])
+
+
+def _threshold(given: int | None, thresholds: list[int]) -> int | None:
+    """The threshold p to record: the given one, else the recordings' (which must agree)."""
+    if given is None and thresholds:
+        if len(set(thresholds)) > 1:
+            raise CalibrationError(
+                f"the recordings were counted with different thresholds p {sorted(set(thresholds))}"
+                ": S values are not comparable"
+            )
+        return thresholds[0]
+    if given is not None and any(p != given for p in thresholds):
+        raise CalibrationError(
+            f"--threshold {given} differs from the recordings' p {sorted(set(thresholds))}"
+        )
+    return given
+
+
+def calibrate(request: CalibrateRequest, emit: Emit) -> tuple[Calibration, Path]:
+    """Fit Eqs. (4)-(5) as ``request`` says, write the calibration file and read it back.
+
+    Returns
+    -------
+    (Calibration, Path)
+        The calibration and the file written.
+
+    Raises
+    ------
+    CalibrationError
+        A fit is refused, the recordings' thresholds disagree, or intervals are unusable.
+    DataFileError, ConfigError
+        An input cannot be read or lacks what it needs.
+    """
+    thresholds: list[int] = []
+    s0, d_s = _depth_points(request, thresholds, emit)
+    s_px, f_n = _force_points(request, thresholds, emit)
+    threshold = _threshold(request.threshold_p, thresholds)
+    try:
+        depth_fit = fit_depth_calibration(s0, d_s)
+    except CalibrationError as exc:
+        raise CalibrationError(f"Eq. (4) depth fit refused: {exc}") from None
+    try:
+        force_fit = fit_force_calibration(s_px, f_n)
+    except CalibrationError as exc:
+        raise CalibrationError(f"Eq. (5) force fit refused: {exc}") from None
+    cal = calibration_from_fits(
+        depth_fit,
+        force_fit,
+        indenter_length_mm=request.indenter_length_mm,
+        threshold_p=threshold,
+        probe_id=request.probe_id,
+    )
+    emit("")
+    for line in fit_report(cal):
+        emit(line)
+    if threshold is None:
+        emit(
+            "warning: no threshold p recorded (--threshold): the daemon will need "
+            "imaging.threshold_p, and S values counted with another p are not comparable"
+        )
+    path = save_calibration(request.out, cal)
+    load_calibration(path)  # what was written reads back
+    emit(f"\ncalibration written to {path}")
+    return cal, path
