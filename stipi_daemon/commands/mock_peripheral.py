@@ -1,13 +1,14 @@
 """``stipi-daemon mock-peripheral --scene SCENE``: the emulated probe as a real BLE peripheral.
 
-Thin shell over :mod:`stipi_daemon.sim.ble.mock_probe`: opens a Bluetooth controller with
-Bumble (``--transport usb:0``, ``hci-socket:0``, ``serial:...``, or ``virtual:NAME`` for an
-in-process radio), advertises the probe's name and the Nordic UART Service, and streams the
-scene's load-cell samples in the real wire protocol, answering commands as the firmware
-does, with the module's BLE limits. A second machine's ``stipi-daemon`` (bleak on BlueZ)
-connects to it over the air as to a probe (docs/bench.md). Optional periodic faults: drop
-the link, go silent, disappear. Runs until ``--duration`` or Ctrl-C, then prints what the
-module did.
+Thin shell over :func:`stipi_daemon.sim.ble.mock_peripheral.serve`: opens a Bluetooth
+controller with Bumble (``--transport usb:0``, ``hci-socket:0``, ``serial:...``, or
+``virtual:NAME`` for an in-process radio), advertises the probe's name and the Nordic UART
+Service, and streams the scene's load-cell samples in the real wire protocol, answering
+commands as the firmware does, with the module's BLE limits. A second machine's
+``stipi-daemon`` (bleak on BlueZ) connects to it over the air as to a probe
+(docs/bench.md). Optional periodic faults: drop the link, go silent, disappear. Runs until
+``--duration`` or Ctrl-C, then prints what the module did. The simulator is imported only
+when the command runs.
 """
 
 from __future__ import annotations
@@ -15,43 +16,9 @@ from __future__ import annotations
 import argparse
 import asyncio
 import contextlib
-import math
-from collections.abc import Awaitable, Callable
-from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING
 
-from stipi_daemon.errors import ConfigError
-
-if TYPE_CHECKING:
-    from stipi_daemon.sim.ble.peripheral import LinkCounters
-
-__all__ = ["MockPeripheralOptions", "register", "run", "serve"]
-
-
-@dataclass(frozen=True)
-class MockPeripheralOptions:
-    """Everything ``mock-peripheral`` was asked to do (see ``--help`` for each)."""
-
-    scene: Path
-    transport: str
-    seed: int | None = None
-    name: str = "STIPI-01"
-    speed: float = 1.0
-    duration_s: float | None = None
-    max_mtu: int = 23
-    connection_interval_ms: float = 15.0
-    notifications_per_event: int = 4
-    drop: float = 0.0
-    corrupt: float = 0.0
-    delay_ms: float = 0.0
-    disconnect_every_s: float | None = None
-    silent_every_s: float | None = None
-    silent_for_s: float = 3.0
-    disappear_every_s: float | None = None
-    disappear_for_s: float = 5.0
-    report_every_s: float = 5.0
-    quiet: bool = False
+__all__ = ["register", "run"]
 
 
 def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -96,6 +63,8 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
 
 
 def run(args: argparse.Namespace) -> int:
+    from stipi_daemon.sim.ble.mock_peripheral import MockPeripheralOptions, serve
+
     opts = MockPeripheralOptions(
         scene=args.scene,
         transport=args.transport,
@@ -120,124 +89,3 @@ def run(args: argparse.Namespace) -> int:
     with contextlib.suppress(KeyboardInterrupt):
         asyncio.run(serve(opts))
     return 0
-
-
-def _check(opts: MockPeripheralOptions) -> None:
-    if not (math.isfinite(opts.speed) and opts.speed > 0):
-        raise ConfigError(f"--speed must be > 0, got {opts.speed}")
-    if opts.seed is not None and opts.seed < 0:
-        raise ConfigError(f"--seed must be >= 0, got {opts.seed}")
-    for flag, value in (
-        ("--duration", opts.duration_s),
-        ("--disconnect-every", opts.disconnect_every_s),
-        ("--silent-every", opts.silent_every_s),
-        ("--disappear-every", opts.disappear_every_s),
-    ):
-        if value is not None and not (math.isfinite(value) and value > 0):
-            raise ConfigError(f"{flag} must be a time > 0 s, got {value}")
-
-
-async def serve(opts: MockPeripheralOptions, *, ready: asyncio.Event | None = None) -> LinkCounters:
-    """Run the emulated probe until ``duration_s`` (or cancellation); return its counters.
-
-    Parameters
-    ----------
-    opts : MockPeripheralOptions
-        What to emulate and on which controller.
-    ready : asyncio.Event, optional
-        Set once the probe advertises.
-
-    Returns
-    -------
-    LinkCounters
-        What the emulated module did.
-    """
-    from stipi_daemon.clock import ScaledClock
-    from stipi_daemon.sim import load_scene
-    from stipi_daemon.sim.ble.mock_probe import scene_core, start_ble_probe
-    from stipi_daemon.sim.ble.module import NotificationFaults
-    from stipi_daemon.sim.ble.peripheral import BleModuleLimits
-    from stipi_daemon.sim.ble.radio import VIRTUAL_SCHEME, BleRadioError, VirtualRadio
-    from stipi_daemon.sim.feather import McuClock
-
-    _check(opts)
-    scene = load_scene(opts.scene)
-    try:
-        limits = BleModuleLimits(
-            max_mtu=opts.max_mtu,
-            connection_interval_s=opts.connection_interval_ms * 1e-3,
-            notifications_per_event=opts.notifications_per_event,
-        )
-        faults = NotificationFaults(opts.drop, opts.corrupt, opts.delay_ms * 1e-3)
-    except ValueError as exc:
-        raise ConfigError(f"mock-peripheral: {exc}") from exc
-    radio = None
-    scheme, _, rest = opts.transport.partition(":")
-    if scheme == VIRTUAL_SCHEME:
-        with contextlib.suppress(BleRadioError):  # reuse an open radio of that name
-            radio = VirtualRadio(rest)
-    clock = ScaledClock(opts.speed)
-    mcu = McuClock(clock.now())
-    core = scene_core(scene, opts.seed, mcu, clock.now())
-    emulator = await start_ble_probe(
-        opts.transport, clock, core, mcu, name=opts.name, limits=limits, faults=faults
-    )
-    p = emulator.peripheral
-    if not opts.quiet:
-        print(
-            f"advertising {opts.name} ({p.address.to_string(False)}) on {opts.transport}, "
-            f"scene {scene.name}, MTU <= {opts.max_mtu}, "
-            f"{limits.bytes_per_second:.0f} B/s ceiling",
-            flush=True,
-        )
-    if ready is not None:
-        ready.set()
-
-    async def every(period: float | None, action: Callable[[], Awaitable[object]]) -> None:
-        if period is None:
-            return
-        while True:
-            await clock.sleep_until(clock.now() + period)
-            await action()
-
-    async def silence() -> None:
-        p.set_silent(True)
-        await clock.sleep_until(clock.now() + opts.silent_for_s)
-        p.set_silent(False)
-
-    async def disappear() -> None:
-        await p.disappear(opts.disappear_for_s)
-
-    async def report() -> None:
-        c = p.counters
-        print(
-            f"t={clock.now():7.1f} s  connected={p.connected}  conns={c.connections}  "
-            f"notifications={c.notifications}  bytes={c.notified_bytes}  "
-            f"frames_lost={emulator.frames_lost}  samples={emulator.ledger.samples_emitted}",
-            flush=True,
-        )
-
-    tasks = [
-        asyncio.create_task(every(opts.disconnect_every_s, p.drop_link)),
-        asyncio.create_task(every(opts.silent_every_s, silence)),
-        asyncio.create_task(every(opts.disappear_every_s, disappear)),
-    ]
-    if not opts.quiet:
-        tasks.append(asyncio.create_task(every(opts.report_every_s, report)))
-    try:
-        if opts.duration_s is None:
-            await asyncio.Event().wait()
-        else:
-            await clock.sleep_until(clock.now() + opts.duration_s)
-    finally:
-        for t in tasks:
-            t.cancel()
-        for t in tasks:
-            with contextlib.suppress(asyncio.CancelledError):
-                await t
-        await emulator.close()
-        if radio is not None:
-            radio.close()
-    if not opts.quiet:
-        await report()
-    return p.counters

@@ -7,9 +7,9 @@ import subprocess
 import sys
 
 from stipi_daemon.clock import ScaledClock
-from stipi_daemon.commands.mock_peripheral import MockPeripheralOptions, serve
 from stipi_daemon.probe.link import ProbeLink
 from stipi_daemon.probe.transports.ble import BleTransport, BleTransportConfig
+from stipi_daemon.sim.ble.mock_peripheral import MockPeripheralOptions, serve
 from stipi_daemon.sim.ble.radio import VirtualRadio
 
 from .conftest import SCENES, ProbeRecorder
