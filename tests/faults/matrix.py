@@ -328,6 +328,8 @@ def classify(summary: dict[str, Any], true: dict[str, dict[str, Any]]) -> dict[s
         status = valid[q]["status"]
         if status in ("flagged", "invalid"):
             outcome = status
+        elif values[q] is None:
+            outcome = "invalid"  # not reported: nothing wrong is shown as right
         elif true[q]["value"] is None:
             outcome = "ok"  # nothing to hold it to (a truth without recovery)
         else:
@@ -360,6 +362,7 @@ class CaseResult:
     error: str | None = None
     wall_s: float = 0.0
     speed: float = 0.0
+    recorded: dict[str, float] = field(default_factory=dict)
 
     @property
     def silent_misses(self) -> list[str]:
@@ -375,6 +378,7 @@ class CaseResult:
             "error": self.error,
             "wall_s": self.wall_s,
             "speed": self.speed,
+            "recorded": self.recorded,
         }
 
 
@@ -409,22 +413,32 @@ def write_case(case: Case, directory: Path, speed: float) -> tuple[Path, Scene]:
     return config_path, scene
 
 
-def camera_kept_up(session: Path, summary: dict[str, Any]) -> str | None:
+def recorded(session: Path) -> dict[str, float]:
+    """What the session holds of the injected faults: the last frame's capture time
+    ``last_frame_s`` [s], and the frames and force samples recorded as lost
+    (``frames_lost``, ``samples_lost``) [-]."""
+    with SessionReader(session) as reader:
+        t = reader.frames()["t_capture_host_s"]
+        gaps = reader.gaps()
+    return {
+        "last_frame_s": float(t.max()) if len(t) else -math.inf,
+        "frames_lost": float(gaps["count"][gaps["stream"] == "frames"].sum()),
+        "samples_lost": float(gaps["count"][gaps["stream"] == "force"].sum()),
+    }
+
+
+def camera_kept_up(facts: dict[str, float], summary: dict[str, Any]) -> str | None:
     """None when the recorded frames reach the end of the recovery window, else why not.
 
     The simulated camera renders a scene with frame effects frame by frame; when the
     machine cannot render at ``fps * speed`` its frames fall behind the session clock
     and those not yet delivered when the session ends are missing without a gap record.
     The run then does not measure what the case claims, and is reported as an error (run
-    at a lower speed).
+    at a lower speed). ``facts`` is :func:`recorded`.
     """
     end = (summary.get("measurement") or {}).get("t_end_s")
-    if end is None:
-        return None
-    with SessionReader(session) as reader:
-        t = reader.frames()["t_capture_host_s"]
-    last = float(t.max()) if len(t) else -math.inf
-    if last < float(end) - MAX_FRAME_LAG_S:
+    last = facts["last_frame_s"]
+    if end is not None and last < float(end) - MAX_FRAME_LAG_S:
         return (
             f"{LAG_ERROR}: frames end at {last:.2f} s, the recovery "
             f"window at {float(end):.2f} s (run at a lower speed)"
@@ -484,7 +498,8 @@ async def _run_once(case: Case, directory: Path, speed: float) -> CaseResult:
         result.wall_s = time.monotonic() - t
     summary = outcome.summary
     result.phase = str(outcome.phase)
-    result.error = camera_kept_up(outcome.session_dir, summary)
+    result.recorded = recorded(outcome.session_dir)
+    result.error = camera_kept_up(result.recorded, summary)
     verdict = summary.get("verdict")
     result.verdict = (
         str(verdict.get("status"))

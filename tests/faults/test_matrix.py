@@ -24,4 +24,13 @@ SPEED = 6.0
 async def test_no_silent_miss(case: Case, tmp_path: Path) -> None:
     result = await run_case(case, tmp_path, SPEED)
     assert result.error is None, result.error
+    # The fault happened as the case says (the run measures what it claims).
+    rec = result.recorded
+    if case.frame_gap_rel_s is not None:
+        a, b = case.frame_gap_rel_s
+        assert rec["frames_lost"] >= round((b - a) * 60.0) - 1, rec
+    if case.corrupt_rel_s:
+        assert rec["frames_lost"] >= len(case.corrupt_rel_s), rec
+    if case.force_dropout_rel_s is not None:
+        assert rec["samples_lost"] > 0, rec
     assert not result.silent_misses, row(result)
