@@ -4,7 +4,8 @@
 pacing and notification faults), :mod:`.radio` (HCI endpoints: a USB dongle, an HCI
 socket or an in-process virtual radio of Bumble software controllers), :mod:`.peripheral`
 (the module as a Bumble peripheral with fault injection), :mod:`.mock_probe` (the firmware
-model streaming through it), :mod:`.emulation` (an emulated probe started for the daemon's
+model streaming through it), :mod:`.mock_peripheral` (``mock-peripheral``'s serving loop
+with periodic faults), :mod:`.emulation` (an emulated probe started for the daemon's
 BLE transport) and :mod:`.bleak_backend` (a bleak backend on Bumble's host stack, so
 bleak's public API runs over a dongle or a virtual radio). The daemon's real BLE transport
 is :mod:`stipi_daemon.probe.transports.ble` and the service UUIDs are
