@@ -20,6 +20,7 @@ class _Registrar(Protocol):
 COMMAND_MODULES: tuple[str, ...] = (
     "analyze",
     "calibrate",
+    "flash",
     "mock_peripheral",
     "report",
     "sessions",

@@ -52,3 +52,34 @@ def test_flash_failures_are_one_line(tmp_path: Path) -> None:
     quiet.write_text("")  # a port that never answers the touch with a bootloader
     with pytest.raises(flashmod.FlashError, match="no bootloader port appeared within"):
         flashmod.wait_bootloader(str(quiet), set(), str(tmp_path / "ttyACM*"), timeout_s=0.3)
+
+
+def test_cli_flash_writes_the_hex_into_caterina(tmp_path: Path) -> None:
+    """``stipi-daemon flash --port P --hex F``: the same path through the command line."""
+    require_tool("avrdude", "make", "avr-gcc")
+    from stipi_daemon.cli import main
+
+    hex_path = flashmod.build_hex(FIRMWARE_DIR)
+    sim = CaterinaSim(tmp_path)
+    try:
+        rc = main(["flash", "--port", str(sim.app_link), "--hex", str(hex_path),
+                   "--ports-glob", str(tmp_path / "ttyACM*"), "--timeout", "10"])
+    finally:
+        sim.close()
+    assert rc == 0
+    image = parse_ihex(hex_path)
+    assert {a: sim.flash[a] for a in image} == image
+
+
+def test_cli_flash_without_avrdude_is_one_line(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from stipi_daemon.cli import main
+
+    monkeypatch.setenv("PATH", str(tmp_path))  # nothing on PATH, avrdude included
+    hex_path = tmp_path / "x.hex"
+    hex_path.write_text(":00000001FF\n")
+    rc = main(["flash", "--port", str(tmp_path / "ttyACM0"), "--hex", str(hex_path)])
+    err = capsys.readouterr().err
+    assert rc != 0
+    assert err.strip().count("\n") == 0 and "avrdude not found" in err
