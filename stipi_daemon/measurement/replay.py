@@ -30,6 +30,7 @@ from stipi_daemon.analysis.calibration import Calibration
 from stipi_daemon.analysis.flags import Flag
 from stipi_daemon.analysis.results import AnalysisSettings, MeasurementResult
 from stipi_daemon.analysis.severity import SeverityReference
+from stipi_daemon.analysis.validity import assess_validity
 from stipi_daemon.errors import AnalysisError, CalibrationError
 from stipi_daemon.measurement.pipeline import LiveParameters, MeasurementPipeline
 from stipi_daemon.measurement.state_machine import (
@@ -290,6 +291,12 @@ class ReplayOutcome:
             "results": None if self.result is None else self.result.to_dict(),
             "analysis_error": self.analysis_error,
             "notes": list(self.pipeline_notes),
+            **assess_validity(
+                self.result,
+                ended_done=self.phase == Phase.DONE and not self.partial,
+                end_reason="partial recovery" if self.partial else self.end_reason,
+                analysis_error=self.analysis_error,
+            ),
         }
 
 

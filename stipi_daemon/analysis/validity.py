@@ -1,0 +1,342 @@
+"""Validity of each reported quantity, and the session's verdict (``summary.json``).
+
+A number is shown as a result only when nothing known makes it untrustworthy. This module
+turns one measurement's result (:class:`~stipi_daemon.analysis.results.MeasurementResult`,
+whose flags record what was observed: clipped depths, unsettled recoveries, frame gaps,
+outlier frames, poor fits...) and how the session ended into
+
+* ``validity``: for each quantity, ``valid``, ``flagged`` (a caveat; the flags that concern
+  it are listed) or ``invalid`` (its value cannot be trusted; the reason says why, and the
+  value may be recorded but is never shown as a result);
+* ``verdict``: ``complete`` only when the session ended DONE and every primary quantity is
+  valid, ``flagged`` when none is invalid but some are flagged, ``invalid`` when any primary
+  quantity is invalid, ``incomplete`` when the session did not end DONE.
+
+The primary quantities are D_p, F_r, T_r, E, eta (the paper's estimator, Eq. 8) and the
+severity class; the secondary ones the fitted tau and F_a. Which flag concerns which
+quantity, and whether it invalidates it, is the table :data:`FLAG_RULES`; invalidity then
+propagates along the equations (E from D_p, Eq. 7; eta from E and T_r, Eq. 8; the paper's
+severity class from E and eta, Section IV.C). The rules are documented in
+``docs/analysis.md`` ("Validity of each result"). Pure: no I/O.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+from types import MappingProxyType
+from typing import TYPE_CHECKING, Any, Final, Literal
+
+from stipi_daemon.analysis.flags import Flag
+
+if TYPE_CHECKING:
+    from stipi_daemon.analysis.results import MeasurementResult
+
+__all__ = [
+    "DEPENDS_ON",
+    "FLAG_RULES",
+    "PRIMARY_QUANTITIES",
+    "QUANTITY_SYMBOLS",
+    "SECONDARY_QUANTITIES",
+    "FlagRule",
+    "QuantityValidity",
+    "Verdict",
+    "assess_validity",
+    "quantity_validity",
+    "verdict",
+]
+
+Status = Literal["valid", "flagged", "invalid"]
+
+#: The primary quantities, in the order a verdict names them.
+PRIMARY_QUANTITIES: Final = (
+    "depth_mm",
+    "rebound_force_n",
+    "recovery_time_s",
+    "elasticity_kpa",
+    "viscosity_n_s_per_mm2",
+    "severity",
+)
+#: The secondary quantities (shown, never decisive for the verdict).
+SECONDARY_QUANTITIES: Final = ("tau_s", "applied_force_n")
+#: Symbol of each quantity in operator lines.
+QUANTITY_SYMBOLS: Final[Mapping[str, str]] = MappingProxyType(
+    {
+        "depth_mm": "D_p",
+        "rebound_force_n": "F_r",
+        "recovery_time_s": "T_r",
+        "elasticity_kpa": "E",
+        "viscosity_n_s_per_mm2": "eta",
+        "severity": "severity",
+        "tau_s": "tau",
+        "applied_force_n": "F_a",
+    }
+)
+#: Quantities computed from S_k (every image-side caveat concerns them all).
+_FROM_SK: Final = (
+    "depth_mm",
+    "rebound_force_n",
+    "recovery_time_s",
+    "elasticity_kpa",
+    "viscosity_n_s_per_mm2",
+    "severity",
+    "tau_s",
+)
+#: What each quantity is computed from: an invalid input makes it invalid (Eqs. 7-8, IV.C).
+DEPENDS_ON: Final[Mapping[str, tuple[str, ...]]] = MappingProxyType(
+    {
+        "elasticity_kpa": ("depth_mm", "applied_force_n"),
+        "viscosity_n_s_per_mm2": ("elasticity_kpa", "recovery_time_s"),
+        "severity": ("viscosity_n_s_per_mm2",),
+    }
+)
+
+
+@dataclass(frozen=True)
+class FlagRule:
+    """What one flag does to the quantities it concerns.
+
+    Attributes
+    ----------
+    quantities : tuple[str, ...]
+        The quantities the flag concerns.
+    invalidates : tuple[str, ...]
+        Those of them it makes invalid (the others are flagged).
+    reason : str
+        One line for an invalid quantity's reason or a flagged one's caveat.
+    """
+
+    quantities: tuple[str, ...]
+    invalidates: tuple[str, ...]
+    reason: str
+
+
+#: Flag -> the quantities it concerns and those it invalidates.
+FLAG_RULES: Final[Mapping[Flag, FlagRule]] = MappingProxyType(
+    {
+        Flag.SATURATED_FRAME: FlagRule(_FROM_SK, (), "saturated frames may bias S_k low"),
+        Flag.EMPTY_ROI: FlagRule(_FROM_SK, _FROM_SK, "the ROI does not overlap the frame"),
+        Flag.ROI_CLIPPED: FlagRule(_FROM_SK, (), "part of the ROI lies outside the frame"),
+        Flag.NOT_SETTLED: FlagRule(
+            ("recovery_time_s",),
+            ("recovery_time_s",),
+            "recovery did not settle within the window (T_r is only a lower bound)",
+        ),
+        Flag.SETTLED_WITHIN_ONE_FRAME: FlagRule(
+            ("recovery_time_s",), (), "T_r is at most one frame period (an upper bound)"
+        ),
+        Flag.NO_RECOVERY: FlagRule(
+            ("recovery_time_s",), ("recovery_time_s",), "S_k did not rise after T_0"
+        ),
+        Flag.REBOUND_BELOW_OFFSET: FlagRule(
+            ("rebound_force_n",), (), "F_r is below what the probe resolves (set to 0)"
+        ),
+        Flag.DEPTH_CLIPPED: FlagRule(
+            ("depth_mm", "elasticity_kpa"), (), "the depth change was clipped to [0, l]"
+        ),
+        Flag.CALIBRATION_EXTRAPOLATED: FlagRule(
+            ("depth_mm", "rebound_force_n", "elasticity_kpa"),
+            (),
+            "S_0 or S_max lies outside the calibrated range",
+        ),
+        Flag.EARLY_NOISY_CROSSING: FlagRule(
+            ("recovery_time_s",), (), "a short early crossing of the settling level was ignored"
+        ),
+        Flag.FIT_NOT_CONVERGED: FlagRule(
+            ("tau_s",), ("tau_s",), "the recovery fit did not converge"
+        ),
+        Flag.TIME_CONSTANT_OUTSIDE_WINDOW: FlagRule(
+            ("tau_s",), (), "the fitted tau lies outside the fitted span"
+        ),
+        Flag.CONSTANT_SERIES: FlagRule(("tau_s",), ("tau_s",), "S_k did not vary after T_0"),
+        Flag.NON_FINITE_INPUT: FlagRule(_FROM_SK, (), "NaN frames were dropped"),
+        Flag.OUTSIDE_REFERENCE_RANGE: FlagRule(
+            ("severity",), (), "the measurement lies beyond the reference grades"
+        ),
+    }
+)
+
+
+@dataclass(frozen=True)
+class QuantityValidity:
+    """The validity of one quantity (one entry of ``summary.json``'s ``validity``).
+
+    Attributes
+    ----------
+    status : {"valid", "flagged", "invalid"}
+    flags : tuple[str, ...]
+        The flags that concern the quantity, sorted.
+    reason : str or None
+        One line; None exactly when the status is ``valid``.
+    """
+
+    status: Status
+    flags: tuple[str, ...]
+    reason: str | None
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready mapping ``{"status", "flags", "reason"}``."""
+        return {"status": self.status, "flags": list(self.flags), "reason": self.reason}
+
+
+@dataclass(frozen=True)
+class Verdict:
+    """The session's verdict (``summary.json``'s ``verdict``).
+
+    Attributes
+    ----------
+    status : {"complete", "flagged", "invalid", "incomplete"}
+    line : str
+        One short sentence for the operator.
+    """
+
+    status: Literal["complete", "flagged", "invalid", "incomplete"]
+    line: str
+
+    def to_dict(self) -> dict[str, str]:
+        """JSON-ready mapping ``{"status", "line"}``."""
+        return {"status": self.status, "line": self.line}
+
+
+def _value_missing(result: MeasurementResult, quantity: str) -> str | None:
+    """Why ``quantity`` has no value in ``result`` (None when it has one)."""
+    p = result.pitting
+    missing = {
+        "recovery_time_s": p.recovery_time_s is None,
+        "elasticity_kpa": result.paper_model is None,
+        "viscosity_n_s_per_mm2": result.paper_model is None,
+        "severity": result.severity_paper is None,
+        "tau_s": result.fit.tau_s is None,
+    }
+    if not missing.get(quantity, False):
+        return None
+    return "not computed: " + ("; ".join(result.notes) or "undefined for this series")
+
+
+def quantity_validity(
+    result: MeasurementResult,
+    extra_reasons: Mapping[str, str] | None = None,
+) -> dict[str, QuantityValidity]:
+    """The validity of every primary and secondary quantity of one measurement.
+
+    Parameters
+    ----------
+    result : MeasurementResult
+        The measurement; its flags (and those of its parts) are applied per
+        :data:`FLAG_RULES`, then invalidity propagates along :data:`DEPENDS_ON`.
+    extra_reasons : mapping, optional
+        Quantity -> reason that makes it invalid, for facts not carried by a flag.
+
+    Returns
+    -------
+    dict[str, QuantityValidity]
+        Keyed by quantity, primary ones first.
+    """
+    flags: dict[str, set[str]] = {q: set() for q in (*PRIMARY_QUANTITIES, *SECONDARY_QUANTITIES)}
+    invalid: dict[str, list[str]] = {q: [] for q in flags}
+    caveats: dict[str, list[str]] = {q: [] for q in flags}
+    for flag in sorted(result.flags):
+        rule = FLAG_RULES.get(flag)
+        if rule is None:
+            continue
+        for q in rule.quantities:
+            flags[q].add(str(flag))
+            (invalid if q in rule.invalidates else caveats)[q].append(rule.reason)
+    for q, reason in (extra_reasons or {}).items():
+        invalid[q].append(reason)
+    for q in flags:
+        why = _value_missing(result, q)
+        if why is not None:
+            invalid[q].append(why)
+    for q in ("elasticity_kpa", "viscosity_n_s_per_mm2", "severity"):
+        for source in DEPENDS_ON[q]:
+            if invalid[source] and not invalid[q]:
+                invalid[q].append(f"{QUANTITY_SYMBOLS[source]} is invalid ({invalid[source][0]})")
+    out: dict[str, QuantityValidity] = {}
+    for q, fl in flags.items():
+        if invalid[q]:
+            out[q] = QuantityValidity("invalid", tuple(sorted(fl)), invalid[q][0])
+        elif fl:
+            out[q] = QuantityValidity("flagged", tuple(sorted(fl)), "; ".join(caveats[q]))
+        else:
+            out[q] = QuantityValidity("valid", (), None)
+    return out
+
+
+def verdict(
+    validity: Mapping[str, QuantityValidity],
+    *,
+    ended_done: bool,
+    end_reason: str | None = None,
+) -> Verdict:
+    """The session's verdict from its quantities' validity and how it ended.
+
+    Parameters
+    ----------
+    validity : mapping
+        :func:`quantity_validity`'s output (may be empty when there are no results).
+    ended_done : bool
+        True when the state machine ended DONE.
+    end_reason : str or None
+        Why it ended otherwise (shown in an incomplete verdict's line).
+    """
+    bad = [q for q in PRIMARY_QUANTITIES if q not in validity or validity[q].status == "invalid"]
+    caveat = [q for q in PRIMARY_QUANTITIES if q in validity and validity[q].status == "flagged"]
+
+    def names(qs: list[str]) -> str:
+        return ", ".join(QUANTITY_SYMBOLS[q] for q in qs)
+
+    if not ended_done:
+        why = end_reason or "the session did not finish"
+        shown = "no results" if not validity else "results computed from the data recorded"
+        return Verdict("incomplete", f"Session incomplete ({why}): {shown}.")
+    if not validity:
+        return Verdict("invalid", "No results: the analysis could not run or failed.")
+    if bad:
+        first = validity[bad[0]].reason if bad[0] in validity else None
+        return Verdict("invalid", f"Not valid: {names(bad)} ({first or 'no value'}).")
+    if caveat:
+        return Verdict("flagged", f"Complete with caveats on {names(caveat)}.")
+    return Verdict("complete", "Complete: every result is valid.")
+
+
+def assess_validity(
+    result: MeasurementResult | None,
+    *,
+    ended_done: bool,
+    end_reason: str | None = None,
+    analysis_error: str | None = None,
+) -> dict[str, Any]:
+    """``summary.json``'s ``validity`` and ``verdict`` entries for one session.
+
+    Parameters
+    ----------
+    result : MeasurementResult or None
+        The measurement's results (None when the analysis did not run or failed).
+    ended_done : bool
+        True when the state machine ended DONE.
+    end_reason : str or None
+        Why the session ended, for an incomplete verdict.
+    analysis_error : str or None
+        Why the analysis failed (the reason of every quantity when there is no result).
+
+    Returns
+    -------
+    dict
+        ``{"validity": {quantity: {"status", "flags", "reason"}}, "verdict": {"status",
+        "line"}}``; without a result every quantity is invalid with the reason.
+    """
+    if result is None:
+        why = f"no result: {analysis_error or 'the analysis did not run'}"
+        validity = {
+            q: QuantityValidity("invalid", (), why)
+            for q in (*PRIMARY_QUANTITIES, *SECONDARY_QUANTITIES)
+        }
+        v = verdict({}, ended_done=ended_done, end_reason=end_reason)
+    else:
+        validity = quantity_validity(result)
+        v = verdict(validity, ended_done=ended_done, end_reason=end_reason)
+    return {
+        "validity": {q: qv.to_dict() for q, qv in validity.items()},
+        "verdict": v.to_dict(),
+    }
