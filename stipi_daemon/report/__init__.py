@@ -19,21 +19,20 @@ One module per concept. Pure (no files, no drawing):
 Shell: :mod:`.load` reads a session directory into a ``ReportInput``; :mod:`.render` draws
 (matplotlib); :mod:`.html` builds the page; :mod:`.write` writes the files
 (:func:`~.write.write_session_report`, :func:`~.write.write_compare_report`);
-:mod:`.frames` chooses and stores the representative frames. This package module imports
-only :mod:`.frames`, so the daemon can keep frames without loading matplotlib until the
-report is drawn.
+:mod:`.frames` stores and reads the representative frames. This package module imports
+only :mod:`.frames`, so the daemon can store frames without loading matplotlib until the
+report is drawn (which frames to keep is chosen in
+:mod:`stipi_daemon.measurement.representative_frames`).
 """
 
 from stipi_daemon.report.frames import (
     RepresentativeFrame,
-    RepresentativeFrames,
     read_representative_frames,
     write_representative_frames,
 )
 
 __all__ = [
     "RepresentativeFrame",
-    "RepresentativeFrames",
     "read_representative_frames",
     "write_representative_frames",
 ]

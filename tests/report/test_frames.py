@@ -11,12 +11,12 @@ import pytest
 
 from stipi_daemon.analysis.imaging import CircleROI, occluded_pixel_count
 from stipi_daemon.errors import SessionError
+from stipi_daemon.measurement.representative_frames import RepresentativeFrames
 from stipi_daemon.measurement.state_machine import Phase
 from stipi_daemon.report.frames import (
     FRAMES_DIR,
     FRAMES_INDEX,
     RepresentativeFrame,
-    RepresentativeFrames,
     read_representative_frames,
     write_representative_frames,
 )

@@ -12,7 +12,7 @@ import cv2
 import numpy as np
 import pytest
 
-from stipi_daemon.app.daemon import _write_report
+from stipi_daemon.app.finish import write_report
 from stipi_daemon.errors import AnalysisError
 from stipi_daemon.report.write import (
     COMPARE_FIGURES,
@@ -120,7 +120,7 @@ def test_report_failure_is_noted_and_the_session_kept(demo_session: Path, tmp_pa
     session = tmp_path / "copy"
     shutil.copytree(demo_session, session, ignore=shutil.ignore_patterns(REPORT_DIR))
     (session / REPORT_DIR).write_text("a file where the report directory should be")
-    line = _write_report(session)
+    line = write_report(session)
     assert line.startswith("report not written:")
     assert "cannot create report directory" in line
     with SessionReader(session) as reader:
@@ -130,7 +130,7 @@ def test_report_failure_is_noted_and_the_session_kept(demo_session: Path, tmp_pa
     note = record_report_failure(session, RuntimeError("boom"))
     assert note == session / REPORT_DIR / REPORT_ERROR
     assert "RuntimeError: boom" in note.read_text()
-    assert _write_report(session).startswith("report written to ")
+    assert write_report(session).startswith("report written to ")
 
 
 def test_compare_report_tabulates_mean_and_spread(

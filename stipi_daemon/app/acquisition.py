@@ -1,0 +1,452 @@
+"""The daemon's acquisition loop: probe and camera events in, session rows and results out.
+
+:class:`Acquisition` runs one measurement on opened devices (:mod:`stipi_daemon.app.devices`)
+with four asyncio tasks until the state machine finishes:
+
+* the probe pump: force samples (with raw, unwrapped and clock-synchronised times), gaps,
+  clock probes and link events from the probe;
+* the camera pump: every frame's S_k (Eqs. 1-2) measured as it arrives
+  (:class:`FrameMeasurer`, which also offers the raw image to the representative-frame
+  keeper, :mod:`stipi_daemon.measurement.representative_frames`, so images go no further),
+  and camera stalls; the queue carries a :class:`FrameResult` per frame;
+* a ticker, so timeouts fire when nothing else arrives;
+* the loop itself, which takes each event to its handler (one per event type, in a table),
+  streams every row into the session (:mod:`stipi_daemon.storage`) as it arrives (each
+  frame's row committed at once, with whatever else is buffered), feeds samples and frames
+  in time order (:class:`~stipi_daemon.measurement.merge.TimeOrderedMerger`, as an offline
+  replay does) into the pure :class:`~stipi_daemon.measurement.pipeline.MeasurementPipeline`,
+  stores live parameters and keeps the operator console current.
+
+All times are on the session clock [s]. Opening devices, the summary, the stored frames
+and the report are not done here (:mod:`stipi_daemon.app.devices`,
+:mod:`stipi_daemon.app.finish`).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import time
+from collections.abc import AsyncIterator, Callable, Coroutine
+from dataclasses import dataclass
+from typing import Any
+
+from stipi_daemon.analysis.imaging import CircleROI, FrameProcessor, RectROI
+from stipi_daemon.app.config import DaemonConfig
+from stipi_daemon.app.console import OperatorConsole
+from stipi_daemon.app.devices import DaemonHandles, Devices
+from stipi_daemon.cameras import CameraFrame
+from stipi_daemon.cameras import CameraRecovered as CamRecovered
+from stipi_daemon.cameras import CameraStalled as CamStalled
+from stipi_daemon.clock import ScaledClock
+from stipi_daemon.measurement.merge import TimeOrderedMerger
+from stipi_daemon.measurement.pipeline import MeasurementPipeline
+from stipi_daemon.measurement.representative_frames import RepresentativeFrames
+from stipi_daemon.measurement.state_machine import (
+    Advisory,
+    CameraRecovered,
+    CameraStalled,
+    Fault,
+    LinkLost,
+    LinkRestored,
+    OperatorPrompt,
+    Output,
+    PhaseChanged,
+    Tick,
+)
+from stipi_daemon.probe.link import ClockProbe, ForceRows, Gap, LinkDown, LinkUp
+
+__all__ = [
+    "LIVE_INTERVAL_S",
+    "MERGE_HOLD_S",
+    "TICK_S",
+    "Acquisition",
+    "FrameMeasurer",
+    "FrameResult",
+]
+
+#: Interval between stored live-parameter rows and console updates [s of session time].
+LIVE_INTERVAL_S = 1.0
+#: Interval of the ticker that lets timeouts fire when no data arrives [s of session time].
+TICK_S = 0.05
+#: Longest a sample or frame waits for the other stream before it is fed anyway [s].
+MERGE_HOLD_S = 0.5
+
+OnRunning = Callable[[DaemonHandles], Coroutine[Any, Any, None]]
+"""An async callback run as a task while the daemon records (see :class:`DaemonHandles`)."""
+
+
+@dataclass(frozen=True, slots=True)
+class FrameResult:
+    """One frame's measurement, as the camera pump queues it (no image).
+
+    Attributes
+    ----------
+    seq : int
+        The camera's frame number.
+    t_capture_s, t_processed_s : float
+        Capture time and the time S_k was measured, on the session clock [s].
+    s_k : int
+        S_k, Eq. (2) [px].
+    flags : tuple of str
+        The frame's imaging flags (e.g. saturation), sorted.
+    dropped_before : int
+        Frames the camera dropped just before this one.
+    """
+
+    seq: int
+    t_capture_s: float
+    t_processed_s: float
+    s_k: int
+    flags: tuple[str, ...]
+    dropped_before: int
+
+
+class _Stop:
+    """Sentinel: a pump ended (its source is exhausted or failed)."""
+
+    def __init__(self, who: str, error: BaseException | None = None) -> None:
+        self.who = who
+        self.error = error
+
+
+class FrameMeasurer:
+    """The camera side: each frame's S_k measured as it arrives, its image offered to the keeper.
+
+    Parameters
+    ----------
+    clock : ScaledClock
+        Session clock (the processing time stamp).
+    threshold_p : int
+        Threshold p of Eq. (1) [8-bit intensity].
+    roi : CircleROI or RectROI or None
+        Where S_k is counted (None: the whole frame).
+    saturation_limit_fraction : float
+        Saturated fraction of the ROI above which a frame is flagged.
+    keeper : RepresentativeFrames
+        Chooses the raw frames the session keeps.
+    pipeline : MeasurementPipeline
+        The live measurement, whose phase and times the keeper's choice depends on.
+    """
+
+    def __init__(
+        self,
+        clock: ScaledClock,
+        threshold_p: int,
+        roi: CircleROI | RectROI | None,
+        saturation_limit_fraction: float,
+        keeper: RepresentativeFrames,
+        pipeline: MeasurementPipeline,
+    ) -> None:
+        self._clock = clock
+        self._threshold_p = threshold_p
+        self._roi = roi
+        self._saturation_limit_fraction = saturation_limit_fraction
+        self._keeper = keeper
+        self._pipeline = pipeline
+        self._processor: FrameProcessor | None = None
+
+    def __call__(self, ev: object) -> object:
+        """A :class:`FrameResult` for a camera frame; other camera events as they are."""
+        if not isinstance(ev, CameraFrame):
+            return ev
+        if self._processor is None:
+            self._processor = FrameProcessor(
+                ev.image.shape,
+                self._threshold_p,
+                self._roi,
+                saturation_limit_fraction=self._saturation_limit_fraction,
+            )
+        m = self._processor.measure(ev.image)
+        result = FrameResult(
+            ev.seq,
+            ev.t_capture_s,
+            self._clock.now(),
+            int(m.s_k_px),
+            tuple(sorted(m.flags)),
+            ev.dropped_before,
+        )
+        st = self._pipeline.state
+        self._keeper.offer(
+            ev.seq, ev.t_capture_s, ev.image, result.s_k, st.phase, st.t_pit_start_s, st.t_release_s
+        )
+        return result
+
+
+def _feed(pipeline: MeasurementPipeline, kind: str, value: tuple[float, float]) -> list[Output]:
+    t_s, v = value
+    return pipeline.force(t_s, v) if kind == "force" else pipeline.frame(t_s, v)
+
+
+class Acquisition:
+    """One measurement's acquisition loop on opened devices.
+
+    Parameters
+    ----------
+    config : DaemonConfig
+        The configuration.
+    devices : Devices
+        The opened probe, camera and session.
+    pipeline : MeasurementPipeline
+        The live measurement (not yet armed).
+    console : OperatorConsole
+        The operator console (entered by the caller).
+    measurer : FrameMeasurer
+        Measures frames on the camera side.
+
+    Attributes
+    ----------
+    counts : dict
+        Frames, force samples, gaps and dropped frames recorded so far.
+    latencies_s : list of float
+        Per frame: session time from capture to the row being committed [s].
+    merger : TimeOrderedMerger
+        Puts samples and frames in time order for the pipeline.
+    stop_error : BaseException or None
+        Why a source ended, if it failed.
+    """
+
+    def __init__(
+        self,
+        config: DaemonConfig,
+        devices: Devices,
+        pipeline: MeasurementPipeline,
+        console: OperatorConsole,
+        measurer: FrameMeasurer,
+    ) -> None:
+        self._config = config
+        self._devices = devices
+        self._clock = devices.clock
+        self._writer = devices.writer
+        self._pipeline = pipeline
+        self._console = console
+        self._measurer = measurer
+        self._queue: asyncio.Queue[object] = asyncio.Queue()
+        self._tasks: list[asyncio.Task[None]] = []
+        self._next_live_s = 0.0
+        self.counts = {"frames": 0, "samples": 0, "gaps": 0, "dropped_frames": 0}
+        self.latencies_s: list[float] = []
+        # Samples and frames reach the pipeline in time order (as on replay), each held at
+        # most MERGE_HOLD_S for the other stream.
+        self.merger: TimeOrderedMerger[tuple[float, float]] = TimeOrderedMerger(
+            ["force", "frame"], max_hold_s=MERGE_HOLD_S
+        )
+        self.stop_error: BaseException | None = None
+        self._handlers: dict[type[Any], Callable[[Any], list[Output]]] = {
+            ForceRows: self._on_force,
+            FrameResult: self._on_frame,
+            Gap: self._on_gap,
+            ClockProbe: self._on_clock_probe,
+            LinkDown: self._on_link_down,
+            LinkUp: self._on_link_up,
+            CamStalled: self._on_camera_stalled,
+            CamRecovered: self._on_camera_recovered,
+            Tick: self._on_tick,
+            _Stop: self._on_stop,
+        }
+
+    # ------------------------------------------------------------------ the loop
+
+    async def run(self, on_running: OnRunning | None = None) -> None:
+        """Arm, stream, and take events to their handlers until the measurement finishes.
+
+        Parameters
+        ----------
+        on_running : async callable, optional
+            Run as a task with the :class:`~stipi_daemon.app.devices.DaemonHandles` once the
+            stream has started; cancelled by :meth:`stop`.
+
+        Raises
+        ------
+        SessionError
+            Storing rows failed (the caller stops and keeps what is committed).
+        """
+        clock, writer, pipeline = self._clock, self._writer, self._pipeline
+        self._console.line(f"session {writer.session_id} in {self._config.storage.root}")
+        self._record(pipeline.arm(clock.now()))
+        # How session times map onto the host's monotonic clock (time.monotonic()).
+        writer.add_event(
+            clock.now(),
+            "session_clock",
+            {
+                "speed": clock.speed,
+                "monotonic_origin_s": time.monotonic() - clock.now() / clock.speed,
+            },
+        )
+        await self._devices.probe.start_stream()
+        self._start_tasks(on_running)
+        while True:
+            ev = await self._queue.get()
+            handler = self._handlers.get(type(ev))
+            outputs: list[Output] = []
+            if handler is not None:
+                outputs += handler(ev)
+            for kind, value in self.merger.pop_ready(clock.now()):
+                if pipeline.finished:
+                    break
+                outputs += _feed(pipeline, kind, value)
+            if outputs:
+                self._record(outputs)
+            if pipeline.finished:
+                return
+            self._store_live()
+
+    def _start_tasks(self, on_running: OnRunning | None) -> None:
+        devices = self._devices
+        self._tasks = [
+            asyncio.create_task(self._pump("probe", devices.probe.events()), name="probe"),
+            asyncio.create_task(
+                self._pump("camera", devices.camera.events(), self._measurer), name="camera"
+            ),
+            asyncio.create_task(self._ticker(), name="ticker"),
+        ]
+        if on_running is not None:
+            handles = DaemonHandles(
+                self._clock, devices.probe, devices.camera, self._writer, self._pipeline
+            )
+            self._tasks.append(asyncio.create_task(on_running(handles), name="on_running"))
+
+    async def stop(self) -> None:
+        """Cancel the pumps, the ticker and the ``on_running`` task, and wait for them."""
+        tasks, self._tasks = self._tasks, []
+        for t in tasks:
+            t.cancel()
+        for t in tasks:
+            with contextlib.suppress(asyncio.CancelledError, Exception):
+                await t
+
+    async def _pump(
+        self,
+        who: str,
+        events: AsyncIterator[object],
+        convert: Callable[[object], object] | None = None,
+    ) -> None:
+        """Queue a source's events (converted), then a :class:`_Stop` when it ends or fails."""
+        try:
+            async for ev in events:
+                await self._queue.put(ev if convert is None else convert(ev))
+        except asyncio.CancelledError:
+            raise
+        except BaseException as exc:
+            await self._queue.put(_Stop(who, exc))
+            return
+        await self._queue.put(_Stop(who))
+
+    async def _ticker(self) -> None:
+        while True:
+            await asyncio.sleep(self._clock.wall_seconds(TICK_S))
+            await self._queue.put(Tick(self._clock.now()))
+
+    def _record(self, outputs: list[Output]) -> None:
+        """Show the pipeline's outputs and store transitions, advisories, faults, prompts."""
+        now = self._pipeline.state.now_s
+        self._console.outputs(outputs, now)
+        writer = self._writer
+        for o in outputs:
+            if isinstance(o, PhaseChanged):
+                writer.add_transition(o.t_s, str(o.old), str(o.new), o.reason)
+            elif isinstance(o, Advisory):
+                writer.add_event(o.t_s, f"advisory:{o.kind}", {"detail": o.detail})
+            elif isinstance(o, Fault):
+                writer.add_event(o.t_s, f"fault:{o.kind}", {"reason": o.reason})
+            elif isinstance(o, OperatorPrompt):
+                writer.add_event(now, "prompt", {"text": o.text})
+
+    def _store_live(self) -> None:
+        """Every LIVE_INTERVAL_S after the release: store and show the live parameters."""
+        now = self._pipeline.state.now_s
+        if now >= self._next_live_s and self._pipeline.state.t_release_s is not None:
+            self._next_live_s = now + LIVE_INTERVAL_S
+            live_params = self._pipeline.live()
+            if live_params is not None:
+                self._writer.add_live_parameters(now, live_params.to_dict())
+                self._console.update(now, params=live_params)
+
+    # -------------------------------------------------------------- the handlers
+
+    def _on_force(self, ev: ForceRows) -> list[Output]:
+        rows = ev.rows
+        self._writer.add_force_samples(
+            [
+                (r.sample_index, r.adc_counts, r.t_mcu_raw_us, r.t_mcu_us, r.t_host_s, r.force_n)
+                for r in rows
+            ]
+        )
+        self.counts["samples"] += len(rows)
+        for r in rows:
+            if r.force_n is not None:
+                self.merger.push("force", r.t_host_s, (r.t_host_s, r.force_n), self._clock.now())
+        if rows and rows[-1].force_n is not None:
+            self._console.update(self._pipeline.state.now_s, force_n=rows[-1].force_n)
+        return []
+
+    def _on_frame(self, ev: FrameResult) -> list[Output]:
+        writer = self._writer
+        writer.add_frames([(ev.seq, ev.t_capture_s, ev.t_processed_s, ev.s_k, ev.flags)])
+        self.latencies_s.append(self._clock.now() - ev.t_capture_s)
+        self.counts["frames"] += 1
+        if ev.dropped_before:
+            self.counts["dropped_frames"] += ev.dropped_before
+            writer.add_gap(
+                "frames", ev.seq - ev.dropped_before, ev.dropped_before, ev.t_capture_s, "camera"
+            )
+        # Each frame is on disk before the next is due (with it, whatever else is buffered):
+        # a WAL commit at synchronous=NORMAL costs ~15 us, against up to 3/4 of
+        # storage.commit_interval_s of waiting for the commit thread (docs/performance.md,
+        # "Live daemon latency").
+        writer.commit()
+        self.merger.push(
+            "frame", ev.t_capture_s, (ev.t_capture_s, float(ev.s_k)), self._clock.now()
+        )
+        fps = self._devices.camera.stats.fps()
+        self._console.update(self._pipeline.state.now_s, s_k=ev.s_k, fps=fps)
+        return []
+
+    def _on_gap(self, ev: Gap) -> list[Output]:
+        self.counts["gaps"] += 1
+        self._writer.add_gap("force", ev.start_index, ev.count, ev.t_host_s, ev.cause)
+        return []
+
+    def _on_clock_probe(self, ev: ClockProbe) -> list[Output]:
+        self._writer.add_clock_probe(ev.mcu_raw_us, ev.mcu_unwrapped_us, ev.host_s)
+        return []
+
+    def _on_link_down(self, ev: LinkDown) -> list[Output]:
+        self._writer.add_event(ev.t_s, "link_down", {"reason": ev.reason})
+        return self._pipeline.feed(LinkLost(ev.t_s))
+
+    def _on_link_up(self, ev: LinkUp) -> list[Output]:
+        self._writer.add_event(ev.t_s, "link_up", {})
+        return self._pipeline.feed(LinkRestored(ev.t_s))
+
+    def _on_camera_stalled(self, ev: CamStalled) -> list[Output]:
+        self._writer.add_event(ev.t_s, "camera_stalled", {"detail": str(ev)})
+        return self._pipeline.feed(CameraStalled(ev.t_s))
+
+    def _on_camera_recovered(self, ev: CamRecovered) -> list[Output]:
+        self._writer.add_event(ev.t_s, "camera_recovered", {"detail": str(ev)})
+        return self._pipeline.feed(CameraRecovered(ev.t_s))
+
+    def _on_tick(self, ev: Tick) -> list[Output]:
+        # Ticks only let timeouts fire when data stops: they lag the data by the merge hold
+        # and never pass a held sample, so while data flows they change nothing (and an
+        # offline replay, which has no ticks, agrees).
+        t_tick = ev.t_s - MERGE_HOLD_S
+        pending = self.merger.oldest_pending_s()
+        if pending is not None:
+            t_tick = min(t_tick, pending)
+        if t_tick > self._pipeline.state.now_s:
+            return self._pipeline.feed(Tick(t_tick))
+        return []
+
+    def _on_stop(self, ev: _Stop) -> list[Output]:
+        # A source ended (e.g. a video file) or failed: close the session.
+        self.stop_error = ev.error
+        now = self._clock.now()
+        self._writer.add_event(
+            now, f"{ev.who}_ended", {"error": None if ev.error is None else str(ev.error)}
+        )
+        outputs: list[Output] = []
+        for kind, value in self.merger.drain():
+            outputs += _feed(self._pipeline, kind, value)
+        return outputs + self._pipeline.close(self._clock.now())

@@ -1,0 +1,225 @@
+"""The daemon's devices: session clock origin, probe link, camera stream and session.
+
+This module owns the daemon's set-up and tear-down of its I/O: :func:`open_devices` builds
+the probe (a :class:`~stipi_daemon.probe.link.ProbeLink` over the configured transport) and
+the camera (a :class:`~stipi_daemon.cameras.stream.CameraStream` over the configured
+source), connects and opens them, and only then creates the session
+(:class:`~stipi_daemon.storage.writer.SessionWriter`), so a missing port or camera is one
+clear line and no empty session; :func:`close_devices` stops and closes them.
+
+Simulated and replayed devices (emulated probe, simulator camera, paced video file) play
+one scene: they share its time origin on the session clock (:func:`scene_origin`), set
+far enough ahead that all are open and the measurement is armed before the scene starts.
+Which transport or camera a config names is chosen by its ``kind`` (simulated ones through
+:mod:`stipi_daemon.registry`); which calibration, threshold and ROI apply is decided before
+(:mod:`stipi_daemon.app.imaging`). Nothing here measures or records rows.
+"""
+
+from __future__ import annotations
+
+import contextlib
+from dataclasses import dataclass
+from typing import Any
+
+from stipi_daemon.analysis.calibration import Calibration
+from stipi_daemon.analysis.imaging import CircleROI, RectROI, sk_kernel
+from stipi_daemon.app.config import DaemonConfig
+from stipi_daemon.app.imaging import calibration_record
+from stipi_daemon.cameras import CameraStream, open_camera
+from stipi_daemon.clock import ScaledClock
+from stipi_daemon.measurement.pipeline import MeasurementPipeline
+from stipi_daemon.probe.link import ProbeLink
+from stipi_daemon.probe.transports import TransportConfig, open_transport
+from stipi_daemon.storage.writer import SessionWriter, StorageOptions
+
+__all__ = [
+    "SCENE_LEAD_WALL_S",
+    "DaemonHandles",
+    "Devices",
+    "close_devices",
+    "open_devices",
+    "scene_origin",
+]
+
+#: Wall time between start-up and the shared scene origin of simulated devices [s].
+SCENE_LEAD_WALL_S = 1.0
+
+
+@dataclass(frozen=True)
+class Devices:
+    """The opened devices and the session they record into.
+
+    Attributes
+    ----------
+    clock : ScaledClock
+        The session clock.
+    probe : ProbeLink
+        The connected probe link (not yet streaming).
+    camera : CameraStream
+        The opened camera stream.
+    writer : SessionWriter
+        The new session.
+    """
+
+    clock: ScaledClock
+    probe: ProbeLink
+    camera: CameraStream
+    writer: SessionWriter
+
+
+@dataclass(frozen=True)
+class DaemonHandles:
+    """The running daemon's parts, handed to an ``on_running`` callback.
+
+    For supervision and for reliability tests, which inject faults into the real devices
+    (``probe.transport.feather.unplug(...)``, ``camera.camera.stall(...)``) while the
+    daemon records. The callback must not write to the session.
+
+    Attributes
+    ----------
+    clock : ScaledClock
+        The session clock.
+    probe : ProbeLink
+        The probe link.
+    camera : CameraStream
+        The camera stream.
+    writer : SessionWriter
+        The session being recorded.
+    pipeline : MeasurementPipeline
+        The live measurement (``pipeline.phase`` is the state machine's phase).
+    """
+
+    clock: ScaledClock
+    probe: Any
+    camera: Any
+    writer: SessionWriter
+    pipeline: MeasurementPipeline
+
+
+def scene_origin(clock: ScaledClock, given_s: float | None) -> float:
+    """Session time of scene time 0 for simulated and replayed devices [s].
+
+    ``given_s`` when a caller's own device plays the scene from a known instant, else
+    :data:`SCENE_LEAD_WALL_S` of wall time from now.
+    """
+    return given_s if given_s is not None else clock.now() + SCENE_LEAD_WALL_S * clock.speed
+
+
+def _transport_config(config: DaemonConfig, origin_s: float) -> TransportConfig:
+    """The probe's transport config, an emulated probe's scene started at ``origin_s``."""
+    tc = config.probe.transport
+    if tc.kind == "emulated" and tc.scene_start_s is None:
+        return tc.model_copy(update={"scene_start_s": origin_s})
+    if tc.kind == "ble" and tc.emulate is not None and tc.emulate.scene_start_s is None:
+        emulate = tc.emulate.model_copy(update={"scene_start_s": origin_s})
+        return tc.model_copy(update={"emulate": emulate})
+    return tc
+
+
+def _probe_link(config: DaemonConfig, clock: ScaledClock, origin_s: float) -> ProbeLink:
+    """The probe link the config describes (not yet connected)."""
+    pc = config.probe
+    return ProbeLink(
+        open_transport(_transport_config(config, origin_s), clock),
+        clock=clock,
+        rate_hz=pc.rate_hz,
+        led_level=pc.led_level,
+        heartbeat_timeout_s=pc.heartbeat_timeout_s,
+        reconnect_total_s=pc.reconnect_total_s,
+        zero_counts=pc.zero_counts,
+        span_un_per_count=pc.span_un_per_count,
+    )
+
+
+def _camera_stream(config: DaemonConfig, clock: ScaledClock, origin_s: float) -> CameraStream:
+    """The camera stream the config describes (not yet opened)."""
+    # A paced video file replays the scene too (e.g. the simulator's rendering of it).
+    simulated = config.camera.kind == "simulator" or (
+        config.camera.kind == "file" and config.camera.pace
+    )
+    return CameraStream(
+        open_camera(config.camera, clock, t0_s=origin_s if simulated else None),
+        clock,
+        # A simulated or replayed camera's first frame comes at the scene origin.
+        open_timeout_s=2.0 + max(0.0, origin_s - clock.now() if simulated else 0.0),
+    )
+
+
+def _create_session(
+    config: DaemonConfig,
+    calibration: Calibration,
+    threshold_p: int,
+    roi: CircleROI | RectROI | None,
+    probe: ProbeLink,
+) -> SessionWriter:
+    """Create the session: config, calibration record, probe info, software versions."""
+    storage = config.storage
+    return SessionWriter.create(
+        storage.root,
+        config.model_dump(mode="json"),
+        calibration_record(
+            calibration,
+            threshold_p,
+            roi,
+            str(config.calibration) if config.calibration else "simulated scene",
+        ),
+        probe.info_dict(),
+        options=StorageOptions(
+            commit_interval_s=storage.commit_interval_s,
+            min_free_bytes=int(storage.min_free_mb * 1e6),
+        ),
+        software={"sk_kernel": sk_kernel()},
+    )
+
+
+async def open_devices(
+    config: DaemonConfig,
+    clock: ScaledClock,
+    calibration: Calibration,
+    threshold_p: int,
+    roi: CircleROI | RectROI | None,
+    *,
+    origin_s: float,
+) -> Devices:
+    """Connect the probe, open the camera, then create the session.
+
+    Parameters
+    ----------
+    config : DaemonConfig
+        The configuration (paths resolved).
+    clock : ScaledClock
+        The session clock.
+    calibration, threshold_p, roi
+        What S_k is counted with (:mod:`stipi_daemon.app.imaging`), for the manifest.
+    origin_s : float
+        Session time of scene time 0 for simulated and replayed devices [s].
+
+    Raises
+    ------
+    StipiError
+        A device cannot be opened or the session cannot be created (one line; what was
+        opened is closed again and nothing is recorded).
+    """
+    probe = _probe_link(config, clock, origin_s)
+    camera = _camera_stream(config, clock, origin_s)
+    await probe.connect()
+    try:
+        await camera.open()
+    except BaseException:
+        await probe.close()
+        raise
+    try:
+        writer = _create_session(config, calibration, threshold_p, roi, probe)
+    except BaseException:
+        await camera.close()
+        await probe.close()
+        raise
+    return Devices(clock, probe, camera, writer)
+
+
+async def close_devices(devices: Devices) -> None:
+    """Stop the probe's stream (best effort), close the camera, then the probe."""
+    with contextlib.suppress(Exception):
+        await devices.probe.stop_stream()
+    await devices.camera.close()
+    await devices.probe.close()
