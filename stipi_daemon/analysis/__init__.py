@@ -14,6 +14,7 @@ One module per concern (see ``docs/analysis.md``, ``docs/calibration.md``):
 * :mod:`.severity` - Section IV.C: severity window, threshold, nearest grade.
 * :mod:`.results` - all of the above for one measurement, both estimators.
 * :mod:`.flags` - the quality flags attached to results.
+* :mod:`.validity` - each reported quantity valid, flagged or invalid; the verdict.
 * :mod:`.truth_comparison` - results against a simulator's ground truth.
 * :mod:`.summary_diff` - differences between a stored and a recomputed summary.
 
