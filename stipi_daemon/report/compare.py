@@ -17,9 +17,11 @@ import numpy as np
 
 from stipi_daemon.errors import AnalysisError
 from stipi_daemon.report.inputs import FloatArray, ReportInput, number_at, value_at
+from stipi_daemon.report.verdict import VerdictView, combined, read_validity, session_verdict
 
 __all__ = [
     "COMPARE_PARAMETERS",
+    "COMPARE_VALIDITY",
     "CompareGroup",
     "CompareStat",
     "CompareTable",
@@ -27,9 +29,11 @@ __all__ = [
     "compare_table",
     "overlay_force",
     "overlay_s_k",
+    "value_status",
 ]
 
 #: Parameters tabulated by :func:`compare_table`: (key, symbol, unit, path in the results).
+#: Their validity is that of the quantities in :data:`COMPARE_VALIDITY`.
 COMPARE_PARAMETERS: Final[tuple[tuple[str, str, str, tuple[str, ...]], ...]] = (
     ("depth_mm", "D_p", "mm", ("pitting", "depth_mm")),
     ("rebound_force_n", "F_r", "N", ("pitting", "rebound_force_n")),
@@ -45,6 +49,17 @@ COMPARE_PARAMETERS: Final[tuple[tuple[str, str, str, tuple[str, ...]], ...]] = (
         ("fitted_recovery", "model", "viscosity_n_s_per_mm2"),
     ),
 )
+#: Parameter key -> the ``summary["validity"]`` quantities its value depends on.
+COMPARE_VALIDITY: Final[dict[str, tuple[str, ...]]] = {
+    "depth_mm": ("depth_mm",),
+    "rebound_force_n": ("rebound_force_n",),
+    "recovery_time_s": ("recovery_time_s",),
+    "applied_force_n": ("applied_force_n",),
+    "elasticity_kpa": ("elasticity_kpa",),
+    "viscosity_n_s_per_mm2": ("viscosity_n_s_per_mm2",),
+    "time_constant_s": ("tau_s",),
+    "viscosity_from_time_constant_n_s_per_mm2": ("tau_s", "elasticity_kpa"),
+}
 
 
 @dataclass(frozen=True)
@@ -57,10 +72,19 @@ class CompareStat:
         The parameter.
     values : tuple of float or None
         Each session's value, in the group's order (None: the session has none).
+    statuses : tuple of str
+        Each value's validity (``valid``, ``flagged``, ``invalid``, ``unknown``: recorded
+        before validity was kept).
     n : int
-        Sessions with a value.
+        Sessions whose value enters the mean (a value that is not invalid).
+    n_excluded : int
+        Values left out of the mean because they are invalid.
+    n_flagged : int
+        Flagged values included in the mean.
+    n_unknown : int
+        Values of unknown validity included in the mean.
     mean : float or None
-        Mean over them.
+        Mean over the values that are not invalid.
     sd : float or None
         Sample standard deviation (n - 1), None for n < 2.
     cv_percent : float or None
@@ -71,7 +95,11 @@ class CompareStat:
     symbol: str
     unit: str
     values: tuple[float | None, ...]
+    statuses: tuple[str, ...]
     n: int
+    n_excluded: int
+    n_flagged: int
+    n_unknown: int
     mean: float | None
     sd: float | None
     cv_percent: float | None
@@ -98,7 +126,9 @@ class CompareTable:
         The sessions and their labels, in the order given.
     severities : tuple of str or None
         Each session's class and nearest grade from the paper estimator (``"severe
-        (III)"``), None without one.
+        (III)"``), None without one or when it is invalid.
+    verdicts : tuple of VerdictView
+        Each session's verdict.
     groups : tuple of CompareGroup
         One per distinct label, in first-appearance order.
     overall : CompareGroup
@@ -108,24 +138,68 @@ class CompareTable:
     session_ids: tuple[str, ...]
     labels: tuple[str, ...]
     severities: tuple[str | None, ...]
+    verdicts: tuple[VerdictView, ...]
     groups: tuple[CompareGroup, ...]
     overall: CompareGroup
 
 
-def _stat(key: str, symbol: str, unit: str, values: tuple[float | None, ...]) -> CompareStat:
-    v = np.asarray([x for x in values if x is not None], dtype=np.float64)
+def _stat(
+    key: str,
+    symbol: str,
+    unit: str,
+    values: tuple[float | None, ...],
+    statuses: tuple[str, ...],
+) -> CompareStat:
+    """Mean and spread of the values that are not invalid (invalid ones are counted)."""
+    kept = [x for x, st in zip(values, statuses, strict=True) if x is not None and st != "invalid"]
+    v = np.asarray(kept, dtype=np.float64)
     mean = float(np.mean(v)) if v.size else None
     sd = float(np.std(v, ddof=1)) if v.size >= 2 else None
     cv = None if sd is None or mean is None or mean == 0.0 else 100.0 * sd / abs(mean)
-    return CompareStat(key, symbol, unit, values, int(v.size), mean, sd, cv)
+    present = [st for x, st in zip(values, statuses, strict=True) if x is not None]
+    return CompareStat(
+        key,
+        symbol,
+        unit,
+        values,
+        statuses,
+        int(v.size),
+        present.count("invalid"),
+        present.count("flagged"),
+        present.count("unknown"),
+        mean,
+        sd,
+        cv,
+    )
+
+
+def value_status(inp: ReportInput, key: str) -> str:
+    """The validity of parameter ``key`` of a session (``unknown`` without a record)."""
+    v = combined(read_validity(inp.summary), COMPARE_VALIDITY[key])
+    return "unknown" if v is None else v.status
+
+
+def _severity_class(inp: ReportInput) -> str | None:
+    """The paper estimator's class, None when there is none or it is invalid."""
+    v = combined(read_validity(inp.summary), ("severity",))
+    if v is not None and v.status == "invalid":
+        return None
+    cls = value_at(inp.results, "severity", "paper_estimator", "severity")
+    return None if cls is None else str(cls)
 
 
 def _group(label: str, members: Sequence[ReportInput]) -> CompareGroup:
     stats = tuple(
-        _stat(key, symbol, unit, tuple(number_at(m.results, *path) for m in members))
+        _stat(
+            key,
+            symbol,
+            unit,
+            tuple(number_at(m.results, *path) for m in members),
+            tuple(value_status(m, key) for m in members),
+        )
         for key, symbol, unit, path in COMPARE_PARAMETERS
     )
-    classes = [value_at(m.results, "severity", "paper_estimator", "severity") for m in members]
+    classes = [_severity_class(m) for m in members]
     return CompareGroup(
         label=label,
         session_ids=tuple(m.session_id for m in members),
@@ -139,6 +213,10 @@ def compare_table(
     inputs: Sequence[ReportInput], labels: Sequence[str] | None = None
 ) -> CompareTable:
     """Tabulate several sessions: each one's values, mean and spread per label and overall.
+
+    A value that is invalid in its session's ``summary["validity"]`` is listed but left
+    out of every mean and spread (counted in :attr:`CompareStat.n_excluded`); flagged
+    values and those of older sessions without validity enter them, counted.
 
     Parameters
     ----------
@@ -164,12 +242,13 @@ def compare_table(
     severities: list[str | None] = []
     for inp in inputs:
         sev = value_at(inp.results, "severity", "paper_estimator")
-        cls, grade = value_at(sev, "severity"), value_at(sev, "nearest_grade")
+        cls, grade = _severity_class(inp), value_at(sev, "nearest_grade")
         severities.append(None if cls is None else f"{cls} ({grade})")
     return CompareTable(
         session_ids=tuple(i.session_id for i in inputs),
         labels=names,
         severities=tuple(severities),
+        verdicts=tuple(session_verdict(i.summary, i.status) for i in inputs),
         groups=tuple(_group(name, members) for name, members in order.items()),
         overall=_group("all sessions", list(inputs)),
     )

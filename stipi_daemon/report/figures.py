@@ -17,6 +17,7 @@ from dataclasses import dataclass
 from typing import Any, Final, Literal
 
 import numpy as np
+from numpy.typing import NDArray
 
 from stipi_daemon.analysis.pitting import DEFAULT_SETTLE_FRACTION, DEFAULT_WINDOW_S
 from stipi_daemon.analysis.recovery_fit import (
@@ -31,6 +32,8 @@ from stipi_daemon.analysis.severity import (
 from stipi_daemon.analysis.vpr import KPA_PER_N_PER_MM2
 from stipi_daemon.errors import AnalysisError
 from stipi_daemon.report.inputs import FloatArray, ReportInput, number_at, value_at
+from stipi_daemon.report.series import TimeGap, broken_line, find_gaps, isolated_outliers
+from stipi_daemon.report.verdict import QuantityStatus, combined
 from stipi_daemon.storage.schema import Transition
 
 __all__ = [
@@ -46,6 +49,7 @@ __all__ = [
     "fit_figure",
     "force_figure",
     "measurement_curves",
+    "omitted_curves",
     "phase_spans",
     "s_k_figure",
     "vpr_figure",
@@ -94,6 +98,10 @@ class ForceFigure:
     ----------
     t_s, force_n : numpy.ndarray
         Every force sample as stored [s], [N] (NaN: lost, drawn as a gap).
+    line_t_s, line_force_n : numpy.ndarray
+        The same with a NaN point inside each gap of :attr:`gaps` (the plotted line).
+    gaps : tuple of TimeGap
+        Intervals without force samples (:func:`~.series.find_gaps`).
     phases : tuple of PhaseSpan
         Phases of the measurement.
     target_n, tolerance_n : float or None
@@ -107,10 +115,15 @@ class ForceFigure:
         T_0, whichever comes first.
     t0_s : float or None
         T_0, the start of the recovery [s].
+    release_s : float or None
+        The release the state machine detected [s] (T_0 before its refinement).
     """
 
     t_s: FloatArray
     force_n: FloatArray
+    line_t_s: FloatArray
+    line_force_n: FloatArray
+    gaps: tuple[TimeGap, ...]
     phases: tuple[PhaseSpan, ...]
     target_n: float | None
     tolerance_n: float | None
@@ -118,6 +131,7 @@ class ForceFigure:
     applied_force_n: float | None
     hold_s: tuple[float, float] | None
     t0_s: float | None
+    release_s: float | None
 
 
 def force_figure(inp: ReportInput) -> ForceFigure:
@@ -126,9 +140,14 @@ def force_figure(inp: ReportInput) -> ForceFigure:
     start = number_at(inp.summary, "measurement", "t_pit_start_s")
     end = number_at(inp.summary, "measurement", "t_pit_end_s")
     t0 = inp.t0_s
+    gaps = find_gaps(inp.force_times_s)
+    line_t, line_f = broken_line(inp.force_times_s, inp.force_n, gaps)
     return ForceFigure(
         t_s=inp.force_times_s,
         force_n=inp.force_n,
+        line_t_s=line_t,
+        line_force_n=line_f,
+        gaps=gaps,
         phases=phase_spans(inp.transitions, inp.t_end_s),
         target_n=number_at(m, "target_force_n"),
         tolerance_n=number_at(m, "force_tolerance_n"),
@@ -137,6 +156,7 @@ def force_figure(inp: ReportInput) -> ForceFigure:
         # The hold F_a averages over ends at T_0 at the latest (the pipeline's rule).
         hold_s=None if start is None or end is None else (start, min(end, t0 or end)),
         t0_s=inp.t0_s,
+        release_s=number_at(inp.summary, "measurement", "t0_s"),
     )
 
 
@@ -148,8 +168,24 @@ class SkFigure:
     ----------
     t_s, s_k_px : numpy.ndarray
         Every frame as stored: capture time [s], S_k [px].
+    line_t_s, line_s_k_px : numpy.ndarray
+        The same with a NaN point inside each gap of :attr:`gaps` (the plotted line).
+    gaps : tuple of TimeGap
+        Intervals without frames (:func:`~.series.find_gaps`).
+    nan_frame_t_s : numpy.ndarray
+        Capture times of frames whose S_k is not finite (dropped by the analysis) [s].
+    outlier_t_s, outlier_s_k_px : numpy.ndarray
+        Outlier frames after T_0 [s], [px]: those the analysis recorded leaving out
+        (``observed.outlier_frame_times_s``), else :func:`~.series.isolated_outliers`.
+    outlier_source : {"analysis", "report"}
+        Which of the two found them.
+    release_gap_s : tuple of float or None
+        The frames around T_0 when the analysis recorded that the release was not observed
+        (``observed.release_gap_s``) [s].
     phases : tuple of PhaseSpan
         Phases of the measurement.
+    release_s : float or None
+        The release the state machine detected [s].
     t0_s, ts_s : float or None
         T_0 (start of recovery) and T_s (S_k settled) [s].
     s0_px, s_max_px : float or None
@@ -166,7 +202,16 @@ class SkFigure:
 
     t_s: FloatArray
     s_k_px: FloatArray
+    line_t_s: FloatArray
+    line_s_k_px: FloatArray
+    gaps: tuple[TimeGap, ...]
+    nan_frame_t_s: FloatArray
+    outlier_t_s: FloatArray
+    outlier_s_k_px: FloatArray
+    outlier_source: Literal["analysis", "report"]
+    release_gap_s: tuple[float, float] | None
     phases: tuple[PhaseSpan, ...]
+    release_s: float | None
     t0_s: float | None
     ts_s: float | None
     s0_px: float | None
@@ -177,16 +222,61 @@ class SkFigure:
     flags: tuple[str, ...]
 
 
+def _observed(results: Mapping[str, Any] | None) -> Mapping[str, Any] | None:
+    """What the analysis recorded about frame coverage (``observed``), wherever it is."""
+    for keys in (("pitting", "observed"), ("observed",)):
+        v = value_at(results, *keys)
+        if isinstance(v, Mapping):
+            return v
+    return None
+
+
+def _recorded_pair(results: Mapping[str, Any] | None, key: str) -> tuple[float, float] | None:
+    """``observed[key]`` as a (start, end) pair of finite-or-inf floats [s], else None."""
+    v = value_at(_observed(results), key)
+    if not isinstance(v, list) or len(v) != 2:
+        return None
+    if not all(isinstance(x, int | float) and not isinstance(x, bool) for x in v):
+        return None
+    return float(v[0]), float(v[1])
+
+
+def _outlier_frames(inp: ReportInput) -> tuple[NDArray[np.bool_], Literal["analysis", "report"]]:
+    """The outlier frames the analysis recorded, else the report's own check."""
+    recorded = value_at(_observed(inp.results), "outlier_frame_times_s")
+    t = inp.frame_times_s
+    if isinstance(recorded, list):
+        times = np.asarray(
+            [x for x in recorded if isinstance(x, int | float) and not isinstance(x, bool)],
+            dtype=np.float64,
+        )
+        return np.isin(t, times), "analysis"
+    return isolated_outliers(t, inp.s_k_px, inp.t0_s), "report"
+
+
 def s_k_figure(inp: ReportInput) -> SkFigure:
     """Data of the S_k-over-time figure."""
     p = value_at(inp.results, "pitting")
     fraction = number_at(inp.config, "analysis", "settle_fraction") or DEFAULT_SETTLE_FRACTION
     s_max = number_at(p, "s_max_px")
     flags = value_at(p, "flags")
+    t, s = inp.frame_times_s, inp.s_k_px
+    gaps = find_gaps(t)
+    line_t, line_s = broken_line(t, s, gaps)
+    outliers, source = _outlier_frames(inp)
     return SkFigure(
-        t_s=inp.frame_times_s,
-        s_k_px=inp.s_k_px,
+        t_s=t,
+        s_k_px=s,
+        line_t_s=line_t,
+        line_s_k_px=line_s,
+        gaps=gaps,
+        nan_frame_t_s=t[~np.isfinite(s)],
+        outlier_t_s=t[outliers],
+        outlier_s_k_px=s[outliers],
+        outlier_source=source,
+        release_gap_s=_recorded_pair(inp.results, "release_gap_s"),
         phases=phase_spans(inp.transitions, inp.t_end_s),
+        release_s=number_at(inp.summary, "measurement", "t0_s"),
         t0_s=inp.t0_s,
         ts_s=number_at(p, "ts_s"),
         s0_px=number_at(p, "s0_px"),
@@ -344,6 +434,8 @@ class VprFigure:
         The same as a recovered percentage [%] (the paper's 62 %).
     mild_grade, severe_grade : str
         The grades the window separates.
+    omitted : tuple of str
+        This session's curves left out because a quantity they need is invalid (why).
     """
 
     t_s: FloatArray
@@ -356,6 +448,7 @@ class VprFigure:
     threshold_recovered_percent: float
     mild_grade: str
     severe_grade: str
+    omitted: tuple[str, ...] = ()
 
 
 def _curve(
@@ -382,21 +475,49 @@ def _curve(
     )
 
 
+def _invalid(validity: Mapping[str, QuantityStatus] | None, *quantities: str) -> str | None:
+    """Why one of ``quantities`` is invalid (None: none is)."""
+    v = combined(validity, quantities) if validity is not None else None
+    if v is None or v.status != "invalid":
+        return None
+    return v.reason or "invalid"
+
+
+def omitted_curves(validity: Mapping[str, QuantityStatus] | None) -> tuple[str, ...]:
+    """Why :func:`measurement_curves` leaves a curve out, one line per curve left out."""
+    out = []
+    paper = _invalid(validity, "elasticity_kpa", "viscosity_n_s_per_mm2")
+    if paper is not None:
+        out.append(f"the paper estimator's curve (E or η not valid: {paper})")
+    fit = _invalid(validity, "tau_s")
+    if fit is not None:
+        out.append(f"the fitted curve (τ not valid: {fit})")
+    return tuple(out)
+
+
 def measurement_curves(
     results: Mapping[str, Any] | None,
     t: FloatArray,
     window_t: FloatArray,
     label_prefix: str = "this session",
+    validity: Mapping[str, QuantityStatus] | None = None,
 ) -> tuple[NormalisedCurve, ...]:
-    """This session's VPR curves from its results (none without E and eta)."""
+    """This session's VPR curves from its results (none without E and eta).
+
+    A curve whose quantities are invalid in ``validity`` is left out (the paper
+    estimator's without a valid E and eta, the fit's without a valid tau); an invalid D_p
+    leaves the curves normalised only (no depth curve).
+    """
     out: list[NormalisedCurve] = []
     if results is None:
         return ()
-    depth = number_at(results, "pitting", "depth_mm")
+    depth = None if _invalid(validity, "depth_mm") else number_at(results, "pitting", "depth_mm")
+    paper_ok = _invalid(validity, "elasticity_kpa", "viscosity_n_s_per_mm2") is None
+    fit_ok = _invalid(validity, "tau_s") is None
     paper = value_at(results, "paper_estimator")
     e, eta = number_at(paper, "elasticity_kpa"), number_at(paper, "viscosity_n_s_per_mm2")
     sev = value_at(results, "severity", "paper_estimator", "severity")
-    if e is not None and eta is not None and e > 0.0 and eta > 0.0:
+    if paper_ok and e is not None and eta is not None and e > 0.0 and eta > 0.0:
         t_r = number_at(results, "pitting", "recovery_time_s")
         out.append(
             _curve(
@@ -416,7 +537,7 @@ def measurement_curves(
         number_at(fr, "amplitude_px"),
         number_at(fr, "offset_px"),
     )
-    if tau is not None and tau > 0.0:
+    if fit_ok and tau is not None and tau > 0.0:
         nrate: float | None = None
         if amp is not None and off is not None and off > 0.0 and off - amp >= 0.0:
             try:
@@ -469,11 +590,13 @@ def vpr_figure(
     *,
     horizon_s: float = VPR_HORIZON_S,
     samples: int = VPR_SAMPLES,
+    validity: Mapping[str, QuantityStatus] | None = None,
 ) -> VprFigure:
     """Data of the VPR figures (Figs. 10 and 12) for one session's results.
 
     The severity window and threshold are the ones the session was classified with
-    (``results.severity``), or the reference's when the session has none.
+    (``results.severity``), or the reference's when the session has none. This session's
+    curves of invalid quantities (``validity``) are left out (:attr:`VprFigure.omitted`).
     """
     t = np.linspace(0.0, horizon_s, samples)
     start, end, window_t, threshold, mild, severe = _window(results, reference)
@@ -493,7 +616,7 @@ def vpr_figure(
     return VprFigure(
         t_s=t,
         references=refs,
-        measurements=measurement_curves(results, t, window_t),
+        measurements=measurement_curves(results, t, window_t, validity=validity),
         window_start_s=start,
         window_end_s=end,
         window_sample_times_s=tuple(float(v) for v in window_t),
@@ -501,6 +624,7 @@ def vpr_figure(
         threshold_recovered_percent=100.0 * (1.0 - threshold),
         mild_grade=mild,
         severe_grade=severe,
+        omitted=omitted_curves(validity) if results is not None else (),
     )
 
 

@@ -19,8 +19,16 @@ from dataclasses import dataclass
 from stipi_daemon import __version__
 from stipi_daemon.report.compare import CompareGroup, CompareTable
 from stipi_daemon.report.parameter_table import ParameterRow
+from stipi_daemon.report.verdict import QuantityStatus, VerdictView
 
-__all__ = ["EmbeddedFigure", "compare_page", "format_number", "session_page"]
+__all__ = [
+    "EmbeddedFigure",
+    "compare_page",
+    "format_number",
+    "session_page",
+    "validity_text",
+    "verdict_html",
+]
 
 _CSS = """
 body { font-family: sans-serif; margin: 1.5em auto; max-width: 1060px; color: #222; }
@@ -36,8 +44,19 @@ figure img { max-width: 100%; border: 1px solid #ddd; }
 figcaption { font-size: 0.9em; color: #444; margin-top: 0.3em; }
 .missing { color: #a33; font-style: italic; }
 .flag { font-family: monospace; background: #fff3cd; padding: 0 0.25em; border-radius: 3px; }
-.status-complete { color: #1a7f37; font-weight: bold; }
-.status-other { color: #b35900; font-weight: bold; }
+.verdict { border: 2px solid #ccc; border-radius: 6px; padding: 0.5em 0.9em; margin: 0.8em 0; }
+.verdict p { margin: 0.3em 0; font-size: 1.05em; }
+.badge { display: inline-block; padding: 0.1em 0.6em; border-radius: 4px; color: #fff;
+  font-weight: bold; text-transform: uppercase; letter-spacing: 0.03em; margin-right: 0.5em; }
+.verdict-complete { border-color: #1a7f37; } .badge-complete { background: #1a7f37; }
+.verdict-flagged { border-color: #b35900; } .badge-flagged { background: #b35900; }
+.verdict-invalid { border-color: #c62828; } .badge-invalid { background: #c62828; }
+.verdict-incomplete { border-color: #6a1b9a; } .badge-incomplete { background: #6a1b9a; }
+.verdict-unknown { border-color: #777; } .badge-unknown { background: #777; }
+.v-valid { color: #1a7f37; } .v-flagged { color: #b35900; } .v-invalid { color: #c62828; }
+.v-unknown { color: #777; }
+tr.invalid td { background: #fbeaea; }
+.not-valid { color: #999; font-size: 0.85em; display: block; }
 dl.meta { display: grid; grid-template-columns: max-content auto; gap: 0.15em 1em; }
 dl.meta dt { font-weight: bold; }
 dl.meta dd { margin: 0; }
@@ -119,9 +138,37 @@ def _flags_html(flags: Sequence[str]) -> str:
     return " ".join(f'<span class="flag">{_e(f)}</span>' for f in flags)
 
 
+def validity_text(v: QuantityStatus | None) -> str:
+    """``valid``, ``flagged: <flags>``, ``invalid: <reason>`` or ``unknown`` (empty: None)."""
+    if v is None:
+        return ""
+    if v.status == "flagged":
+        return "flagged: " + (", ".join(v.flags) or v.reason or "caveat")
+    if v.status == "invalid":
+        return f"invalid: {v.reason or 'no reason recorded'}"
+    return v.status
+
+
+def _validity_cell(v: QuantityStatus | None) -> str:
+    if v is None:
+        return "<td></td>"
+    return (
+        f'<td class="v-{_e(v.status)}" data-validity="{_e(v.status)}">{_e(validity_text(v))}</td>'
+    )
+
+
+def _value_cell(r: ParameterRow) -> str:
+    """The value, or "—" with the recorded value greyed when it is not valid."""
+    value = r.value if isinstance(r.value, str) else format_number(r.value)
+    if r.shown_as_result:
+        return f'<td class="num" data-key="{_e(r.key)}">{_e(value)}</td>'
+    raw = "" if r.value is None else f'<span class="not-valid">{_e(value)} not valid</span>'
+    return f'<td class="num" data-key="{_e(r.key)}" data-invalid="1">—{raw}</td>'
+
+
 def _parameter_table(rows: Sequence[ParameterRow]) -> str:
     has_truth = any(r.truth is not None for r in rows)
-    head = ["Symbol", "Parameter", "Value", "± SE", "Unit", "Flags", "Note"]
+    head = ["Symbol", "Parameter", "Value", "± SE", "Unit", "Validity", "Flags", "Note"]
     if has_truth:
         head += ["Ground truth", "Error [%]"]
     out = ['<table id="parameters"><thead><tr>']
@@ -132,22 +179,26 @@ def _parameter_table(rows: Sequence[ParameterRow]) -> str:
         if r.group != group:
             group = r.group
             out.append(f'<tr class="group"><th colspan="{len(head)}">{_e(group)}</th></tr>')
-        value = r.value if isinstance(r.value, str) else format_number(r.value)
         cells = [
             f"<td>{_e(r.symbol)}</td>",
             f"<td>{_e(r.name)}</td>",
-            f'<td class="num" data-key="{_e(r.key)}">{_e(value)}</td>',
+            _value_cell(r),
             f'<td class="num">{_e(format_number(r.uncertainty))}</td>',
             f"<td>{_e(r.unit)}</td>",
+            _validity_cell(r.validity),
             f"<td>{_flags_html(r.flags)}</td>",
             f"<td>{_e(r.note)}</td>",
         ]
         if has_truth:
-            cells += [
-                f'<td class="num">{_e(format_number(r.truth))}</td>',
-                f'<td class="num">{_e(format_number(r.error_percent))}</td>',
-            ]
-        out.append("<tr>" + "".join(cells) + "</tr>")
+            err = format_number(r.error_percent)
+            err_cell = (
+                f'<td class="num">{_e(err)}</td>'
+                if r.shown_as_result or r.error_percent is None
+                else f'<td class="num"><span class="not-valid">{_e(err)} not valid</span></td>'
+            )
+            cells += [f'<td class="num">{_e(format_number(r.truth))}</td>', err_cell]
+        cls = "" if r.shown_as_result else ' class="invalid"'
+        out.append(f"<tr{cls}>" + "".join(cells) + "</tr>")
     out.append("</tbody></table>")
     return "".join(out)
 
@@ -162,12 +213,48 @@ def _flag_legend(flags: Iterable[str], descriptions: dict[str, str]) -> str:
     return f'<dl class="meta">{items}</dl>'
 
 
+def verdict_html(verdict: VerdictView, key_results: Sequence[tuple[str, str, str]] = ()) -> str:
+    """The verdict box: coloured status and line, the flagged and invalid quantities.
+
+    ``key_results`` are (symbol, value text, validity status) of the primary results.
+    """
+    st = _e(verdict.status)
+    out = [
+        f'<section id="verdict" class="verdict verdict-{st}">',
+        f'<p><span class="badge badge-{st}" id="status">{st}</span>'
+        f'<span id="verdict-line">{_e(verdict.line)}</span></p>',
+    ]
+    if key_results:
+        out.append(
+            '<p id="key-results">'
+            + "; ".join(
+                f'<span class="v-{_e(status)}">{_e(sym)} = {_e(text)}</span>'
+                for sym, text, status in key_results
+            )
+            + "</p>"
+        )
+    if verdict.problems:
+        out.append(
+            '<table id="validity"><thead><tr><th>Quantity</th><th>Status</th><th>Reason</th>'
+            "<th>Flags</th></tr></thead><tbody>"
+        )
+        for p in verdict.problems:
+            out.append(
+                f'<tr data-quantity="{_e(p.quantity)}"><td>{_e(p.symbol)} ({_e(p.name)})</td>'
+                f'<td class="v-{_e(p.status)}">{_e(p.status)}</td><td>{_e(p.reason or "")}</td>'
+                f"<td>{_flags_html(p.flags)}</td></tr>"
+            )
+        out.append("</tbody></table>")
+    out.append("</section>")
+    return "".join(out)
+
+
 def session_page(
     *,
     session_id: str,
-    status: str,
+    verdict: VerdictView,
+    key_results: Sequence[tuple[str, str, str]],
     meta: Sequence[tuple[str, str]],
-    headline: str,
     figures: Sequence[EmbeddedFigure],
     rows: Sequence[ParameterRow],
     flag_descriptions: dict[str, str],
@@ -177,12 +264,14 @@ def session_page(
 
     Parameters
     ----------
-    session_id, status : str
-        Identity and final state of the session.
+    session_id : str
+        Identity of the session.
+    verdict : VerdictView
+        The verdict shown at the top (status, line, flagged and invalid quantities).
+    key_results : sequence of (str, str, str)
+        Symbol, value text and validity status of the primary results (may be empty).
     meta : sequence of (str, str)
-        Header facts (created, duration, source...).
-    headline : str
-        One sentence with the main result (or why there is none).
+        Header facts (created, end state, duration, source...).
     figures : sequence of EmbeddedFigure
         The figures, in display order.
     rows : sequence of ParameterRow
@@ -192,10 +281,9 @@ def session_page(
     notes : sequence of str
         Notes of the run and the analysis.
     """
-    cls = "status-complete" if status == "complete" else "status-other"
     body = [
         f"<h1>STIP-I session report: {_e(session_id)}</h1>",
-        f'<p>Status: <span class="{cls}" id="status">{_e(status)}</span>. {_e(headline)}</p>',
+        verdict_html(verdict, key_results),
         '<dl class="meta">'
         + "".join(f"<dt>{_e(k)}</dt><dd>{_e(v)}</dd>" for k, v in meta)
         + "</dl>",
@@ -208,8 +296,10 @@ def session_page(
     if rows:
         body.append(
             "<p>Uncertainties are one standard error where the analysis provides one (the "
-            "recovery fit); values without one are single readings. Flags qualify a value "
-            "(see below).</p>"
+            "recovery fit); values without one are single readings. Validity: valid, flagged "
+            "(a caveat, the flags that concern the value) or invalid (the value cannot be "
+            "trusted and is not shown as a result: — with the reason, the recorded value "
+            "greyed). Flags are explained below.</p>"
         )
         body.append(_parameter_table(rows))
     else:
@@ -227,11 +317,36 @@ def session_page(
 
 def _stat_cell(group: CompareGroup, key: str) -> str:
     s = next(s for s in group.stats if s.key == key)
+    counts = [
+        f"{n} {what}"
+        for n, what in (
+            (s.n_excluded, "invalid excluded"),
+            (s.n_flagged, "flagged included"),
+            (s.n_unknown, "of unknown validity included"),
+        )
+        if n
+    ]
+    note = f'<span class="not-valid">{_e(", ".join(counts))}</span>' if counts else ""
     if s.mean is None:
-        return '<td class="num">-</td>'
+        return f'<td class="num" data-key="{_e(key)}">-{note}</td>'
     sd = "" if s.sd is None else f" ± {format_number(s.sd)}"
     cv = "" if s.cv_percent is None else f" ({s.cv_percent:.1f} %)"
-    return f'<td class="num" data-key="{_e(key)}">{_e(format_number(s.mean) + sd + cv)}</td>'
+    text = _e(format_number(s.mean) + sd + cv)
+    return f'<td class="num" data-key="{_e(key)}">{text}{note}</td>'
+
+
+def _session_value_cell(value: float | None, status: str) -> str:
+    """One session's value: "—" (value greyed, not valid) when invalid; flagged marked."""
+    text = format_number(value)
+    if value is not None and status == "invalid":
+        return (
+            f'<td class="num" data-validity="invalid">—'
+            f'<span class="not-valid">{_e(text)} not valid</span></td>'
+        )
+    mark = f' <span class="v-{_e(status)}">({_e(status)})</span>' if status != "valid" else ""
+    if value is None:
+        mark = ""
+    return f'<td class="num" data-validity="{_e(status)}">{_e(text)}{mark}</td>'
 
 
 def compare_page(
@@ -242,15 +357,24 @@ def compare_page(
 ) -> str:
     """The HTML page comparing several sessions (Tables I and II style)."""
     params = [(s.key, s.symbol, s.unit) for s in table.overall.stats]
-    head = ["Session", "Label", *[f"{sym} [{unit}]" for _, sym, unit in params], "Severity"]
+    head = [
+        "Session",
+        "Label",
+        "Verdict",
+        *[f"{sym} [{unit}]" for _, sym, unit in params],
+        "Severity",
+    ]
     out = ['<table id="sessions"><thead><tr>']
     out += [f"<th>{_e(h)}</th>" for h in head]
     out.append("</tr></thead><tbody>")
     for i, (sid, label) in enumerate(zip(table.session_ids, table.labels, strict=True)):
-        cells = [f"<td>{_e(sid)}</td>", f"<td>{_e(label)}</td>"]
-        cells += [
-            f'<td class="num">{_e(format_number(s.values[i]))}</td>' for s in table.overall.stats
+        v = table.verdicts[i]
+        cells = [
+            f"<td>{_e(sid)}</td>",
+            f"<td>{_e(label)}</td>",
+            f'<td><span class="badge badge-{_e(v.status)}">{_e(v.status)}</span> {_e(v.line)}</td>',
         ]
+        cells += [_session_value_cell(s.values[i], s.statuses[i]) for s in table.overall.stats]
         cells.append(f"<td>{_e(table.severities[i] or '-')}</td>")
         out.append("<tr>" + "".join(cells) + "</tr>")
     out.append("</tbody></table>")
@@ -278,7 +402,10 @@ def compare_page(
         "<h2>Mean and spread per parameter</h2>",
         "<p>Cells: mean ± SD (CV). SD is the sample standard deviation (n - 1), CV = SD / "
         "|mean|; n counts the sessions of a column, a parameter may have fewer values. "
-        "Sessions sharing a label (repeated trials) form a group.</p>",
+        "Sessions sharing a label (repeated trials) form a group. A value that is invalid in "
+        "its session (see each session's verdict) is never averaged: it is left out of the "
+        "mean and spread and the cell says how many were excluded; flagged values are "
+        "included and counted.</p>",
         "".join(stats),
         "<h2>Each session</h2>",
         per_session,

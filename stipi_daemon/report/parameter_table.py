@@ -18,6 +18,7 @@ from typing import Any, Final
 from stipi_daemon.analysis.flags import FLAG_DESCRIPTIONS, Flag
 from stipi_daemon.analysis.truth_comparison import compare_ground_truth
 from stipi_daemon.report.inputs import flags_at, number_at, value_at
+from stipi_daemon.report.verdict import QuantityStatus, combined, read_validity
 
 __all__ = [
     "FIT",
@@ -74,6 +75,10 @@ class ParameterRow:
         Simulator ground truth, when the session has one.
     error_percent : float or None
         100 (value - truth)/|truth| [%].
+    validity : QuantityStatus or None
+        The validity of the quantities the value depends on (the worst of them; None: the
+        row reports no assessed quantity, e.g. T_0 or R). An ``invalid`` value is recorded
+        here but never shown as a result.
     """
 
     group: str
@@ -87,6 +92,12 @@ class ParameterRow:
     note: str = ""
     truth: float | None = None
     error_percent: float | None = None
+    validity: QuantityStatus | None = None
+
+    @property
+    def shown_as_result(self) -> bool:
+        """False when the value is not valid (the page shows it only greyed, as not valid)."""
+        return self.validity is None or self.validity.status != "invalid"
 
 
 def _viscosity_from_tau_se(results: Mapping[str, Any]) -> float | None:
@@ -122,6 +133,8 @@ class RowSpec:
         Path of the section whose absence ``note_if_absent`` explains.
     note_if_flag : tuple of (str, str) or None
         (flag, note): the note instead when the value carries that flag.
+    validity : tuple of str
+        The quantities of ``summary["validity"]`` the value depends on (empty: none).
     """
 
     group: str
@@ -136,64 +149,83 @@ class RowSpec:
     note_if_absent: str = ""
     requires: str | None = None
     note_if_flag: tuple[str, str] | None = None
+    validity: tuple[str, ...] = ()
 
+
+_DP: Final = ("depth_mm",)
+_FR: Final = ("rebound_force_n",)
+_TR: Final = ("recovery_time_s",)
+_TAU: Final = ("tau_s",)
 
 # fmt: off
 #: The table's fixed lines, in page order (the severity lines follow them).
 PARAMETER_ROWS: Final[tuple[RowSpec, ...]] = (
     RowSpec(PITTING, "T_0", "start of recovery", "t0_s", "s", "pitting.t0_s"),
-    RowSpec(PITTING, "T_s", "S_k settled (98 %)", "ts_s", "s", "pitting.ts_s", flags="pitting"),
-    RowSpec(PITTING, "S_0", "S_k at T_0", "s0_px", "px", "pitting.s0_px"),
-    RowSpec(PITTING, "S_max", "largest S_k", "s_max_px", "px", "pitting.s_max_px"),
+    RowSpec(
+        PITTING, "T_s", "S_k settled (98 %)", "ts_s", "s", "pitting.ts_s", flags="pitting",
+        validity=_TR,
+    ),
+    RowSpec(PITTING, "S_0", "S_k at T_0", "s0_px", "px", "pitting.s0_px", validity=_DP),
+    RowSpec(
+        PITTING, "S_max", "largest S_k", "s_max_px", "px", "pitting.s_max_px", validity=_FR
+    ),
     RowSpec(
         PITTING, "d_s", "depth change (Eq. 4)", "depth_change_mm", "mm",
-        "pitting.depth_change_mm", flags="pitting",
+        "pitting.depth_change_mm", flags="pitting", validity=_DP,
     ),
     RowSpec(
         PITTING, "D_p", "pitting depth (Eq. 3)", "depth_mm", "mm", "pitting.depth_mm",
-        flags="pitting",
+        flags="pitting", validity=_DP,
     ),
     RowSpec(
         PITTING, "F_r", "rebound force (Eq. 5)", "rebound_force_n", "N",
-        "pitting.rebound_force_n", flags="pitting",
+        "pitting.rebound_force_n", flags="pitting", validity=_FR,
     ),
     RowSpec(
         PITTING, "T_r", "recovery time (Eq. 6)", "recovery_time_s", "s",
         "pitting.recovery_time_s", flags="pitting", note="98 % settling time",
         note_if_flag=(Flag.NOT_SETTLED.value, "lower bound: S_k had not settled"),
+        validity=_TR,
     ),
-    RowSpec(VPR, "F_a", "applied force (mean over the hold)", "applied_force_n", "N"),
+    RowSpec(
+        VPR, "F_a", "applied force (mean over the hold)", "applied_force_n", "N",
+        validity=("applied_force_n",),
+    ),
     RowSpec(VPR, "R", "indenter radius", "indenter_radius_mm", "mm"),
     RowSpec(
         VPR, "E", "elasticity (Eq. 7)", "elasticity_kpa", "kPa", "paper_estimator.elasticity_kpa",
         flags="pitting", note_if_absent=_UNDEFINED, requires="paper_estimator",
+        validity=("elasticity_kpa",),
     ),
     RowSpec(
         VPR, "η", "viscosity E·T_r (Eq. 8)", "viscosity_n_s_per_mm2", "N·s/mm²",
         "paper_estimator.viscosity_n_s_per_mm2", flags="pitting", note_if_absent=_UNDEFINED,
-        requires="paper_estimator",
+        requires="paper_estimator", validity=("viscosity_n_s_per_mm2",),
     ),
     RowSpec(
         FIT, "τ", "time constant", "time_constant_s", "s", "fitted_recovery.tau_s",
         uncertainty="fitted_recovery.tau_se_s", flags="fitted_recovery",
-        note_if_absent="no fit (see flags and notes)",
+        note_if_absent="no fit (see flags and notes)", validity=_TAU,
     ),
     RowSpec(
         FIT, "A", "amplitude S_∞ - S_0", "amplitude_px", "px", "fitted_recovery.amplitude_px",
-        uncertainty="fitted_recovery.amplitude_se_px", flags="fitted_recovery",
+        uncertainty="fitted_recovery.amplitude_se_px", flags="fitted_recovery", validity=_TAU,
     ),
     RowSpec(
         FIT, "S_∞", "offset (settled S_k)", "offset_px", "px", "fitted_recovery.offset_px",
-        uncertainty="fitted_recovery.offset_se_px", flags="fitted_recovery",
+        uncertainty="fitted_recovery.offset_se_px", flags="fitted_recovery", validity=_TAU,
     ),
     RowSpec(
         FIT, "η_τ", "viscosity E·τ", "viscosity_from_time_constant_n_s_per_mm2", "N·s/mm²",
         "fitted_recovery.model.viscosity_n_s_per_mm2", uncertainty=_viscosity_from_tau_se,
-        flags="fitted_recovery", note="SE from τ only",
+        flags="fitted_recovery", note="SE from τ only", validity=("tau_s", "elasticity_kpa"),
     ),
-    RowSpec(FIT, "RMSE", "residual RMS", "rmse_px", "px", "fitted_recovery.rmse_px"),
     RowSpec(
-        FIT, "R²", "coefficient of determination", "r_squared", "-", "fitted_recovery.r_squared"
+        FIT, "RMSE", "residual RMS", "rmse_px", "px", "fitted_recovery.rmse_px", validity=_TAU
+    ),
+    RowSpec(
+        FIT, "R²", "coefficient of determination", "r_squared", "-", "fitted_recovery.r_squared",
+        validity=_TAU,
     ),
     RowSpec(FIT, "n", "frames fitted", "n_points", "-", "fitted_recovery.n_points"),
 )
@@ -204,8 +236,10 @@ def _at(results: Mapping[str, Any], path: str) -> Any:
     return value_at(results, *path.split("."))
 
 
-def _render(spec: RowSpec, results: Mapping[str, Any]) -> ParameterRow:
-    """The line ``spec`` describes, read from ``results``."""
+def _render(
+    spec: RowSpec, results: Mapping[str, Any], validity: Mapping[str, QuantityStatus] | None
+) -> ParameterRow:
+    """The line ``spec`` describes, read from ``results``, with its quantities' validity."""
     value = number_at(results, *(spec.value or spec.key).split("."))
     if spec.uncertainty is None:
         se = None
@@ -219,18 +253,38 @@ def _render(spec: RowSpec, results: Mapping[str, Any]) -> ParameterRow:
     if spec.note_if_flag is not None and spec.note_if_flag[0] in flags:
         note = spec.note_if_flag[1]
     return ParameterRow(
-        spec.group, spec.symbol, spec.name, spec.key, value, se, spec.unit, flags, note
+        spec.group,
+        spec.symbol,
+        spec.name,
+        spec.key,
+        value,
+        se,
+        spec.unit,
+        flags,
+        note,
+        validity=combined(validity, spec.validity),
     )
 
 
-def _severity_rows(results: Mapping[str, Any]) -> list[ParameterRow]:
+#: Quantities each estimator's severity depends on (its class and recovered percentage).
+_SEVERITY_VALIDITY: Final = {"paper_estimator": ("severity",), "fitted_recovery": ("tau_s",)}
+
+
+def _severity_rows(
+    results: Mapping[str, Any], validity: Mapping[str, QuantityStatus] | None
+) -> list[ParameterRow]:
     """Class and recovered percentage of each estimator of :data:`SEVERITY_ESTIMATORS`."""
     rows: list[ParameterRow] = []
     for est, label in SEVERITY_ESTIMATORS:
         name, key = f"severity ({label})", f"severity_{est}"
         s = value_at(results, "severity", est)
+        valid = combined(validity, _SEVERITY_VALIDITY[est])
         if not isinstance(s, Mapping):
-            rows.append(ParameterRow(SEVERITY, "class", name, key, None, None, "", (), _UNDEFINED))
+            rows.append(
+                ParameterRow(
+                    SEVERITY, "class", name, key, None, None, "", (), _UNDEFINED, validity=valid
+                )
+            )
             continue
         w = value_at(s, "window_s")
         window = f"{w[0]:g}-{w[1]:g} s" if isinstance(w, list) and len(w) == 2 else "?"
@@ -238,7 +292,7 @@ def _severity_rows(results: Mapping[str, Any]) -> list[ParameterRow]:
         flags = flags_at(s)
         grade = f"{s.get('severity')} (nearest grade {s.get('nearest_grade')})"
         rows += [
-            ParameterRow(SEVERITY, "class", name, key, grade, None, "", flags),
+            ParameterRow(SEVERITY, "class", name, key, grade, None, "", flags, validity=valid),
             ParameterRow(
                 SEVERITY,
                 "recovered",
@@ -249,6 +303,7 @@ def _severity_rows(results: Mapping[str, Any]) -> list[ParameterRow]:
                 "%",
                 flags,
                 "" if thr is None else f"severe below {thr:.1f} %",
+                validity=valid,
             ),
         ]
     return rows
@@ -274,16 +329,19 @@ def _with_ground_truth(
 
 
 def parameter_table(summary: Mapping[str, Any] | None) -> tuple[ParameterRow, ...]:
-    """Every result of the session's summary, with uncertainties, flags and ground truth.
+    """Every result of the session's summary, with uncertainties, flags, validity and truth.
 
     The lines of :data:`PARAMETER_ROWS`, then each estimator's severity. The standard
-    error of eta = E tau is propagated from tau's alone (E has none). Empty when the
-    summary has no results.
+    error of eta = E tau is propagated from tau's alone (E has none). Each row carries the
+    validity of the quantities it depends on (``unknown`` for a session recorded before
+    validity was kept). Empty when the summary has no results.
     """
     res = value_at(summary, "results")
     if not isinstance(res, Mapping):
         return ()
-    rows = [_render(spec, res) for spec in PARAMETER_ROWS] + _severity_rows(res)
+    validity = read_validity(summary)
+    rows = [_render(spec, res, validity) for spec in PARAMETER_ROWS]
+    rows += _severity_rows(res, validity)
     truth = value_at(summary, "ground_truth")
     if isinstance(truth, Mapping):
         rows = _with_ground_truth(rows, summary or {}, truth)

@@ -33,6 +33,7 @@ from stipi_daemon.report.figures import (
     WindowSearchFigure,
 )
 from stipi_daemon.report.panels import FramePanel
+from stipi_daemon.report.series import TimeGap
 
 __all__ = [
     "DPI",
@@ -114,6 +115,46 @@ def _shade_phases(ax: Axes, phases: Sequence[PhaseSpan]) -> list[Patch]:
 _UNSHADED: Final = frozenset({"idle", "analysis", "done"})
 
 
+#: Gaps labelled with their length on a figure (the longest ones; all are shaded).
+_GAP_LABELS: Final = 6
+_GAP_COLOUR: Final = "#6a6a6a"
+
+
+def _shade_gaps(ax: Axes, gaps: Sequence[TimeGap], what: str, gid: str) -> list[Patch]:
+    """Hatch each gap's span (gid ``gid``) and label the longest; returns a legend handle."""
+    if not gaps:
+        return []
+    for g in gaps:
+        span = ax.axvspan(
+            g.start_s,
+            g.end_s,
+            facecolor="#d9d9d9",
+            edgecolor=_GAP_COLOUR,
+            hatch="///",
+            alpha=0.8,
+            lw=0.6,
+            zorder=2,
+        )
+        span.set_gid(gid)
+    for g in sorted(gaps, key=lambda g: g.duration_s, reverse=True)[:_GAP_LABELS]:
+        ax.text(
+            0.5 * (g.start_s + g.end_s),
+            0.98,
+            f"{what} gap {g.duration_s:.2f} s",
+            transform=ax.get_xaxis_transform(),
+            rotation=90,
+            ha="center",
+            va="top",
+            fontsize=7,
+            color="#333333",
+            zorder=6,
+            bbox={"facecolor": "white", "edgecolor": "none", "alpha": 0.7, "pad": 1.0},
+        )
+    longest = max(g.duration_s for g in gaps)
+    label = f"{what} gaps: {len(gaps)} (longest {longest:.2f} s), line broken"
+    return [Patch(facecolor="#d9d9d9", edgecolor=_GAP_COLOUR, hatch="///", label=label)]
+
+
 def _vline(ax: Axes, x: float | None, label: str, colour: str, style: str = "--") -> None:
     if x is not None and math.isfinite(x):
         ax.axvline(x, color=colour, ls=style, lw=1.2, label=label, zorder=3)
@@ -124,7 +165,10 @@ def draw_force(data: ForceFigure, title: str = "") -> Figure:
     fig = _figure(4.2)
     ax = fig.axes[0]
     handles = _shade_phases(ax, data.phases)
-    (line,) = ax.plot(data.t_s, data.force_n, color="#1f3b73", lw=0.9, label="load cell force")
+    handles += _shade_gaps(ax, data.gaps, "force", "force_gap")
+    (line,) = ax.plot(
+        data.line_t_s, data.line_force_n, color="#1f3b73", lw=0.9, label="load cell force"
+    )
     line.set_gid("force")
     if data.target_n is not None and data.tolerance_n is not None:
         band = ax.axhspan(
@@ -154,6 +198,7 @@ def draw_force(data: ForceFigure, title: str = "") -> Figure:
             label=f"$F_a$ = {data.applied_force_n:.2f} N (mean over the hold)",
         )
         fa.set_gid("applied_force")
+    _vline(ax, data.release_s, "release detected", "#ff7f0e", ":")
     _vline(ax, data.t0_s, "$T_0$ (start of recovery)", "#2ca02c")
     ax.set_xlabel("time [s] (session clock)")
     ax.set_ylabel("force [N]")
@@ -164,13 +209,52 @@ def draw_force(data: ForceFigure, title: str = "") -> Figure:
     return fig
 
 
+def _mark_frames(ax: Axes, data: SkFigure) -> None:
+    """Outlier frames (red crosses) and frames without a finite S_k (ticks at the bottom)."""
+    if data.outlier_t_s.size:
+        (mk,) = ax.plot(
+            data.outlier_t_s,
+            data.outlier_s_k_px,
+            "X",
+            color="#d62728",
+            ms=8,
+            ls="none",
+            label=f"isolated outlier frames ({data.outlier_t_s.size})",
+            zorder=5,
+        )
+        mk.set_gid("outliers")
+    if data.nan_frame_t_s.size:
+        (nan,) = ax.plot(
+            data.nan_frame_t_s,
+            np.full(data.nan_frame_t_s.size, 0.03),
+            "|",
+            color="#d62728",
+            ms=12,
+            mew=1.5,
+            ls="none",
+            transform=ax.get_xaxis_transform(),
+            label=f"frames without S_k (NaN, dropped: {data.nan_frame_t_s.size})",
+            zorder=5,
+        )
+        nan.set_gid("nan_frames")
+
+
 def draw_s_k(data: SkFigure, title: str = "") -> Figure:
-    """S_k over time with the phases, T_0, T_s, S_0, S_max and the settling line (Eq. 6)."""
+    """S_k over time with the phases, T_0, T_s, S_0, S_max and the settling line (Eq. 6).
+
+    The line breaks at gaps (hatched, labelled with their length); the detected release,
+    isolated outlier frames and frames without S_k are marked.
+    """
     fig = _figure(4.2)
     ax = fig.axes[0]
     handles = _shade_phases(ax, data.phases)
-    (line,) = ax.plot(data.t_s, data.s_k_px, color="#222222", lw=0.9, label="$S_k$ (Eq. 2)")
+    handles += _shade_gaps(ax, data.gaps, "frame", "frame_gap")
+    (line,) = ax.plot(
+        data.line_t_s, data.line_s_k_px, color="#222222", lw=0.9, label="$S_k$ (Eq. 2)"
+    )
     line.set_gid("s_k")
+    _mark_frames(ax, data)
+    _vline(ax, data.release_s, "release detected", "#ff7f0e", ":")
     _vline(ax, data.t0_s, "$T_0$ (start of recovery)", "#2ca02c")
     _vline(ax, data.ts_s, "$T_s$ (settled)", "#9467bd")
     if data.settle_level_px is not None:

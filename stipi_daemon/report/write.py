@@ -36,7 +36,8 @@ from stipi_daemon.report.html import EmbeddedFigure, compare_page, format_number
 from stipi_daemon.report.inputs import ReportInput
 from stipi_daemon.report.load import load_report_input
 from stipi_daemon.report.panels import frame_panels
-from stipi_daemon.report.parameter_table import flag_descriptions, parameter_table
+from stipi_daemon.report.parameter_table import ParameterRow, flag_descriptions, parameter_table
+from stipi_daemon.report.verdict import read_validity, session_verdict
 
 __all__ = [
     "COMPARE_FIGURES",
@@ -152,27 +153,34 @@ def _notes(inp: ReportInput) -> list[str]:
     return _unique(out)
 
 
-def _headline(inp: ReportInput) -> str:
-    res = inp.results
-    if res is None:
-        err = (inp.summary or {}).get("analysis_error")
-        return f"No results{': ' + str(err) if err else ''}."
-    parts = []
-    for est, label in (("paper_estimator", "paper estimator"), ("fitted_recovery", "fit")):
-        sev = (res.get("severity") or {}).get(est)
-        if isinstance(sev, dict):
-            parts.append(
-                f"{sev.get('severity')} edema, nearest grade {sev.get('nearest_grade')} "
-                f"({label}: {format_number(sev.get('recovered_percent'))} % recovered over "
-                f"the window, threshold {format_number(sev.get('threshold_recovered_percent'))} %)"
-            )
-    pit = res.get("pitting") or {}
-    parts.append(
-        f"D_p = {format_number(pit.get('depth_mm'), 'mm')}, "
-        f"F_r = {format_number(pit.get('rebound_force_n'), 'N')}, "
-        f"T_r = {format_number(pit.get('recovery_time_s'), 's')}"
-    )
-    return "; ".join(parts) + "."
+#: Rows of the parameter table summarised next to the verdict (the primary results).
+_KEY_ROWS: Final = (
+    "depth_mm",
+    "rebound_force_n",
+    "recovery_time_s",
+    "elasticity_kpa",
+    "viscosity_n_s_per_mm2",
+    "severity_paper_estimator",
+)
+
+
+def _key_results(rows: Sequence[ParameterRow]) -> list[tuple[str, str, str]]:
+    """(symbol, value text, validity status) of each primary result; "—" when not valid."""
+    by_key = {r.key: r for r in rows}
+    out: list[tuple[str, str, str]] = []
+    for key in _KEY_ROWS:
+        row = by_key.get(key)
+        if row is None:
+            continue
+        status = "unknown" if row.validity is None else row.validity.status
+        if not row.shown_as_result:
+            text = "— (not valid)"
+        elif isinstance(row.value, str):
+            text = row.value
+        else:
+            text = format_number(row.value, row.unit)
+        out.append(("severity" if key.startswith("severity") else row.symbol, text, status))
+    return out
 
 
 def _meta(inp: ReportInput) -> list[tuple[str, str]]:
@@ -182,6 +190,7 @@ def _meta(inp: ReportInput) -> list[tuple[str, str]]:
     cal = inp.calibration
     meta = [
         ("Created (UTC)", inp.created_utc or "-"),
+        ("Session ended", inp.status),
         ("Phase / end", f"{s.get('phase', '-')} / {s.get('end_reason') or '-'}"),
         (
             "Recorded",
@@ -206,7 +215,7 @@ def _session_makers(
     inp: ReportInput, ref: SeverityReference
 ) -> list[tuple[str, str, str, FigureMaker]]:
     """The figures of :data:`SESSION_FIGURES` for ``inp``: name, title, caption, maker."""
-    vpr = vpr_figure(inp.results, ref)
+    vpr = vpr_figure(inp.results, ref, validity=read_validity(inp.summary))
     no_results = "the session has no results" + (
         f" ({inp.summary['analysis_error']})"
         if inp.summary and inp.summary.get("analysis_error")
@@ -239,7 +248,12 @@ def _session_makers(
             )
         return r.draw_frames(panels)
 
-    vpr_note = "" if vpr.measurements else f" This session's curves are missing: {no_results}."
+    if vpr.omitted:
+        vpr_note = " Not drawn, as not valid: " + "; ".join(vpr.omitted) + "."
+    elif not vpr.measurements:
+        vpr_note = f" This session's curves are missing: {no_results}."
+    else:
+        vpr_note = ""
     return [
         (
             "force",
@@ -318,9 +332,9 @@ def render_session_report(
     rows = parameter_table(inp.summary)
     page = session_page(
         session_id=inp.session_id,
-        status=inp.status,
+        verdict=session_verdict(inp.summary, inp.status),
+        key_results=_key_results(rows),
         meta=_meta(inp),
-        headline=_headline(inp),
         figures=embedded,
         rows=rows,
         flag_descriptions=flag_descriptions(),

@@ -107,7 +107,8 @@ def test_report_of_a_session_without_results(demo_session: Path, tmp_path: Path)
     assert set(written.missing) == {"recovery_fit", "frames"}
     assert {"force", "s_k", "vpr", "vpr_normalised", "window_search"} <= set(written.figures)
     page = written.html_path.read_text(encoding="utf-8")
-    assert 'id="status">interrupted<' in page
+    assert 'id="status">incomplete<' in page
+    assert "Session incomplete (interrupted): no summary.json, no results." in page
     assert "The session has no results." in page
     assert "Not drawn: the session has no results" in page
     assert "no summary.json" in page

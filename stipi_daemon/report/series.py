@@ -1,0 +1,144 @@
+"""What the report derives from a stored time series: gaps, broken lines, outlier frames.
+
+A session stores every frame's capture time and S_k and every force sample; it does not
+store where the stream was interrupted. The report shows it: :func:`find_gaps` finds the
+intervals longer than :data:`GAP_FACTOR` times the median sampling period, and
+:func:`broken_line` inserts a NaN inside each so that a plotted line stops at a gap
+instead of drawing a straight segment across it (matplotlib leaves NaN points out).
+:func:`isolated_outliers` finds single frames far from their neighbours (a dark or bright
+frame in the recovery), when the analysis did not record which frames it rejected.
+Pure (no I/O, no drawing). Times are in seconds, S_k in pixels.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Final
+
+import numpy as np
+import numpy.typing as npt
+
+from stipi_daemon.report.inputs import FloatArray
+
+__all__ = [
+    "GAP_FACTOR",
+    "OUTLIER_MIN_FRACTION",
+    "OUTLIER_NEIGHBOURS",
+    "OUTLIER_NOISE_FACTOR",
+    "TimeGap",
+    "broken_line",
+    "find_gaps",
+    "isolated_outliers",
+]
+
+#: An interval between consecutive samples longer than this many median periods is a gap.
+GAP_FACTOR: Final = 1.5
+#: Frames on each side whose median an outlier candidate is compared with.
+OUTLIER_NEIGHBOURS: Final = 2
+#: A frame is an outlier when it lies further than this many robust noise SDs from the
+#: median of its neighbours...
+OUTLIER_NOISE_FACTOR: Final = 8.0
+#: ...and further than this fraction of the series' range (so smooth noise never counts).
+OUTLIER_MIN_FRACTION: Final = 0.1
+
+
+@dataclass(frozen=True)
+class TimeGap:
+    """An interval without samples.
+
+    Attributes
+    ----------
+    start_s, end_s : float
+        The last sample before the gap and the first after it [s].
+    missing : int
+        Samples expected in it at the median period and not recorded (at least 1).
+    """
+
+    start_s: float
+    end_s: float
+    missing: int
+
+    @property
+    def duration_s(self) -> float:
+        """Length of the gap [s]."""
+        return self.end_s - self.start_s
+
+
+def find_gaps(times_s: FloatArray, factor: float = GAP_FACTOR) -> tuple[TimeGap, ...]:
+    """Intervals between consecutive samples longer than ``factor`` median periods.
+
+    Parameters
+    ----------
+    times_s : numpy.ndarray
+        Sample times [s], increasing (non-finite times are ignored).
+    factor : float
+        Threshold as a multiple of the median interval [-] (1.5: one lost frame is a gap).
+
+    Returns
+    -------
+    tuple of TimeGap
+        In time order; empty with fewer than three samples or a zero median period.
+    """
+    t = times_s[np.isfinite(times_s)]
+    if t.size < 3:
+        return ()
+    dt = np.diff(t)
+    period = float(np.median(dt))
+    if period <= 0.0:
+        return ()
+    idx = np.flatnonzero(dt > factor * period)
+    return tuple(
+        TimeGap(float(t[i]), float(t[i + 1]), max(1, round(float(dt[i]) / period) - 1)) for i in idx
+    )
+
+
+def broken_line(
+    times_s: FloatArray, values: FloatArray, gaps: tuple[TimeGap, ...]
+) -> tuple[FloatArray, FloatArray]:
+    """``times_s``, ``values`` with one NaN point inside each gap, so a line breaks there.
+
+    The NaN point is placed at the middle of the gap; every stored sample is kept, in order.
+    """
+    if not gaps:
+        return times_s.copy(), values.copy()
+    mids = np.asarray([0.5 * (g.start_s + g.end_s) for g in gaps], dtype=np.float64)
+    at = np.searchsorted(times_s, mids)
+    t = np.insert(times_s, at, mids)
+    v = np.insert(values.astype(np.float64), at, np.nan)
+    return t, v
+
+
+def isolated_outliers(
+    times_s: FloatArray, s_k_px: FloatArray, t_from_s: float | None
+) -> npt.NDArray[np.bool_]:
+    """Single frames after ``t_from_s`` far from the median of their neighbours.
+
+    Only the finite frames after ``t_from_s`` are considered (the step at the release is
+    not an outlier). For each, r = S_k - median of the :data:`OUTLIER_NEIGHBOURS` frames on
+    each side (the frame itself excluded; the ends repeat the first and last frame). The
+    noise sigma is 1.4826 median |r| (the median absolute deviation, robust to the outliers
+    themselves).
+    A frame is an outlier when |r| > :data:`OUTLIER_NOISE_FACTOR` sigma and
+    |r| > :data:`OUTLIER_MIN_FRACTION` of the range of the neighbour medians: a dark frame
+    (S_k jumps up) or a bright one (S_k drops) that its neighbours do not follow.
+
+    Returns
+    -------
+    numpy.ndarray of bool
+        One entry per frame; False before ``t_from_s`` (None: nowhere) and for NaN frames.
+    """
+    out = np.zeros(times_s.shape, dtype=bool)
+    k = OUTLIER_NEIGHBOURS
+    if t_from_s is None:
+        return out
+    ok = np.flatnonzero(np.isfinite(s_k_px) & np.isfinite(times_s) & (times_s > t_from_s))
+    if ok.size < 2 * k + 1:
+        return out
+    s = s_k_px[ok]
+    windows = np.lib.stride_tricks.sliding_window_view(np.pad(s, k, mode="edge"), 2 * k + 1)
+    med = np.median(np.delete(windows, k, axis=1), axis=1)
+    r = np.abs(s - med)
+    sigma = 1.4826 * float(np.median(r))
+    spread = float(np.max(med) - np.min(med))
+    out[ok[(r > OUTLIER_NOISE_FACTOR * sigma) & (r > OUTLIER_MIN_FRACTION * spread)]] = True
+    return out
