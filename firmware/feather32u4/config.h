@@ -45,6 +45,34 @@
 #define STIPI_ADC_BITS 10            // ATmega32u4 ADC resolution [bit]
 #define STIPI_ADC_REF_MV 3300UL      // AVcc reference on the 3.3 V Feather [mV]
 #define STIPI_VBAT_DIVIDER 2UL       // VBAT is read through a 1:2 divider on the Feather
+// Oversampling (src/core/oversample.h): up to STIPI_OVERSAMPLE_MAX conversions back to back from
+// each sample instant, averaged; fewer at high rates so that they fit the period (16 up to
+// 500 Hz, 8 up to 900 Hz, 4 at 1000 Hz). A conversion is 13 ADC clocks = 104 us at 125 kHz;
+// the budget adds the interrupt latency.
+#define STIPI_OVERSAMPLE_MAX 16      // power of two, <= 16
+#define STIPI_ADC_CONV_BUDGET_US 115 // time reserved per conversion [us]
+// Extra bits on the wire: 0 keeps SAMPLES.adc in 10-bit counts (the averaged mean, rounded;
+// calibrations and the host's load-cell model stay valid); 2 sends 12-bit counts (sum of 16
+// conversions / 4) and GET_INFO reports adc_bits = 12 (recalibrate: zero and span change x4).
+#ifndef STIPI_ADC_EXTRA_BITS
+#define STIPI_ADC_EXTRA_BITS 0
+#endif
+#define STIPI_ADC_OUT_BITS (STIPI_ADC_BITS + STIPI_ADC_EXTRA_BITS)  // SAMPLES.adc bits
+
+// ---- FC22 supply (ratiometric correction) -------------------------------------------------
+// The FC22 output is ratiometric to its 5 V supply (USB), the ADC to the 3.3 V regulator. Wire
+// the 5 V rail through two equal resistors (e.g. 10 k / 10 k: 2.5 V = 776 counts) to an analog
+// pin and set STIPI_PIN_SUPPLY5 to it (e.g. -DSTIPI_PIN_SUPPLY5=19 for A1): every sample is then
+// scaled by nominal/measured supply (both voltages cancel) and STATUS.supply_mv reports the
+// 5 V rail. Left at -1 (not wired), samples are uncorrected, STATUS.supply_mv is VBAT (A9) and
+// STATUS.flags bit 4 says "force not supply-corrected".
+#ifndef STIPI_PIN_SUPPLY5
+#define STIPI_PIN_SUPPLY5 -1
+#endif
+#define STIPI_SUPPLY5_DIVIDER 2UL          // 5 V rail / voltage at the pin
+#define STIPI_SUPPLY5_NOMINAL_MV 5000UL    // the supply the calibration refers to [mV]
+#define STIPI_SUPPLY5_MIN_MV 4000UL        // outside this range the reading is not trusted
+#define STIPI_SUPPLY5_MAX_MV 5600UL        // (no correction, flag set) [mV]
 
 // ---- sampling -----------------------------------------------------------------------------
 #define STIPI_DEFAULT_RATE_HZ 100    // sample rate after boot [Hz]
@@ -60,6 +88,7 @@
 #define STIPI_HEARTBEAT_PERIOD_US 500000UL   // STATUS period [us]; protocol requires <= 1 s
 #define STIPI_LINK_READ_BUDGET 32            // bytes read per link per loop pass [B]
 #define STIPI_USB_TX_RING 160                // USB CDC frames waiting for the endpoint [B]
+#define STIPI_UART1_TX_RING 128              // Serial1 frames waiting for its TX buffer [B]
 
 // ---- BLE / SDEP ---------------------------------------------------------------------------
 #define STIPI_SDEP_CS_SETUP_US 100           // wait after asserting CS [us] (hardware.md)

@@ -29,15 +29,23 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         "--port", default="/dev/ttyACM0", help="the probe's serial port (default /dev/ttyACM0)"
     )
     parser.add_argument(
-        "--hex", type=Path, metavar="F", default=None,
+        "--hex",
+        type=Path,
+        metavar="F",
+        default=None,
         help="firmware hex to write (default: build firmware/feather32u4)",
     )
     parser.add_argument(
-        "--timeout", type=float, default=10.0, metavar="S",
+        "--timeout",
+        type=float,
+        default=10.0,
+        metavar="S",
         help="seconds to wait for the bootloader's port (default 10)",
     )
     parser.add_argument(
-        "--ports-glob", default="/dev/ttyACM*", metavar="GLOB",
+        "--ports-glob",
+        default="/dev/ttyACM*",
+        metavar="GLOB",
         help="where the bootloader's port may appear (default /dev/ttyACM*)",
     )
     parser.add_argument("--avrdude", default="avrdude", help=argparse.SUPPRESS)
@@ -47,7 +55,10 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
 def _run(args: argparse.Namespace) -> int:
     try:
         flashing.flash(
-            args.port, args.hex, avrdude=args.avrdude, ports_glob=args.ports_glob,
+            args.port,
+            args.hex,
+            avrdude=args.avrdude,
+            ports_glob=args.ports_glob,
             timeout_s=args.timeout,
         )
     except flashing.FlashError as exc:

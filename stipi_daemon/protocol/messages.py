@@ -132,13 +132,19 @@ class AckStatus(IntEnum):
 
 
 class StatusFlags(IntFlag):
-    """STATUS ``flags`` bits (bits 4..7 reserved, kept if set)."""
+    """STATUS ``flags`` bits (bits 5..7 reserved, kept if set).
+
+    ``SUPPLY_UNCORRECTED`` (bit 4, firmware 1.0 on): the load-cell counts are not corrected
+    for the FC22's 5 V supply (no supply sense wired), so they carry its error (up to
+    +/-5 % of reading on USB power, docs/firmware.md). Probes that predate the bit send 0.
+    """
 
     NONE = 0
     STREAMING = 0x01
     BLE_CONNECTED = 0x02
     USB_OPEN = 0x04
     CAL_VALID = 0x08
+    SUPPLY_UNCORRECTED = 0x10
 
 
 def _check_int(name: str, value: object, lo: int, hi: int) -> int:

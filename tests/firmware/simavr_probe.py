@@ -38,6 +38,8 @@ SIMAVR_HEADER = Path("/usr/include/simavr/sim_avr.h")
 
 VREF_MV = 3300
 """AVcc reference the firmware selects (config.h ``STIPI_ADC_REF_MV``) [mV]."""
+ADC_EXTRA_BITS = 0
+"""Bits oversampling adds to the 10-bit count (config.h ``STIPI_ADC_EXTRA_BITS``)."""
 ADC_CHANNEL = 7
 """A0 = PF7 = ADC7, the load-cell input (config.h ``STIPI_PIN_LOADCELL``)."""
 OCR3AL_ADDR = 0x98
@@ -115,6 +117,25 @@ class HarnessLog:
     def conversion_mv(self) -> np.ndarray:
         """Integer millivolts the harness fed at each of those conversions [mV]."""
         return np.array([int(kv["mv"]) for kv in self.of("ADC")], dtype=np.int64)
+
+    def bursts(
+        self, gap_s: float = 200e-6
+    ) -> tuple[np.ndarray, list[np.ndarray], list[np.ndarray]]:
+        """The firmware's samples as the harness saw them: each sample is a burst of 2^k
+        back-to-back conversions (~115 us apart; config.h ``STIPI_OVERSAMPLE_MAX``), bursts
+        separated by more than ``gap_s``. Returns the start of each burst [s], the conversion
+        instants [s] and the millivolts fed, per burst."""
+        t = self.conversion_times_s()
+        mv = self.conversion_mv()
+        if len(t) == 0:
+            return t, [], []
+        starts = np.flatnonzero(np.r_[True, np.diff(t) > gap_s])
+        ends = np.r_[starts[1:], len(t)]
+        return (
+            t[starts],
+            [t[a:b] for a, b in zip(starts, ends, strict=True)],
+            [mv[a:b] for a, b in zip(starts, ends, strict=True)],
+        )
 
     def last_speed(self) -> float:
         """Simulated seconds per wall second at the last TIME or EXIT line."""
@@ -408,6 +429,31 @@ def assert_counts_are_fed_wave(adc: np.ndarray, fed_mv: np.ndarray, wave_mv: np.
     """
     assert np.array_equal(adc, counts_of_mv(fed_mv))
     assert np.max(np.abs(fed_mv - wave_mv)) <= 0.5 + 2e-3, np.max(np.abs(fed_mv - wave_mv))
+
+
+def oversampled_counts(fed_mv: list[np.ndarray], extra_bits: int = ADC_EXTRA_BITS) -> np.ndarray:
+    """What the firmware sends for bursts of conversions fed ``fed_mv`` (src/core/oversample.h
+    without supply correction): the sum of simavr's counts scaled to 10 + ``extra_bits`` bits,
+    rounded half up."""
+    out = []
+    for mv in fed_mv:
+        n = len(mv)
+        log2n = n.bit_length() - 1
+        assert n == 1 << log2n, f"a burst of {n} conversions"
+        total = int(counts_of_mv(mv).sum())
+        shift = log2n - extra_bits
+        out.append((total + (1 << (shift - 1))) >> shift if shift > 0 else total << -shift)
+    return np.array(out, dtype=np.int64)
+
+
+def assert_samples_are_fed_bursts(
+    adc: np.ndarray, fed_mv: list[np.ndarray], wave_mv: list[np.ndarray]
+) -> None:
+    """Each sample is the oversampled value of the millivolts the harness fed during its
+    burst, and those are the waveform at each conversion, rounded to integer mV."""
+    assert np.array_equal(adc, oversampled_counts(fed_mv))
+    dev = max(float(np.max(np.abs(f - w))) for f, w in zip(fed_mv, wave_mv, strict=True))
+    assert dev <= 0.5 + 2e-3, dev
 
 
 def nearest(times_s: np.ndarray, t_s: np.ndarray) -> np.ndarray:

@@ -25,8 +25,11 @@ def test_flash_writes_the_real_hex_into_caterina(tmp_path: Path) -> None:
     lines: list[str] = []
     try:
         port = flashmod.flash(
-            str(sim.app_link), hex_path, ports_glob=str(tmp_path / "ttyACM*"),
-            timeout_s=10, log=lines.append,
+            str(sim.app_link),
+            hex_path,
+            ports_glob=str(tmp_path / "ttyACM*"),
+            timeout_s=10,
+            log=lines.append,
         )
     finally:
         sim.close()
@@ -62,8 +65,19 @@ def test_cli_flash_writes_the_hex_into_caterina(tmp_path: Path) -> None:
     hex_path = flashmod.build_hex(FIRMWARE_DIR)
     sim = CaterinaSim(tmp_path)
     try:
-        rc = main(["flash", "--port", str(sim.app_link), "--hex", str(hex_path),
-                   "--ports-glob", str(tmp_path / "ttyACM*"), "--timeout", "10"])
+        rc = main(
+            [
+                "flash",
+                "--port",
+                str(sim.app_link),
+                "--hex",
+                str(hex_path),
+                "--ports-glob",
+                str(tmp_path / "ttyACM*"),
+                "--timeout",
+                "10",
+            ]
+        )
     finally:
         sim.close()
     assert rc == 0

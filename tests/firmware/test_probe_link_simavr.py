@@ -35,7 +35,7 @@ from tests.firmware.simavr_probe import (
     FIRMWARE_ELF,
     SIMAVR_HEADER,
     Harness,
-    assert_counts_are_fed_wave,
+    assert_samples_are_fed_bursts,
     build,
     nearest,
     write_wave,
@@ -140,7 +140,7 @@ async def test_probe_link_streams_the_real_firmware(
     assert link.accounting.lost == len(lost) and link.accounting.received == len(idx)
 
     # every count is what the harness fed at that sample's conversion
-    conv = h.log.conversion_times_s()
+    conv, burst_t, burst_mv = h.log.bursts()
     t_mcu_s = np.array([r.t_mcu_us for r in got]) * 1e-6
     k = nearest(conv, t_mcu_s)
     offset_s = conv[k] - t_mcu_s
@@ -148,7 +148,9 @@ async def test_probe_link_streams_the_real_firmware(
     # interrupts (Timer0, UART): the spread stays within a few ticks.
     assert 0 <= np.median(offset_s) < 3e-3 and np.ptp(offset_s) < 5 * 8e-6
     adc = np.array([r.adc_counts for r in got])
-    assert_counts_are_fed_wave(adc, h.log.conversion_mv()[k], np.interp(conv[k], t_wave, mv))
+    assert_samples_are_fed_bursts(
+        adc, [burst_mv[i] for i in k], [np.interp(burst_t[i], t_wave, mv) for i in k]
+    )
     force = np.array([r.force_n for r in got], dtype=np.float64)
     assert np.allclose(force, (adc - 512) * 0.01)
     # rate and clock: simulated time runs at wall speed, so the mapped times follow it

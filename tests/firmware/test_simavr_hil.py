@@ -42,6 +42,7 @@ from tests.firmware.simavr_probe import (
     Harness,
     SimProbe,
     assert_counts_are_fed_wave,
+    assert_samples_are_fed_bursts,
     build,
     counts_of_mv,
     flatten,
@@ -146,16 +147,16 @@ def test_stream_follows_waveform_at_default_rate(
     assert np.all(s.period_us == round(1e6 / DEFAULT_RATE_HZ))
     # Rate in simulated time: from the probe's timestamps and from the harness's clock.
     assert abs(rate_hz(s) / DEFAULT_RATE_HZ - 1) < 0.01, rate_hz(s)
-    conv = probe.log.conversion_times_s()
+    conv, burst_t, burst_mv = probe.log.bursts()
     conv_rate = 1.0 / float(np.median(np.diff(conv)))
     assert abs(conv_rate / DEFAULT_RATE_HZ - 1) < 0.01, conv_rate
     # Probe clock vs simulated clock: micros() starts when init() configures Timer0, after
     # the C runtime has initialised RAM (~1 ms after reset), so the host maps t_us onto
     # simulated time with a constant offset, as it does with the real clock (protocol.md).
-    # Each sample's conversion (nearest in time; the offset is far below half a period)
-    # starts a constant offset after its timestamp: the jitter is the ISR's, microseconds.
+    # Each sample's burst of conversions (nearest in time; the offset is far below half a
+    # period) starts a constant offset after its timestamp: the jitter is the ISR's.
     k = nearest(conv, s.t_us * 1e-6)
-    assert len(np.unique(k)) == len(k), "two samples matched to one conversion"
+    assert len(np.unique(k)) == len(k), "two samples matched to one burst"
     offset_s = conv[k] - s.t_us * 1e-6
     assert 0 <= np.median(offset_s) < 3e-3, np.median(offset_s)
     # micros() ticks every 8 us at 8 MHz and the sample ISR's entry latency varies with the
@@ -163,12 +164,19 @@ def test_stream_follows_waveform_at_default_rate(
     # instants): the spread stays within a few ticks (21 us seen once in ~30 runs; 5 ticks
     # as in test_probe_link_simavr.py).
     assert np.ptp(offset_s) < 5 * 8e-6, np.ptp(offset_s)
-    # ADC counts against the waveform at the samples' simulated times: within ±2 counts.
+    # 16 conversions per sample at 100 Hz (oversampling, config.h), ~115 us apart.
+    assert all(len(burst_mv[i]) == 16 for i in k)
+    # ADC counts against the waveform over each sample's burst, placed by the sample's own
+    # timestamp: within ±2 counts.
     t_sim_s = s.t_us * 1e-6 + np.median(offset_s)
-    err = s.adc - counts_of_mv(np.interp(t_sim_s, t_s, mv))
+    steps = np.arange(16) * float(np.median(np.diff(burst_t[k[0]])))
+    expect = [counts_of_mv(np.interp(t0 + steps, t_s, mv)).mean() for t0 in t_sim_s]
+    err = s.adc - np.array(expect)
     assert np.max(np.abs(err)) <= 2, (np.max(np.abs(err)), err[:20])
-    # And exactly the value the harness fed at that conversion.
-    assert_counts_are_fed_wave(s.adc, probe.log.conversion_mv()[k], np.interp(conv[k], t_s, mv))
+    # And exactly the oversampled value of what the harness fed in that burst.
+    assert_samples_are_fed_bursts(
+        s.adc, [burst_mv[i] for i in k], [np.interp(burst_t[i], t_s, mv) for i in k]
+    )
 
 
 def test_commands_are_acked_and_take_effect(probe_factory: Callable[..., SimProbe]) -> None:
@@ -186,11 +194,11 @@ def test_commands_are_acked_and_take_effect(probe_factory: Callable[..., SimProb
     probe.wait_sim_time(BLE_PROBE_DONE_S)
     assert probe.command(SetRate(250)).status == AckStatus.OK
     assert probe.command(StreamStart()).status == AckStatus.OK
-    n_conv = len(probe.log.of("ADC"))
+    n_conv = len(probe.log.bursts()[0])
     s = flatten(probe.collect_samples(250))
     assert np.all(s.period_us == 4000)
     assert abs(rate_hz(s) / 250 - 1) < 0.01, rate_hz(s)
-    conv = probe.log.conversion_times_s()[n_conv + 5 :]
+    conv = probe.log.bursts()[0][n_conv + 5 :]
     assert abs(1.0 / float(np.median(np.diff(conv))) / 250 - 1) < 0.01
     assert np.all(s.adc == zero)
 

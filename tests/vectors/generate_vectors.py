@@ -283,6 +283,14 @@ def build_vectors() -> list[Vector]:
             0xFFFF_FFFF,
         )
     )
+    v.append(
+        msg_vector(
+            "status_supply_uncorrected",
+            Status(0, 100, 0, 4150, StatusFlags.STREAMING | StatusFlags.SUPPLY_UNCORRECTED),
+            12,
+            3_000_000,
+        )
+    )
     # COMMAND
     commands: list[tuple[str, Message]] = [
         ("command_stream_start", StreamStart()),

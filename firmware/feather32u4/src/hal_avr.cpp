@@ -5,11 +5,14 @@
 #include <avr/interrupt.h>
 
 #include "../config.h"
+#include "core/oversample.h"
 
 namespace stipi {
 
 static_assert(STIPI_PIN_LOADCELL == A0, "load cell pin must be A0 (config.h)");
 static_assert(STIPI_PIN_VBAT == A9, "VBAT pin must be A9 (config.h)");
+static_assert(STIPI_PIN_SUPPLY5 < 0 || (STIPI_PIN_SUPPLY5 >= A0 && STIPI_PIN_SUPPLY5 <= A11),
+              "STIPI_PIN_SUPPLY5 must be an analog pin or -1 (config.h)");
 static_assert(STIPI_PIN_LED_PWM == 5, "LED PWM is wired to OC3A = D5 (config.h)");
 static_assert(F_CPU == 8000000L, "Timer1 setup assumes 8 MHz (prescaler 8 -> 1 us ticks)");
 
@@ -23,8 +26,13 @@ volatile uint8_t g_adc_state = kAdcIdle;
 volatile uint32_t g_sample_t_us = 0;
 volatile bool g_supply_wanted = false;
 volatile uint16_t g_supply_raw = 0;
+volatile uint16_t g_sum = 0;        // conversions of the current sample, summed (<= 16 * 1023)
+volatile uint8_t g_conv_left = 0;   // conversions still to take for the current sample
+uint8_t g_log2n = 0;                // 2^g_log2n conversions per sample (set with the timer)
+volatile uint16_t g_gain_q14 = kGainOne;  // ratiometric supply correction (oversample.h)
+volatile bool g_corrected = false;
 uint8_t g_loadcell_channel = 0;
-uint8_t g_vbat_channel = 0;
+uint8_t g_supply_channel = 0;       // STIPI_PIN_SUPPLY5 when wired, else VBAT (A9)
 
 // Select an ADC channel (0..15: MUX5 lives in ADCSRB) with AVcc as reference.
 inline void adc_select(uint8_t channel) {
@@ -48,14 +56,17 @@ void irq_restore(uint8_t state) { SREG = state; }
 
 using namespace stipi;
 
-// Sample instant: note the time and start the conversion (ADC clock 125 kHz: 104 us).
+// Sample instant: note the time and start the first of 2^g_log2n conversions (ADC clock
+// 125 kHz: 104 us each); the ADC interrupt chains the others back to back.
 ISR(TIMER1_COMPA_vect) {
   const uint32_t t = micros();
   if (g_adc_state != kAdcIdle) {
-    g_sampler.isr_drop();  // previous conversion still running: this sample is lost, counted
+    g_sampler.isr_drop();  // previous conversions still running: this sample is lost, counted
     return;
   }
   g_sample_t_us = t;
+  g_sum = 0;
+  g_conv_left = static_cast<uint8_t>(1u << g_log2n);
   g_adc_state = kAdcSample;
   adc_start();
 }
@@ -63,9 +74,14 @@ ISR(TIMER1_COMPA_vect) {
 ISR(ADC_vect) {
   const uint16_t value = ADC;
   if (g_adc_state == kAdcSample) {
-    g_sampler.isr_push(value, g_sample_t_us);
+    g_sum = static_cast<uint16_t>(g_sum + value);
+    if (--g_conv_left != 0) {
+      adc_start();  // next conversion of this sample, right away
+      return;
+    }
+    g_sampler.isr_push(oversample_output(g_sum, g_log2n, g_gain_q14), g_sample_t_us);
     if (g_supply_wanted) {
-      adc_select(g_vbat_channel);  // chain the supply reading right after the sample
+      adc_select(g_supply_channel);  // chain the supply reading right after the sample
       g_adc_state = kAdcSupply;
       adc_start();
       return;
@@ -73,6 +89,11 @@ ISR(ADC_vect) {
   } else if (g_adc_state == kAdcSupply) {
     g_supply_raw = value;
     g_supply_wanted = false;
+#if STIPI_PIN_SUPPLY5 >= 0
+    uint16_t gain;
+    g_corrected = supply_gain_q14(value, &gain);  // once per heartbeat: one division
+    g_gain_q14 = gain;
+#endif
     adc_select(g_loadcell_channel);
   }
   g_adc_state = kAdcIdle;
@@ -82,7 +103,11 @@ namespace stipi {
 
 void AvrBoard::begin() {
   g_loadcell_channel = analogPinToChannel(STIPI_PIN_LOADCELL - A0);
-  g_vbat_channel = analogPinToChannel(STIPI_PIN_VBAT - A0);
+#if STIPI_PIN_SUPPLY5 >= 0
+  g_supply_channel = analogPinToChannel(STIPI_PIN_SUPPLY5 - A0);
+#else
+  g_supply_channel = analogPinToChannel(STIPI_PIN_VBAT - A0);
+#endif
   adc_select(g_loadcell_channel);  // init() already enabled the ADC at F_CPU/64 = 125 kHz
   // LED: Timer3 fast PWM 8-bit (WGM3 = 0101), no prescaler -> 8 MHz / 256 = 31.25 kHz on OC3A.
   pinMode(STIPI_PIN_LED_PWM, OUTPUT);
@@ -100,6 +125,7 @@ void AvrBoard::start_sampling(uint16_t period_us) {
   TCCR1A = 0;
   TCCR1B = 0;
   TCNT1 = 0;
+  g_log2n = oversample_log2(period_us);
   OCR1A = static_cast<uint16_t>(period_us - 1);  // CTC: period = (OCR1A + 1) ticks of 1 us
   TIFR1 = _BV(OCF1A);
   TIMSK1 |= _BV(OCIE1A);
@@ -112,9 +138,9 @@ void AvrBoard::stop_sampling() {
     TCCR1B = 0;
     TIMSK1 &= static_cast<uint8_t>(~_BV(OCIE1A));
   }
-  // Let an in-flight conversion land (at most two conversions, ~210 us), bounded.
+  // Let in-flight conversions land (at most 16 + 1 supply, ~1.8 ms), bounded.
   const uint32_t start = micros();
-  while (g_adc_state != kAdcIdle && micros() - start < 1000) {
+  while (g_adc_state != kAdcIdle && micros() - start < 2500) {
   }
 }
 
@@ -135,7 +161,7 @@ void AvrBoard::request_supply_measurement() {
   // While sampling, the ADC interrupt chains the reading after the next sample; otherwise
   // start it now.
   if ((TIMSK1 & _BV(OCIE1A)) == 0 && g_adc_state == kAdcIdle) {
-    adc_select(g_vbat_channel);
+    adc_select(g_supply_channel);
     g_adc_state = kAdcSupply;
     adc_start();
   }
@@ -147,8 +173,17 @@ uint16_t AvrBoard::supply_mv() {
     IrqGuard guard;
     raw = g_supply_raw;
   }
+#if STIPI_PIN_SUPPLY5 >= 0
+  return static_cast<uint16_t>(supply5_mv_of_raw(raw));
+#else
   return static_cast<uint16_t>((static_cast<uint32_t>(raw) * STIPI_VBAT_DIVIDER * STIPI_ADC_REF_MV) >>
                                STIPI_ADC_BITS);
+#endif
+}
+
+bool AvrBoard::supply_corrected() {
+  IrqGuard guard;
+  return g_corrected;
 }
 
 // ---- SPI to the nRF51822 ------------------------------------------------------------------
@@ -226,8 +261,27 @@ void UsbCdcLink::service() {
 
 int16_t Uart1Link::read() { return static_cast<int16_t>(Serial1.read()); }
 
+namespace {
+struct Uart1Writer {
+  uint16_t operator()(const uint8_t* data, uint16_t n) {
+    const int room = Serial1.availableForWrite();
+    if (room <= 0) return 0;
+    const uint16_t k = n < static_cast<uint16_t>(room) ? n : static_cast<uint16_t>(room);
+    return static_cast<uint16_t>(Serial1.write(data, k));  // fits the TX buffer: no wait
+  }
+};
+}  // namespace
+
 bool Uart1Link::write_frame(const uint8_t* data, uint8_t len) {
-  return Serial1.write(data, len) == len;
+  const bool queued = queue_.push(data, len);
+  service();
+  return queued;
+}
+
+void Uart1Link::service() {
+  if (queue_.count() == 0) return;
+  Uart1Writer writer;
+  queue_.drain(writer);
 }
 
 }  // namespace stipi

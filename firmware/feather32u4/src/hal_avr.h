@@ -33,6 +33,7 @@ class AvrBoard : public Board {
   void set_led(uint8_t level) override;
   void request_supply_measurement() override;
   uint16_t supply_mv() override;
+  bool supply_corrected() override;
 };
 
 class AvrSpiPort : public SpiPort {
@@ -65,13 +66,18 @@ class UsbCdcLink : public ByteLink {
   TxQueue<STIPI_USB_TX_RING> queue_;
 };
 
-// Serial1 at STIPI_UART1_BAUD: always open; writes wait for TX buffer room, which is bounded by
-// the baud rate (a 76-byte frame takes 3 ms at 250 kbit/s).
+// Serial1 at STIPI_UART1_BAUD: always open; never waits. Frames queue whole in a ring
+// (STIPI_UART1_TX_RING) and each pass writes only what Serial1.availableForWrite() says fits
+// its 64-byte TX buffer; a frame finding the ring full is lost on this link (a seq gap).
 class Uart1Link : public ByteLink {
  public:
   bool is_open() override { return true; }
   int16_t read() override;
   bool write_frame(const uint8_t* data, uint8_t len) override;
+  void service() override;
+
+ private:
+  TxQueue<STIPI_UART1_TX_RING> queue_;
 };
 
 }  // namespace stipi

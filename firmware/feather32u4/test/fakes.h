@@ -45,6 +45,7 @@ class FakeBoard : public stipi::Board {
   void set_led(uint8_t level) override { led = level; }
   void request_supply_measurement() override { ++supply_requests; }
   uint16_t supply_mv() override { return supply; }
+  bool supply_corrected() override { return corrected; }
   // Let `us` microseconds pass, taking samples at each timer event.
   void advance(uint32_t us) {
     const uint32_t target = clock_.now_us + us;
@@ -61,6 +62,7 @@ class FakeBoard : public stipi::Board {
   uint32_t next_us = 0;
   uint8_t led = 0;
   uint16_t supply = 4123;
+  bool corrected = true;  // the AVR glue without a 5 V sense answers false (flag bit 4)
   int supply_requests = 0;
   int starts = 0;
   int stops = 0;

@@ -468,3 +468,18 @@ TEST(probe_timestamps_continue_across_micros_wrap) {
   CHECK(s.front().t_us > 0x80000000u);
   CHECK(s.back().t_us < 0x80000000u);  // wrapped
 }
+
+TEST(probe_flags_force_not_supply_corrected) {
+  Rig r;
+  r.usb.open = false;
+  r.ble.open = false;
+  r.board.corrected = false;  // no 5 V sense wired (config.h STIPI_PIN_SUPPLY5 = -1)
+  r.begin();
+  r.run(600000);
+  const auto fs = r.frames();
+  CHECK(fs.size() >= 2u);
+  for (const HostFrame& f : fs) CHECK_EQ(f.body[9], kFlagSupplyUncorrected);
+  r.board.corrected = true;  // a plausible 5 V reading arrived
+  r.run(600000);
+  CHECK_EQ(r.frames().back().body[9], 0);
+}

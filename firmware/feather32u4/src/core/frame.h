@@ -51,6 +51,7 @@ const uint8_t kFlagStreaming = 0x01;
 const uint8_t kFlagBleConnected = 0x02;
 const uint8_t kFlagUsbOpen = 0x04;
 const uint8_t kFlagCalValid = 0x08;
+const uint8_t kFlagSupplyUncorrected = 0x10;  // force not corrected for the FC22's 5 V supply
 
 struct StatusBody {
   uint8_t led_level;

@@ -56,6 +56,9 @@ class Board {
   virtual void set_led(uint8_t level) = 0;  // PWM duty 0..255
   virtual void request_supply_measurement() = 0;
   virtual uint16_t supply_mv() = 0;          // last measured supply voltage [mV]
+  // Samples are corrected for the FC22's measured 5 V supply (ratiometric); false sets
+  // STATUS.flags bit 4.
+  virtual bool supply_corrected() { return false; }
 };
 
 // Critical section (interrupts off) around state shared with the sampling ISR. Defined by the

@@ -37,6 +37,7 @@ uint8_t Probe::status_flags() {
   if (links_[kLinkBle] && links_[kLinkBle]->is_open()) flags |= kFlagBleConnected;
   if (links_[kLinkUsb] && links_[kLinkUsb]->is_open()) flags |= kFlagUsbOpen;
   if (cal_valid_) flags |= kFlagCalValid;
+  if (!board_.supply_corrected()) flags |= kFlagSupplyUncorrected;
   return flags;
 }
 
@@ -159,7 +160,7 @@ void Probe::handle_command(const Command& c) {
       Calibration cal;
       cal.zero_counts = get_u16(c.args);
       cal.span_un_per_count = static_cast<int32_t>(get_u32(c.args + 2));
-      const uint16_t adc_max = (1u << STIPI_ADC_BITS) - 1;
+      const uint16_t adc_max = (1u << STIPI_ADC_OUT_BITS) - 1;
       if (cal.zero_counts > adc_max || cal.span_un_per_count == 0) {
         status = kAckBadArgument;
       } else if (blocked_by_tare) {
@@ -186,7 +187,7 @@ void Probe::handle_command(const Command& c) {
       r[6] = led_level_;
       put_u16(r + 7, cal_.zero_counts);
       put_u32(r + 9, static_cast<uint32_t>(cal_.span_un_per_count));
-      r[13] = STIPI_ADC_BITS;
+      r[13] = STIPI_ADC_OUT_BITS;
       r[14] = STIPI_BATCH_SIZE;
       send_ack(c.seq, c.cmd, kAckOk, r, 15);
       return;
