@@ -62,3 +62,28 @@ def test_report_page_renders_in_chromium(demo_session: Path, tmp_path: Path) -> 
     hsv = cv2.cvtColor(img, cv2.COLOR_BGR2HSV)
     coloured = np.count_nonzero(hsv[:, :, 1] > 60) / (img.shape[0] * img.shape[1])
     assert coloured > 0.02, "no coloured figure content in the screenshot"
+
+
+def test_invalid_session_page_reads_in_chromium(demo_session: Path, tmp_path: Path) -> None:
+    """A gap over the release: the verdict box is red, the S_k figure is drawn with the gap."""
+    from stipi_daemon.report.load import load_report_input
+    from stipi_daemon.report.write import render_session_report
+    from tests.report.test_validity import release_gap_copy, with_validity
+
+    inp = with_validity(
+        release_gap_copy(load_report_input(demo_session)),
+        ("invalid", "Not valid: D_p, E, eta, severity (release not observed)."),
+        depth_mm=("invalid", ["release_not_observed"], "release not observed"),
+        elasticity_kpa=("invalid", [], "D_p is invalid (release not observed)"),
+        viscosity_n_s_per_mm2=("invalid", [], "E is invalid"),
+        severity=("invalid", [], "eta is invalid"),
+    )
+    render_session_report(inp, tmp_path / "rep")
+    require_tool("chromium")
+    img, log = _screenshot(tmp_path / "rep" / REPORT_HTML, tmp_path)
+    assert "Uncaught" not in log and "net::ERR_" not in log
+    # The verdict badge is red (#c62828) near the top of the page.
+    top = img[:400].reshape(-1, 3).astype(int)
+    red = (np.abs(top - np.array([0x28, 0x28, 0xC6])) < 25).all(axis=1)
+    assert int(red.sum()) > 200, "no red verdict badge at the top of the page"
+    cv2.imwrite(str(tmp_path / "invalid_page.png"), img)
