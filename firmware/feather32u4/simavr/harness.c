@@ -5,7 +5,10 @@
  * ADC input from a voltage waveform defined in SIMULATED time, bridging the firmware's
  * hardware UART (simavr UART '1' = Arduino Serial1) to a pseudo-terminal, and reporting
  * simulated time, speed and watched registers on stdout. It does not decode the protocol
- * (the host does that through the pty) and it does not model the USB CDC or BLE links.
+ * (the host does that through the pty) and it does not model the USB CDC link. With --nrf51
+ * the simulated nRF51822 of tests/firmware/nrf51_sim (written from Adafruit's SDEP.md) sits
+ * behind simavr's SPI and the Feather's CS/IRQ/RST pins, with a central that connects at
+ * --ble-connect-s and drains the module's TX FIFO; what it receives goes to --ble-out.
  *
  * stdout is line-oriented; every line the harness writes starts with an upper-case keyword
  * followed by key=value fields (simavr's own log goes to stderr):
@@ -17,6 +20,8 @@
  *   ADC sim_s=.. channel=.. mv=..               every conversion of the load-cell channel
  *                                               starts (--log-adc)
  *   REG sim_s=.. name=.. addr=0x.. value=..     a watched data byte changed (--watch)
+ *   BLE sim_s=.. event=connected|summary ..      the central connected; module counters
+ *                                               (summary, after EXIT) with --nrf51
  *   EXIT reason=.. sim_s=.. wall_s=.. speed=.. tx_bytes=.. rx_bytes=.. pauses=.. pause_wall_s=..
  *        discarded=..                           (bytes sent while no host had the pty open)
  *                                               simulation stopped; the pty stays open until
@@ -50,14 +55,20 @@
 #include <unistd.h>
 
 #include "avr_adc.h"
+#include "avr_ioport.h"
+#include "avr_spi.h"
 #include "avr_uart.h"
 #include "sim_avr.h"
 #include "sim_elf.h"
 #include "sim_irq.h"
+#include "sim_cycle_timers.h"
+
+#include "nrf51_sim.h" /* tests/firmware/nrf51_sim: the simulated module, from SDEP.md */
 
 #define MAX_WATCH 16
 #define OUT_RING_SIZE (1u << 20) /* bytes queued from the firmware towards the host */
 #define IN_RING_SIZE (1u << 14)  /* bytes queued from the host towards the firmware */
+#define BLE_TICK_PER_S 10000     /* --nrf51: module time advanced every 100 us at least */
 
 /* ------------------------------------------------------------------------------------------ */
 /* Waveform: millivolts as a function of simulated time [s].                                  */
@@ -228,6 +239,19 @@ static struct {
 	watch_t watch[MAX_WATCH];
 	int n_watch;
 
+	double noise_mv;             /* --noise-mv: gaussian noise added per conversion [mV rms] */
+	uint64_t rng;                /* xorshift64* state (--seed) */
+
+	/* --nrf51: the simulated module behind SPI, CS (D8 = PB4), IRQ (D7 = PE6), RST (D4 = PD4) */
+	int ble;
+	nrf51_sim nrf;
+	avr_irq_t *spi_in;           /* MISO byte into the AVR's SPI */
+	avr_irq_t *ble_irq_pin;      /* PE6 input */
+	int ble_irq_level;           /* last level driven, -1 before the first */
+	double ble_connect_s;        /* central connects at this simulated time (< 0: never) */
+	FILE *ble_out;               /* bytes the central received (--ble-out) */
+	uint64_t ble_rx_bytes, spi_bytes, cs_falls;
+
 	avr_uart_t *uart;            /* the bridged UART's simavr state */
 	avr_cycle_count_t uart_cpb;  /* cycles per byte last reported */
 	double uart_bytes_per_s;     /* --uart-bytes-per-s override, 0 = firmware's baud */
@@ -249,6 +273,94 @@ static double sim_s(void) { return (double)H.avr->cycle / (double)H.avr->frequen
 /* ------------------------------------------------------------------------------------------ */
 /* simavr hooks                                                                               */
 
+/* Deterministic gaussian noise (xorshift64* + Box-Muller), seeded by --seed. */
+static double uniform01(void)
+{
+	H.rng ^= H.rng >> 12;
+	H.rng ^= H.rng << 25;
+	H.rng ^= H.rng >> 27;
+	return ((H.rng * 0x2545F4914F6CDD1DULL) >> 11) * (1.0 / 9007199254740992.0);
+}
+
+static double gauss(void)
+{
+	double u = uniform01();
+	if (u < 1e-300)
+		u = 1e-300;
+	return sqrt(-2.0 * log(u)) * cos(2.0 * M_PI * uniform01());
+}
+
+/* ---- the simulated nRF51822 (--nrf51) ------------------------------------------------------ */
+
+static uint32_t sim_us(void)
+{
+	return (uint32_t)((H.avr->cycle * 1000000ULL) / H.avr->frequency);
+}
+
+/* Advance the module to now and drive the IRQ pin when its level changed. */
+static void ble_sync(void)
+{
+	nrf51_sim_advance(&H.nrf, sim_us());
+	int level = nrf51_sim_irq(&H.nrf);
+	if (level != H.ble_irq_level) {
+		H.ble_irq_level = level;
+		avr_raise_irq(H.ble_irq_pin, (uint32_t)level);
+	}
+}
+
+/* The AVR's SPI finished shifting a byte out (master): the module shifts one back. */
+static void ble_spi_hook(struct avr_irq_t *irq, uint32_t value, void *param)
+{
+	(void)irq;
+	(void)param;
+	nrf51_sim_advance(&H.nrf, sim_us());
+	uint8_t miso = nrf51_sim_xfer(&H.nrf, (uint8_t)value);
+	H.spi_bytes++;
+	avr_raise_irq(H.spi_in, miso);
+	ble_sync();
+}
+
+static void ble_cs_hook(struct avr_irq_t *irq, uint32_t value, void *param)
+{
+	(void)irq;
+	(void)param;
+	nrf51_sim_advance(&H.nrf, sim_us());
+	if (!value)
+		H.cs_falls++;
+	nrf51_sim_select(&H.nrf, value == 0);
+	ble_sync();
+}
+
+static void ble_rst_hook(struct avr_irq_t *irq, uint32_t value, void *param)
+{
+	(void)irq;
+	(void)param;
+	nrf51_sim_advance(&H.nrf, sim_us());
+	nrf51_sim_reset(&H.nrf, value == 0);
+	ble_sync();
+}
+
+static void ble_notify(void *ctx, const uint8_t *data, uint16_t len)
+{
+	(void)ctx;
+	H.ble_rx_bytes += len;
+	if (H.ble_out)
+		fwrite(data, 1, len, H.ble_out);
+}
+
+/* Every 1/BLE_TICK_PER_S simulated (and at every SPI byte and CS edge): processing delays end, the central drains the FIFO, IRQ follows. */
+static avr_cycle_count_t ble_tick(struct avr_t *avr, avr_cycle_count_t when, void *param)
+{
+	(void)avr;
+	(void)param;
+	if (H.ble_connect_s >= 0 && !H.nrf.connected && sim_s() >= H.ble_connect_s) {
+		nrf51_sim_set_connected(&H.nrf, 1);
+		printf("BLE sim_s=%.6f event=connected\n", sim_s());
+	}
+	ble_sync();
+	return when + H.avr->frequency / BLE_TICK_PER_S;
+}
+
 static void adc_trigger_hook(struct avr_irq_t *irq, uint32_t value, void *param)
 {
 	(void)irq;
@@ -259,6 +371,8 @@ static void adc_trigger_hook(struct avr_irq_t *irq, uint32_t value, void *param)
 	} e = {.v = value};
 	double t = sim_s();
 	double mv = wave_mv(&H.wave, t);
+	if (H.noise_mv > 0 && e.mux.kind == ADC_MUX_SINGLE && (int)e.mux.src == H.adc_channel)
+		mv += H.noise_mv * gauss();
 	long imv = lround(mv);
 	if (imv < 0)
 		imv = 0;
@@ -467,6 +581,16 @@ static void usage(FILE *f)
 	      "  --max-backlog BYTES     pause the simulation while more bytes wait for the host\n"
 	      "                          (default 4096)\n"
 	      "  --log-adc               print an ADC line at every conversion start\n"
+	      "  --noise-mv SIGMA        add gaussian noise of SIGMA mV rms to every load-cell\n"
+	      "                          conversion (dither; default 0)\n"
+	      "  --seed N                noise seed (default 1)\n"
+	      "  --nrf51                 attach the simulated nRF51822 (tests/firmware/nrf51_sim)\n"
+	      "                          behind SPI, CS D8, IRQ D7, RST D4\n"
+	      "  --ble-connect-s S       a central connects at S simulated seconds (default 0)\n"
+	      "  --ble-interval-us US    central's connection interval (default 30000)\n"
+	      "  --ble-bytes-per-event B bytes the central takes per interval (default 20)\n"
+	      "  --ble-process-us US     module's processing time per command (default 5000)\n"
+	      "  --ble-out PATH          write the bytes the central received to PATH\n"
 	      "  --watch ADDR[:NAME]     print a REG line when the data byte at ADDR changes "
 	      "(repeatable)\n"
 	      "  --pty-link PATH         also create a symlink PATH -> the pty slave\n"
@@ -489,10 +613,15 @@ int main(int argc, char **argv)
 	double linger_s = 5.0;
 	const char *pty_link = NULL;
 	H.adc_channel = 7;
+	H.rng = 1;
+	uint32_t ble_interval_us = 30000, ble_process_us = 5000;
+	uint16_t ble_bpe = 20;
+	const char *ble_out = NULL;
 
 	enum {
 		O_MCU = 256, O_FREQ, O_VCC, O_CHAN, O_WAVE, O_UART, O_SIMT, O_REP, O_SPEED, O_WAIT,
-		O_NOHUP, O_BACKLOG, O_LOGADC, O_WATCH, O_LINK, O_LINGER, O_UBPS, O_HELP
+		O_NOHUP, O_BACKLOG, O_LOGADC, O_WATCH, O_LINK, O_LINGER, O_UBPS, O_HELP, O_NOISE,
+		O_SEED, O_NRF, O_BLECONN, O_BLEINT, O_BLEBPE, O_BLEPROC, O_BLEOUT
 	};
 	static const struct option opts[] = {
 	    {"mcu", 1, 0, O_MCU},           {"freq", 1, 0, O_FREQ},
@@ -504,6 +633,10 @@ int main(int argc, char **argv)
 	    {"log-adc", 0, 0, O_LOGADC},    {"watch", 1, 0, O_WATCH},
 	    {"pty-link", 1, 0, O_LINK},     {"linger", 1, 0, O_LINGER},
 	    {"uart-bytes-per-s", 1, 0, O_UBPS},
+	    {"noise-mv", 1, 0, O_NOISE},    {"seed", 1, 0, O_SEED},
+	    {"nrf51", 0, 0, O_NRF},         {"ble-connect-s", 1, 0, O_BLECONN},
+	    {"ble-interval-us", 1, 0, O_BLEINT}, {"ble-bytes-per-event", 1, 0, O_BLEBPE},
+	    {"ble-process-us", 1, 0, O_BLEPROC}, {"ble-out", 1, 0, O_BLEOUT},
 	    {"help", 0, 0, O_HELP},
 	    {0, 0, 0, 0}};
 	int c;
@@ -538,6 +671,14 @@ int main(int argc, char **argv)
 		case O_LINK: pty_link = optarg; break;
 		case O_LINGER: linger_s = atof(optarg); break;
 		case O_UBPS: H.uart_bytes_per_s = atof(optarg); break;
+		case O_NOISE: H.noise_mv = atof(optarg); break;
+		case O_SEED: H.rng = strtoull(optarg, NULL, 0); break;
+		case O_NRF: H.ble = 1; break;
+		case O_BLECONN: H.ble_connect_s = atof(optarg); break;
+		case O_BLEINT: ble_interval_us = (uint32_t)strtoul(optarg, NULL, 0); break;
+		case O_BLEBPE: ble_bpe = (uint16_t)strtoul(optarg, NULL, 0); break;
+		case O_BLEPROC: ble_process_us = (uint32_t)strtoul(optarg, NULL, 0); break;
+		case O_BLEOUT: ble_out = optarg; break;
 		case O_HELP:
 		case 'h': usage(stdout); return 0;
 		default: usage(stderr); return 2;
@@ -553,6 +694,8 @@ int main(int argc, char **argv)
 		die("--freq, --vcc-mv, --report-interval, --max-backlog must be > 0; --speed and "
 		    "--sim-time >= 0");
 	wave_parse(&H.wave, wave_spec);
+	if (!H.rng)
+		H.rng = 1;
 	setvbuf(stdout, NULL, _IOLBF, 0);
 	avr_global_logger_set(logger);
 
@@ -585,6 +728,28 @@ int main(int argc, char **argv)
 		die("mcu %s has no ADC", mcu);
 	avr_irq_register_notify(trig, adc_trigger_hook, NULL);
 	avr_raise_irq(H.adc_in, (uint32_t)lround(fmax(0.0, wave_mv(&H.wave, 0.0))));
+
+	if (H.ble) {
+		nrf51_sim_init(&H.nrf);
+		H.nrf.process_us = ble_process_us;
+		H.nrf.conn_interval_us = ble_interval_us;
+		H.nrf.tx_per_event_b = ble_bpe;
+		H.nrf.on_notify = ble_notify;
+		if (ble_out && !(H.ble_out = fopen(ble_out, "wb")))
+			die("cannot write %s: %s", ble_out, strerror(errno));
+		H.spi_in = avr_io_getirq(H.avr, AVR_IOCTL_SPI_GETIRQ(0), SPI_IRQ_INPUT);
+		avr_irq_t *spi_out = avr_io_getirq(H.avr, AVR_IOCTL_SPI_GETIRQ(0), SPI_IRQ_OUTPUT);
+		avr_irq_t *cs = avr_io_getirq(H.avr, AVR_IOCTL_IOPORT_GETIRQ('B'), IOPORT_IRQ_PIN4);
+		avr_irq_t *rst = avr_io_getirq(H.avr, AVR_IOCTL_IOPORT_GETIRQ('D'), IOPORT_IRQ_PIN4);
+		H.ble_irq_pin = avr_io_getirq(H.avr, AVR_IOCTL_IOPORT_GETIRQ('E'), IOPORT_IRQ_PIN6);
+		if (!H.spi_in || !spi_out || !cs || !rst || !H.ble_irq_pin)
+			die("mcu %s lacks the SPI or the ports of the Feather's nRF51822", mcu);
+		avr_irq_register_notify(spi_out, ble_spi_hook, NULL);
+		avr_irq_register_notify(cs, ble_cs_hook, NULL);
+		avr_irq_register_notify(rst, ble_rst_hook, NULL);
+		H.ble_irq_level = -1;
+		avr_cycle_timer_register(H.avr, freq / BLE_TICK_PER_S, ble_tick, NULL);
+	}
 
 	/* UART: no stdio echo, no usleep() on polled status reads. */
 	uint32_t flags = 0;
@@ -705,6 +870,17 @@ int main(int argc, char **argv)
 	       reason, sim_s(), wall, wall > 0 ? sim_s() / wall : 0.0,
 	       (unsigned long long)H.tx_bytes, (unsigned long long)H.rx_bytes,
 	       (unsigned long long)H.pauses, H.pause_wall_s, (unsigned long long)H.discarded);
+	if (H.ble) {
+		if (H.ble_out)
+			fflush(H.ble_out);
+		printf("BLE sim_s=%.6f event=summary connected=%d central_bytes=%llu spi_bytes=%llu "
+		       "cs_falls=%llu commands=%u packets_in=%u packets_out=%u not_ready=%u "
+		       "overreads=%u tx_errors=%u protocol_errors=%u cmd_errors=%u\n",
+		       sim_s(), H.nrf.connected, (unsigned long long)H.ble_rx_bytes,
+		       (unsigned long long)H.spi_bytes, (unsigned long long)H.cs_falls,
+		       H.nrf.commands, H.nrf.packets_in, H.nrf.packets_out, H.nrf.not_ready,
+		       H.nrf.overreads, H.nrf.tx_errors, H.nrf.protocol_errors, H.nrf.cmd_errors);
+	}
 	/* Linger with the pty open so that the host can read what the firmware already sent
 	   (closing the master would discard it): until the host hangs up, or --linger expires. */
 	for (double t0 = now_wall(); H.host_seen && now_wall() - t0 < linger_s;)
