@@ -96,6 +96,8 @@ def run(args: argparse.Namespace) -> int:
     else:
         written = write_session_report(_session_dir(args.root, args.session), args.out)
     print(f"report: {written.html_path}")
+    if written.verdict:
+        print(f"verdict: {written.verdict}")
     print(f"figures: {len(written.figures)} PNG(s) in {written.html_path.parent}")
     for name, reason in written.missing.items():
         print(f"not drawn: {name}: {reason}")

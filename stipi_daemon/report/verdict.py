@@ -197,17 +197,16 @@ def session_verdict(summary: Mapping[str, Any] | None, session_status: str) -> V
     order += sorted(q for q in validity if q not in order)
     problems = tuple(validity[q] for q in order if q in validity and validity[q].status != "valid")
     status = value_at(summary, "verdict", "status")
-    line = value_at(summary, "verdict", "line")
+    recorded = value_at(summary, "verdict", "line")
     implied = _primary_status(validity) if validity else "invalid"
     if session_status != "complete" or status == "incomplete":
         implied = "incomplete"
     shown: VerdictStatus = status if status in _VERDICTS else implied
     if _RANK_VERDICT[implied] > _RANK_VERDICT[shown]:
-        shown = implied
-        line = None
-    if not isinstance(line, str) or not line.strip():
-        line = _default_line(shown, problems, session_status)
-    return VerdictView(shown, line.strip(), problems)
+        shown, recorded = implied, None  # the recorded line words a milder verdict
+    if isinstance(recorded, str) and recorded.strip():
+        return VerdictView(shown, recorded.strip(), problems)
+    return VerdictView(shown, _default_line(shown, problems, session_status), problems)
 
 
 #: Verdicts in increasing gravity, for checking a recorded one against its quantities.

@@ -89,11 +89,15 @@ class WrittenReport:
         Figure name -> its PNG, for every figure drawn.
     missing : dict of str to str
         Figure name -> why it was not drawn.
+    verdict : str
+        The verdict the page shows (``"invalid: Not valid: D_p (...)"``); empty for a
+        comparison.
     """
 
     html_path: Path
     figures: dict[str, Path] = field(default_factory=dict)
     missing: dict[str, str] = field(default_factory=dict)
+    verdict: str = ""
 
 
 def _write_atomic(path: Path, payload: bytes) -> None:
@@ -330,9 +334,10 @@ def render_session_report(
     ref = reference if reference is not None else load_reference()
     embedded, written, missing = _make_figures(_session_makers(inp, ref), out_dir)
     rows = parameter_table(inp.summary)
+    verdict = session_verdict(inp.summary, inp.status)
     page = session_page(
         session_id=inp.session_id,
-        verdict=session_verdict(inp.summary, inp.status),
+        verdict=verdict,
         key_results=_key_results(rows),
         meta=_meta(inp),
         figures=embedded,
@@ -342,7 +347,7 @@ def render_session_report(
     )
     html_path = out_dir / REPORT_HTML
     _write_atomic(html_path, page.encode("utf-8"))
-    return WrittenReport(html_path, written, missing)
+    return WrittenReport(html_path, written, missing, f"{verdict.status}: {verdict.line}")
 
 
 def write_session_report(

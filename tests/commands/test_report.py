@@ -29,6 +29,7 @@ def test_report_session_by_path_and_by_id(
     text = capsys.readouterr().out
     assert f"report: {out / REPORT_HTML}" in text
     assert f"figures: {len(SESSION_FIGURES)} PNG(s)" in text
+    assert "\nverdict: " in text  # the verdict the page shows, e.g. "complete: Complete: ..."
     assert sorted(p.stem for p in out.glob("*.png")) == sorted(SESSION_FIGURES)
     out2 = tmp_path / "rep2"
     args = ["report", demo_session.name, "--root", str(demo_session.parent), "--out", str(out2)]
