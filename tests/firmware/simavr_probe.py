@@ -32,6 +32,8 @@ REPO_ROOT = Path(__file__).resolve().parents[2]
 FW_DIR = REPO_ROOT / "firmware" / "feather32u4"
 SIM_DIR = FW_DIR / "simavr"
 FIRMWARE_ELF = FW_DIR / "build" / "stipi_feather32u4.elf"
+FIRMWARE_ADC12_ELF = FW_DIR / "build" / "adc12" / "stipi_feather32u4.elf"
+"""The firmware built with ``STIPI_ADC_EXTRA_BITS=2`` (12-bit SAMPLES.adc)."""
 HARNESS = SIM_DIR / "build" / "stipi_simavr_harness"
 TESTPROG_ELF = SIM_DIR / "build" / "testprog.elf"
 SIMAVR_HEADER = Path("/usr/include/simavr/sim_avr.h")
@@ -87,6 +89,14 @@ def build(*targets: str) -> None:
         "firmware": ["make", "-C", str(FW_DIR)],
         "harness": ["make", "-C", str(SIM_DIR)],
         "testprog": ["make", "-C", str(SIM_DIR), "testprog"],
+        # the 12-bit variant: 16 conversions summed / 4 on the wire (config.h)
+        "firmware-adc12": [
+            "make",
+            "-C",
+            str(FW_DIR),
+            "BUILD=build/adc12",
+            "STIPI_DEFS=-DSTIPI_ADC_EXTRA_BITS=2",
+        ],
     }
     (SIM_DIR / "build").mkdir(exist_ok=True)
     with open(SIM_DIR / "build" / ".build.lock", "w") as lock:
@@ -292,11 +302,11 @@ def status_of(frame: DecodedFrame) -> Status:
 class SimProbe(Harness):
     """The probe firmware in the harness, spoken to in the wire protocol over Serial1."""
 
-    def __init__(self, wave: str, extra: list[str] | None = None) -> None:
+    def __init__(self, wave: str, extra: list[str] | None = None, elf: Path = FIRMWARE_ELF) -> None:
         self.decoder = FrameDecoder()
         self.rx = Received()
         self._seq = 0
-        super().__init__(FIRMWARE_ELF, wave, extra)
+        super().__init__(elf, wave, extra)
 
     def pump(self) -> None:
         """Decode whatever arrived into :attr:`rx`."""
