@@ -33,7 +33,7 @@ from stipi_daemon.analysis.vpr import KPA_PER_N_PER_MM2
 from stipi_daemon.errors import AnalysisError
 from stipi_daemon.report.inputs import FloatArray, ReportInput, number_at, value_at
 from stipi_daemon.report.series import TimeGap, broken_line, find_gaps, isolated_outliers
-from stipi_daemon.report.verdict import QuantityStatus, combined
+from stipi_daemon.report.verdict import QuantityStatus, combined, read_validity
 from stipi_daemon.storage.schema import Transition
 
 __all__ = [
@@ -196,6 +196,8 @@ class SkFigure:
         f * S_max [px], the line S_k must reach for T_s.
     recovery_time_s : float or None
         T_r = T_s - T_0 [s].
+    recovery_time_invalid : str or None
+        Why T_r is not valid (``summary["validity"]``); None when it is not invalid.
     flags : tuple of str
         The pitting parameters' flags.
     """
@@ -220,6 +222,7 @@ class SkFigure:
     settle_level_px: float | None
     recovery_time_s: float | None
     flags: tuple[str, ...]
+    recovery_time_invalid: str | None = None
 
 
 def _observed(results: Mapping[str, Any] | None) -> Mapping[str, Any] | None:
@@ -285,6 +288,7 @@ def s_k_figure(inp: ReportInput) -> SkFigure:
         settle_level_px=None if s_max is None else fraction * s_max,
         recovery_time_s=number_at(p, "recovery_time_s"),
         flags=tuple(flags) if isinstance(flags, list) else (),
+        recovery_time_invalid=_invalid(read_validity(inp.summary), "recovery_time_s"),
     )
 
 
@@ -315,6 +319,8 @@ class FitFigure:
         Points the fit reported using (equals ``t_since_t0_s.size`` for a stored session).
     flags : tuple of str
         The fit's flags.
+    tau_invalid : str or None
+        Why tau is not valid (``summary["validity"]``); None when it is not invalid.
     """
 
     t_since_t0_s: FloatArray
@@ -330,6 +336,7 @@ class FitFigure:
     r_squared: float | None
     n_points: int | None
     flags: tuple[str, ...]
+    tau_invalid: str | None = None
 
 
 def fit_figure(inp: ReportInput) -> FitFigure | None:
@@ -365,6 +372,7 @@ def fit_figure(inp: ReportInput) -> FitFigure | None:
         r_squared=number_at(fr, "r_squared"),
         n_points=n if isinstance(n, int) else None,
         flags=tuple(flags) if isinstance(flags, list) else (),
+        tau_invalid=_invalid(read_validity(inp.summary), "tau_s"),
     )
 
 

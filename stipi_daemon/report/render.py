@@ -288,7 +288,8 @@ def draw_s_k(data: SkFigure, title: str = "") -> Figure:
         ax.text(
             0.5 * (data.t0_s + data.ts_s),
             y,
-            f"$T_r$ = {data.recovery_time_s:.2f} s",
+            f"$T_r$ = {data.recovery_time_s:.2f} s"
+            + ("" if data.recovery_time_invalid is None else " (not valid)"),
             ha="center",
             va="bottom",
             fontsize=9,
@@ -337,6 +338,8 @@ def draw_fit(data: FitFigure, title: str = "") -> Figure:
         stats.append(f"RMSE = {data.rmse_px:.3g} px")
     if data.flags:
         stats.append("flags: " + ", ".join(data.flags))
+    if data.tau_invalid is not None:
+        stats.append(f"τ not valid: {data.tau_invalid}")
     ax.set_title(
         (title or "Kelvin-Voigt recovery fitted to $S_k$")
         + (f" ({'; '.join(stats)})" if stats else "")

@@ -438,7 +438,7 @@ def write_compare_report(
     window_t = vpr.window_sample_times_s
     wt = np.asarray(window_t, dtype=np.float64)
     curves = [
-        (name, measurement_curves(inp.results, t, wt, name))
+        (name, measurement_curves(inp.results, t, wt, name, read_validity(inp.summary)))
         for name, inp in zip(names, inputs, strict=True)
     ]
     out = Path(out_dir)

@@ -278,3 +278,23 @@ def test_compare_excludes_invalid_values_and_shows_verdicts(inp: ReportInput) ->
     assert depth.mean == pytest.approx((inp.summary or {})["results"]["pitting"]["depth_mm"])
     t_r = {s.key: s for s in table.overall.stats}["recovery_time_s"]
     assert t_r.n == 3 and t_r.n_flagged == 1 and t_r.n_excluded == 0
+
+
+def test_figures_say_when_t_r_or_tau_is_not_valid(inp: ReportInput) -> None:
+    from stipi_daemon.report.figures import fit_figure
+
+    bad = with_validity(
+        inp,
+        ("invalid", "Not valid: T_r."),
+        recovery_time_s=("invalid", ["no_recovery"], "S_k did not rise after T_0"),
+        tau_s=("invalid", ["fit_not_converged"], "the recovery fit did not converge"),
+    )
+    sk = s_k_figure(bad)
+    assert sk.recovery_time_invalid == "S_k did not rise after T_0"
+    texts = [t.get_text() for t in r.draw_s_k(sk).axes[0].texts]
+    assert any(t.startswith("$T_r$ =") and t.endswith("(not valid)") for t in texts)
+    fit = fit_figure(bad)
+    assert fit is not None and fit.tau_invalid == "the recovery fit did not converge"
+    title = r.draw_fit(fit).axes[0].get_title()
+    assert "τ not valid: the recovery fit did not converge" in title
+    assert s_k_figure(with_validity(inp)).recovery_time_invalid is None
