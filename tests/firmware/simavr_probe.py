@@ -34,6 +34,8 @@ SIM_DIR = FW_DIR / "simavr"
 FIRMWARE_ELF = FW_DIR / "build" / "stipi_feather32u4.elf"
 FIRMWARE_ADC12_ELF = FW_DIR / "build" / "adc12" / "stipi_feather32u4.elf"
 """The firmware built with ``STIPI_ADC_EXTRA_BITS=2`` (12-bit SAMPLES.adc)."""
+FIRMWARE_SUPPLY5_ELF = FW_DIR / "build" / "supply5" / "stipi_feather32u4.elf"
+"""The firmware built with the 5 V sense on A1 (``STIPI_PIN_SUPPLY5=19``; ADC6 in simavr)."""
 HARNESS = SIM_DIR / "build" / "stipi_simavr_harness"
 TESTPROG_ELF = SIM_DIR / "build" / "testprog.elf"
 SIMAVR_HEADER = Path("/usr/include/simavr/sim_avr.h")
@@ -89,6 +91,14 @@ def build(*targets: str) -> None:
         "firmware": ["make", "-C", str(FW_DIR)],
         "harness": ["make", "-C", str(SIM_DIR)],
         "testprog": ["make", "-C", str(SIM_DIR), "testprog"],
+        # the 5 V sense on A1 (ratiometric correction, config.h STIPI_PIN_SUPPLY5)
+        "firmware-supply5": [
+            "make",
+            "-C",
+            str(FW_DIR),
+            "BUILD=build/supply5",
+            "STIPI_DEFS=-DSTIPI_PIN_SUPPLY5=19",
+        ],
         # the 12-bit variant: 16 conversions summed / 4 on the wire (config.h)
         "firmware-adc12": [
             "make",

@@ -584,6 +584,8 @@ static void usage(FILE *f)
 	      "  --noise-mv SIGMA        add gaussian noise of SIGMA mV rms to every load-cell\n"
 	      "                          conversion (dither; default 0)\n"
 	      "  --seed N                noise seed (default 1)\n"
+	      "  --hold CH:MV            hold ADC input CH (0..7) at MV millivolts (e.g. 6:2375\n"
+	      "                          for a 4.75 V rail through a 1:2 divider on A1)\n"
 	      "  --nrf51                 attach the simulated nRF51822 (tests/firmware/nrf51_sim)\n"
 	      "                          behind SPI, CS D8, IRQ D7, RST D4\n"
 	      "  --ble-connect-s S       a central connects at S simulated seconds (default 0)\n"
@@ -617,11 +619,13 @@ int main(int argc, char **argv)
 	uint32_t ble_interval_us = 30000, ble_process_us = 5000;
 	uint16_t ble_bpe = 20;
 	const char *ble_out = NULL;
+	int hold_ch = -1;
+	unsigned hold_mv = 0;
 
 	enum {
 		O_MCU = 256, O_FREQ, O_VCC, O_CHAN, O_WAVE, O_UART, O_SIMT, O_REP, O_SPEED, O_WAIT,
 		O_NOHUP, O_BACKLOG, O_LOGADC, O_WATCH, O_LINK, O_LINGER, O_UBPS, O_HELP, O_NOISE,
-		O_SEED, O_NRF, O_BLECONN, O_BLEINT, O_BLEBPE, O_BLEPROC, O_BLEOUT
+		O_SEED, O_HOLD, O_NRF, O_BLECONN, O_BLEINT, O_BLEBPE, O_BLEPROC, O_BLEOUT
 	};
 	static const struct option opts[] = {
 	    {"mcu", 1, 0, O_MCU},           {"freq", 1, 0, O_FREQ},
@@ -634,6 +638,7 @@ int main(int argc, char **argv)
 	    {"pty-link", 1, 0, O_LINK},     {"linger", 1, 0, O_LINGER},
 	    {"uart-bytes-per-s", 1, 0, O_UBPS},
 	    {"noise-mv", 1, 0, O_NOISE},    {"seed", 1, 0, O_SEED},
+	    {"hold", 1, 0, O_HOLD},
 	    {"nrf51", 0, 0, O_NRF},         {"ble-connect-s", 1, 0, O_BLECONN},
 	    {"ble-interval-us", 1, 0, O_BLEINT}, {"ble-bytes-per-event", 1, 0, O_BLEBPE},
 	    {"ble-process-us", 1, 0, O_BLEPROC}, {"ble-out", 1, 0, O_BLEOUT},
@@ -673,6 +678,10 @@ int main(int argc, char **argv)
 		case O_UBPS: H.uart_bytes_per_s = atof(optarg); break;
 		case O_NOISE: H.noise_mv = atof(optarg); break;
 		case O_SEED: H.rng = strtoull(optarg, NULL, 0); break;
+		case O_HOLD:
+			if (sscanf(optarg, "%d:%u", &hold_ch, &hold_mv) != 2 || hold_ch < 0 || hold_ch > 7)
+				die("bad --hold '%s' (want CHANNEL:MV, channel 0..7)", optarg);
+			break;
 		case O_NRF: H.ble = 1; break;
 		case O_BLECONN: H.ble_connect_s = atof(optarg); break;
 		case O_BLEINT: ble_interval_us = (uint32_t)strtoul(optarg, NULL, 0); break;
@@ -728,6 +737,9 @@ int main(int argc, char **argv)
 		die("mcu %s has no ADC", mcu);
 	avr_irq_register_notify(trig, adc_trigger_hook, NULL);
 	avr_raise_irq(H.adc_in, (uint32_t)lround(fmax(0.0, wave_mv(&H.wave, 0.0))));
+	if (hold_ch >= 0) /* a second input held constant, e.g. the 5 V sense divider on A1 = ADC6 */
+		avr_raise_irq(avr_io_getirq(H.avr, AVR_IOCTL_ADC_GETIRQ, ADC_IRQ_ADC0 + hold_ch),
+		              hold_mv);
 
 	if (H.ble) {
 		nrf51_sim_init(&H.nrf);
