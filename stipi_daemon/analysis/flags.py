@@ -35,13 +35,22 @@ class Flag(StrEnum):
     DEPTH_CLIPPED = "depth_clipped"
     CALIBRATION_EXTRAPOLATED = "calibration_extrapolated"
     EARLY_NOISY_CROSSING = "early_noisy_crossing"
+    RISE_WITHIN_SETTLING_BAND = "rise_within_settling_band"
+    # what the camera observed (observation.py)
+    RELEASE_NOT_OBSERVED = "release_not_observed"
+    FRAME_GAP_AT_SETTLING = "frame_gap_at_settling"
+    FRAME_GAP_AT_MAXIMUM = "frame_gap_at_maximum"
+    OUTLIER_FRAMES = "outlier_frames"
     # VPR model and recovery fit (Eqs. 7-10)
     FIT_NOT_CONVERGED = "fit_not_converged"
     TIME_CONSTANT_OUTSIDE_WINDOW = "time_constant_outside_window"
     CONSTANT_SERIES = "constant_series"
     NON_FINITE_INPUT = "non_finite_input"
+    FRAME_GAPS_IN_FIT = "frame_gaps_in_fit"
+    POOR_FIT = "poor_fit"
     # severity (Section IV.C)
     OUTSIDE_REFERENCE_RANGE = "outside_reference_range"
+    ESTIMATORS_DISAGREE = "estimators_disagree"
 
 
 #: Flag -> what it means (one or two sentences; the report's flag legend shows them).
@@ -76,6 +85,26 @@ FLAG_DESCRIPTIONS: Final[Mapping[Flag, str]] = MappingProxyType(
         Flag.EARLY_NOISY_CROSSING: (
             "A short excursion crossed 98 % of S_max before the series settled; it was ignored."
         ),
+        Flag.RISE_WITHIN_SETTLING_BAND: (
+            "S_k rose by less than the settling band (2 % of S_max) after T_0: the 98 % rule "
+            "cannot time this recovery, so T_r is not a measurement."
+        ),
+        # what the camera observed
+        Flag.RELEASE_NOT_OBSERVED: (
+            "No usable frame close to T_0 (a gap over the release): S_0, hence D_p and E, "
+            "is unknown."
+        ),
+        Flag.FRAME_GAP_AT_SETTLING: (
+            "The 98 % crossing lies in a gap between frames: T_r is uncertain by the gap's length."
+        ),
+        Flag.FRAME_GAP_AT_MAXIMUM: (
+            "A gap between frames is next to the frame that sets S_max: the maximum, hence "
+            "F_r, may lie in the gap."
+        ),
+        Flag.OUTLIER_FRAMES: (
+            "Isolated outlier frames (a dark or bright frame) were left out of S_max, T_s and "
+            "the fit."
+        ),
         # VPR model and recovery fit (Eqs. 7-10)
         Flag.FIT_NOT_CONVERGED: (
             "The Kelvin-Voigt recovery fit did not converge; its parameters are not reported."
@@ -85,9 +114,20 @@ FLAG_DESCRIPTIONS: Final[Mapping[Flag, str]] = MappingProxyType(
         ),
         Flag.CONSTANT_SERIES: "The series has no variation to fit.",
         Flag.NON_FINITE_INPUT: "NaN or inf samples were present and were dropped.",
+        Flag.FRAME_GAPS_IN_FIT: (
+            "Frame gaps cover more than 10 % of the fitted span: the fit rests on fewer "
+            "observations than the window holds."
+        ),
+        Flag.POOR_FIT: (
+            "The Kelvin-Voigt model explains the recovery poorly (R^2 below 0.99 and residuals "
+            "beyond 3x the frame noise): the fitted tau is not reported as a result."
+        ),
         # severity (Section IV.C)
         Flag.OUTSIDE_REFERENCE_RANGE: (
             "The measurement lies beyond the reference grades; the nearest grade is an extreme."
+        ),
+        Flag.ESTIMATORS_DISAGREE: (
+            "The paper's estimator and the fitted recovery give different severity classes."
         ),
     }
 )

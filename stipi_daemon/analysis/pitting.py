@@ -13,7 +13,7 @@ All functions are pure; inputs outside a stated domain raise
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -21,6 +21,17 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.ndimage import median_filter
 
 from stipi_daemon.analysis.flags import Flag
+from stipi_daemon.analysis.observation import (
+    MATERIAL_GAP_PERIODS,
+    FrameGap,
+    Observed,
+    find_frame_gaps,
+    find_outlier_frames,
+    gap_covering,
+    median_frame_period_s,
+    release_gap,
+    running_median,
+)
 from stipi_daemon.analysis.settling_rules import least_squares_slope, still_rising
 from stipi_daemon.errors import AnalysisError, require_finite
 
@@ -32,6 +43,9 @@ __all__ = [
     "DEFAULT_PERSIST_FRAMES",
     "DEFAULT_SETTLE_FRACTION",
     "DEFAULT_WINDOW_S",
+    "NOTHING_OBSERVED",
+    "SETTLING_GAP_FRACTION",
+    "S_MAX_MEDIAN_HALF_WIDTH",
     "FlaggedValue",
     "PittingParameters",
     "RecoveryTime",
@@ -51,6 +65,14 @@ DEFAULT_WINDOW_S = 105.0
 #: Fraction of the recovery window, at its end, over which :func:`recovery_time` measures the
 #: final slope of S_k to decide whether the series is still rising (see there) [-].
 DEFAULT_END_SLOPE_FRACTION = 0.1
+#: The default of :attr:`RecoveryTime.observed` for records built by hand: no facts.
+NOTHING_OBSERVED = Observed(frame_period_s=0.0)
+#: Half-width of the running median whose maximum is S_max [frames]: S_max is the largest
+#: median of 5 consecutive frames, which equals the plain maximum on a monotone series and
+#: which no single outlier frame can raise.
+S_MAX_MEDIAN_HALF_WIDTH = 2
+#: A gap around the settling crossing shorter than this fraction of T_r is immaterial [-].
+SETTLING_GAP_FRACTION = 0.01
 #: Consecutive frames that must stay at or above the settling level for a crossing to count.
 #: At the paper's 60 fps, 3 frames are 50 ms: long enough to reject one noisy frame, short
 #: against any recovery time in Table I (2.19 s and longer).
@@ -243,9 +265,11 @@ class RecoveryTime:
     level_px : float
         Settling level, ``settle_fraction * S_max`` [px].
     n_frames : int
-        Finite frames in the recovery window (T_0, T_0 + window_s].
+        Finite frames in the recovery window (T_0, T_0 + window_s], outliers included.
     flags : frozenset[Flag]
         Caveats (see :class:`Flag`).
+    observed : Observed
+        Frame gaps and outlier frames of the recovery, and where they matter.
     """
 
     t0_s: float
@@ -256,6 +280,7 @@ class RecoveryTime:
     level_px: float
     n_frames: int
     flags: frozenset[Flag]
+    observed: Observed = NOTHING_OBSERVED
 
 
 def _s_max(values: NDArray[np.float64], top_frames: int) -> float:
@@ -301,12 +326,21 @@ def recovery_time(
 
     Definitions on a sampled series (frames at ``times_s``):
 
-    * S_0 is S_k at T_0, linearly interpolated between the frames that bracket T_0 (exact
-      when T_0 is a frame time).
+    * Outlier frames (isolated dark or bright frames, the Hampel filter of
+      :func:`~stipi_daemon.analysis.observation.find_outlier_frames`) from T_0 to the end of
+      the window are left out of everything below, counted and flagged ``OUTLIER_FRAMES``.
+    * S_0 is S_k of the first usable frame at or after T_0 (the frame at T_0 when there is
+      one). Frames before T_0 show the pitting phase, so S_0 is never interpolated across
+      the release. When the usable frames around T_0 are more than
+      :data:`~stipi_daemon.analysis.observation.RELEASE_BOUND_PERIODS` frame periods apart,
+      the release was not observed: ``RELEASE_NOT_OBSERVED``, and S_0 (hence D_p) is unknown.
     * The recovery window holds the frames with T_0 < t <= T_0 + ``window_s``.
-    * S_max is the maximum S_k over the window, as in the paper. With
-      ``s_max_top_frames = n > 1`` it is the median of the n largest frames instead, which
-      keeps a single bright outlier from raising the settling level.
+    * S_max is the maximum over the window of the running median of
+      2 * :data:`S_MAX_MEDIAN_HALF_WIDTH` + 1 consecutive frames: on a clean monotone
+      recovery it is the plain maximum of the paper (a monotone series is its own running
+      median), and a single outlier frame cannot raise it by more than the spread of its
+      neighbours. With ``s_max_top_frames = n > 1`` it is the median of the n largest
+      values of that running median.
     * T_s is the first time S_k reaches ``settle_fraction * S_max`` (98 %, the paper's
       reading "S_k reaches 98.0 % of S_max"; the level is a fraction of S_max itself, not
       of the rise S_max - S_0), linearly interpolated between the last frame below the level
@@ -325,6 +359,13 @@ def recovery_time(
     * ``NOT_SETTLED``: no crossing persists inside the window. T_r is a lower bound: the
       time from T_0 to the last window frame, or, when the window ends during an excursion
       shorter than ``persist_frames``, to that excursion's interpolated crossing.
+    * ``RISE_WITHIN_SETTLING_BAND``: S_max - S_0 is within the settling band
+      (1 - settle_fraction) * S_max, so the first frame already "settles" whether or not
+      anything recovered: T_r is not a measurement.
+    * Frame gaps (:func:`~stipi_daemon.analysis.observation.find_frame_gaps`) in the window
+      are listed in ``observed``; ``FRAME_GAP_AT_SETTLING`` when the crossing lies in one
+      (T_r is uncertain by its length), ``FRAME_GAP_AT_MAXIMUM`` when one is next to the
+      frame that sets S_max (the maximum may lie in it).
     * ``NOT_SETTLED`` also when S_k is still rising at the end of the window. With S_max
       taken from the window itself, the 98 % level is always reached once S_k keeps rising
       (a recovery far slower than the window "settles" just before the window ends), so the
@@ -372,39 +413,146 @@ def recovery_time(
     flags: set[Flag] = set()
     if series.dropped:
         flags.add(Flag.NON_FINITE_INPUT)
-
-    s0 = float(np.interp(t0, t, s))
-    in_window = (t > t0) & (t <= t0 + window)
-    tw, sw = t[in_window], s[in_window]
-    if tw.size == 0:
-        raise AnalysisError(
-            f"no finite frame in the recovery window ({t0}, {t0 + window}] s: "
-            "the series ends at T_0"
-        )
-    s_max = _s_max(sw, s_max_top_frames)
+    win = _RecoveryFrames.of(t, s, t0, window)
+    flags |= win.flags
+    smooth = running_median(win.sw, S_MAX_MEDIAN_HALF_WIDTH)
+    s_max = _s_max(smooth, s_max_top_frames)
     level = fraction * s_max
+    observed = Observed(
+        frame_period_s=win.period_s,
+        gaps=win.gaps,
+        release_gap=win.release_gap,
+        maximum_gap=_gap_beside(win, int(np.argmax(smooth))),
+        outlier_times_s=win.outlier_times_s,
+    )
 
-    def result(ts: float | None) -> RecoveryTime:
+    def result(ts: float | None, settling_gap: FrameGap | None = None) -> RecoveryTime:
+        obs = replace(observed, settling_gap=settling_gap)
+        for gap, flag in (
+            (obs.settling_gap, Flag.FRAME_GAP_AT_SETTLING),
+            (obs.maximum_gap, Flag.FRAME_GAP_AT_MAXIMUM),
+        ):
+            if gap is not None:
+                flags.add(flag)
         return RecoveryTime(
             t0_s=t0,
             ts_s=ts,
             recovery_time_s=None if ts is None else ts - t0,
-            s0_px=s0,
+            s0_px=win.s0_px,
             s_max_px=s_max,
             level_px=level,
-            n_frames=int(tw.size),
+            n_frames=win.n_frames,
+            flags=frozenset(flags),
+            observed=obs,
+        )
+
+    if s_max <= win.s0_px:
+        flags.add(Flag.NO_RECOVERY)
+        return result(None)
+    if s_max - win.s0_px <= (1.0 - fraction) * s_max:
+        flags.add(Flag.RISE_WITHIN_SETTLING_BAND)
+    ts, search_flags = _settling_crossing(
+        win.tw,
+        win.sw,
+        t0,
+        win.s0_px,
+        level,
+        persist_frames,
+        (1.0 - fraction) * s_max,
+        end_slope_fraction,
+    )
+    flags |= search_flags
+    return result(ts, None if Flag.NOT_SETTLED in flags else _crossing_gap(win, t0, ts))
+
+
+@dataclass(frozen=True)
+class _RecoveryFrames:
+    """The usable frames of one recovery: S_0, the window without outliers, gaps."""
+
+    s0_px: float
+    tw: NDArray[np.float64]
+    sw: NDArray[np.float64]
+    n_frames: int
+    period_s: float
+    gaps: tuple[FrameGap, ...]
+    release_gap: FrameGap | None
+    outlier_times_s: tuple[float, ...]
+    flags: frozenset[Flag]
+
+    @classmethod
+    def of(
+        cls, t: NDArray[np.float64], s: NDArray[np.float64], t0: float, window: float
+    ) -> _RecoveryFrames:
+        """Frames ``t`` [s], ``s`` [px] (finite) split at T_0 ``t0`` [s], window [s] long.
+
+        Raises
+        ------
+        AnalysisError
+            No finite frame in the window.
+        """
+        flags: set[Flag] = set()
+        period = median_frame_period_s(t)
+        at_release = release_gap(t, t0, period)
+        if at_release is not None:
+            flags.add(Flag.RELEASE_NOT_OBSERVED)
+        seg = (t >= t0) & (t <= t0 + window)
+        ts_, ss_ = t[seg], s[seg]
+        n_window = int(np.count_nonzero(ts_ > t0))
+        if n_window == 0:
+            raise AnalysisError(
+                f"no finite frame in the recovery window ({t0}, {t0 + window}] s: "
+                "the series ends at T_0"
+            )
+        outlier = find_outlier_frames(ss_)
+        if outlier.any():
+            flags.add(Flag.OUTLIER_FRAMES)
+        keep_t, keep_s = ts_[~outlier], ss_[~outlier]
+        in_window = keep_t > t0
+        if not in_window.any():
+            keep_t, keep_s, in_window = ts_, ss_, ts_ > t0
+        gaps = tuple(
+            g for g in find_frame_gaps(t, period) if g.end_s > t0 and g.start_s < t0 + window
+        )
+        return cls(
+            s0_px=float(keep_s[0]),
+            tw=keep_t[in_window],
+            sw=keep_s[in_window],
+            n_frames=n_window,
+            period_s=period,
+            gaps=gaps,
+            release_gap=at_release,
+            outlier_times_s=tuple(float(v) for v in ts_[outlier]),
             flags=frozenset(flags),
         )
 
-    if s_max <= s0:
-        flags.add(Flag.NO_RECOVERY)
-        return result(None)
+    def interval_gap(self, lo_s: float, hi_s: float, min_s: float = 0.0) -> FrameGap | None:
+        """(lo_s, hi_s) [s] as a gap when it spans more than MATERIAL_GAP_PERIODS frame
+        periods and more than ``min_s`` [s]."""
+        length = hi_s - lo_s
+        if self.period_s > 0.0 and length > max(MATERIAL_GAP_PERIODS * self.period_s, min_s):
+            return gap_covering(self.gaps, lo_s, hi_s) or FrameGap(lo_s, hi_s)
+        return None
 
-    ts, search_flags = _settling_crossing(
-        tw, sw, t0, s0, level, persist_frames, (1.0 - fraction) * s_max, end_slope_fraction
-    )
-    flags |= search_flags
-    return result(ts)
+
+def _gap_beside(win: _RecoveryFrames, k: int) -> FrameGap | None:
+    """A gap next to window frame ``k`` (the one that sets S_max), or None."""
+    if k > 0:
+        before = win.interval_gap(float(win.tw[k - 1]), float(win.tw[k]))
+        if before is not None:
+            return before
+    if k + 1 < win.tw.size:
+        return win.interval_gap(float(win.tw[k]), float(win.tw[k + 1]))
+    return None
+
+
+def _crossing_gap(win: _RecoveryFrames, t0: float, ts: float) -> FrameGap | None:
+    """The gap the settling crossing T_s [s] lies in (between its bracketing frames), when
+    it is longer than MATERIAL_GAP_PERIODS frames and SETTLING_GAP_FRACTION of T_r."""
+    j = int(np.searchsorted(win.tw, ts, side="left"))
+    if j >= win.tw.size:
+        return None
+    prev = t0 if j == 0 else float(win.tw[j - 1])
+    return win.interval_gap(prev, float(win.tw[j]), SETTLING_GAP_FRACTION * (ts - t0))
 
 
 def _check_recovery_args(
@@ -587,6 +735,8 @@ class PittingParameters:
         S_max [px] over the recovery window.
     flags : frozenset[Flag]
         Union of the flags of all three parameters.
+    observed : Observed
+        Frame gaps and outlier frames of the recovery (see :class:`RecoveryTime`).
     """
 
     depth_mm: float
@@ -598,6 +748,7 @@ class PittingParameters:
     s0_px: float
     s_max_px: float
     flags: frozenset[Flag]
+    observed: Observed = NOTHING_OBSERVED
 
 
 def compute_pitting_parameters(
@@ -680,4 +831,5 @@ def compute_pitting_parameters(
         s0_px=rt.s0_px,
         s_max_px=rt.s_max_px,
         flags=rt.flags | depth.flags | force.flags | frozenset(extra),
+        observed=rt.observed,
     )

@@ -19,7 +19,7 @@ fit that does not converge leaves the fitted estimator undefined.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -28,6 +28,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from stipi_daemon.analysis.calibration import Calibration
 from stipi_daemon.analysis.flags import Flag
+from stipi_daemon.analysis.observation import noise_sigma
 from stipi_daemon.analysis.pitting import (
     DEFAULT_PERSIST_FRAMES,
     DEFAULT_SETTLE_FRACTION,
@@ -46,11 +47,27 @@ from stipi_daemon.analysis.vpr import VPRModel
 from stipi_daemon.errors import AnalysisError
 
 __all__ = [
+    "FIT_GAP_FRACTION",
+    "POOR_FIT_NOISE_RATIO",
+    "POOR_FIT_R_SQUARED",
     "AnalysisSettings",
     "MeasurementResult",
     "analyze_recovery",
     "applied_force_n_from_samples",
 ]
+
+
+#: A fit whose window has gaps covering more than this fraction of its span is flagged
+#: ``FRAME_GAPS_IN_FIT`` [-].
+FIT_GAP_FRACTION = 0.1
+#: A fit is flagged ``POOR_FIT`` (its tau is not reported as a result) when its residuals
+#: are structured: R^2 below this [-] ...
+POOR_FIT_R_SQUARED = 0.99
+#: ... and an RMS residual larger than this many times the frame-to-frame noise
+#: (:func:`~stipi_daemon.analysis.observation.noise_sigma`), which noise alone cannot
+#: explain. A faithful fit of a noisy, barely rising series has a low R^2 but residuals at
+#: the noise level: it is not poor [-].
+POOR_FIT_NOISE_RATIO = 3.0
 
 
 class AnalysisSettings(BaseModel):
@@ -162,6 +179,7 @@ class MeasurementResult:
                 "s0_px": p.s0_px,
                 "s_max_px": p.s_max_px,
                 "flags": sorted(p.flags),
+                "observation": p.observed.to_dict(),
             },
             "applied_force_n": self.applied_force_n,
             "indenter_radius_mm": self.indenter_radius_mm,
@@ -276,7 +294,8 @@ def analyze_recovery(
     except AnalysisError as exc:
         notes.append(f"paper estimator undefined: {exc}")
 
-    fit = fit_recovery(times_s, s_k, t0_s, settings.recovery_window_s)
+    fit, pitting, cross_notes = _checked_fit(times_s, s_k, pitting, settings.recovery_window_s)
+    notes.extend(cross_notes)
     fit_model: VPRModel | None = None
     if fit.tau_s is not None:
         try:
@@ -301,6 +320,21 @@ def analyze_recovery(
         except AnalysisError as exc:
             notes.append(f"severity (fitted recovery) undefined: {exc}")
 
+    if (
+        severity_paper is not None
+        and severity_fit is not None
+        and Flag.POOR_FIT not in fit.flags
+        and severity_paper.severity != severity_fit.severity
+    ):
+        notes.append(
+            f"severity: the paper's estimator says {severity_paper.severity}, the fitted "
+            f"recovery {severity_fit.severity} (nearest grade {severity_fit.nearest_grade})"
+        )
+        severity_paper = replace(
+            severity_paper, flags=severity_paper.flags | {Flag.ESTIMATORS_DISAGREE}
+        )
+        severity_fit = replace(severity_fit, flags=severity_fit.flags | {Flag.ESTIMATORS_DISAGREE})
+
     return MeasurementResult(
         pitting=pitting,
         applied_force_n=float(applied_force_n),
@@ -312,3 +346,60 @@ def analyze_recovery(
         severity_fit=severity_fit,
         notes=tuple(notes),
     )
+
+
+def _checked_fit(
+    times_s: ArrayLike, s_k: ArrayLike, pitting: PittingParameters, window_s: float
+) -> tuple[RecoveryFit, PittingParameters, list[str]]:
+    """The Kelvin-Voigt fit on the observed frames, judged, and T_r cross-checked with it.
+
+    The fit uses the usable frames only: outlier frames (``pitting.observed``) are left out,
+    lost frames are simply absent. It is flagged ``FRAME_GAPS_IN_FIT`` when gaps cover more
+    than :data:`FIT_GAP_FRACTION` of its span, ``POOR_FIT`` when R^2 is below
+    :data:`POOR_FIT_R_SQUARED` and the RMS residual exceeds :data:`POOR_FIT_NOISE_RATIO`
+    times the frame-to-frame noise. A good fit whose tau [s] is longer than its span means the
+    recovery is slower than the window: the paper's T_r (Eq. 6) is then flagged
+    ``NOT_SETTLED`` whatever the 98 % rule found (a tissue that barely recovers
+    "settles" within a frame by that rule alone).
+
+    Returns
+    -------
+    tuple
+        The judged fit, the pitting parameters (flags updated) and notes.
+    """
+    t = np.asarray(times_s, dtype=np.float64)
+    s = np.asarray(s_k, dtype=np.float64)
+    obs = pitting.observed
+    if obs.outlier_times_s:
+        keep = ~np.isin(t, np.asarray(obs.outlier_times_s, dtype=np.float64))
+        t, s = t[keep], s[keep]
+    fit = fit_recovery(t, s, pitting.t0_s, window_s)
+    flags = set(fit.flags)
+    notes: list[str] = []
+    span = fit.t_end_s - fit.t0_s
+    covered = sum(max(0.0, min(g.end_s, fit.t_end_s) - max(g.start_s, fit.t0_s)) for g in obs.gaps)
+    if span > 0.0 and covered > FIT_GAP_FRACTION * span:
+        flags.add(Flag.FRAME_GAPS_IN_FIT)
+    window = (t >= fit.t0_s) & (t <= fit.t_end_s) & np.isfinite(s)
+    noise = noise_sigma(s[window])
+    if (
+        fit.r_squared is not None
+        and fit.r_squared < POOR_FIT_R_SQUARED
+        and fit.rmse > POOR_FIT_NOISE_RATIO * noise
+    ):
+        flags.add(Flag.POOR_FIT)
+    fit = replace(fit, flags=frozenset(flags))
+    good = fit.tau_s is not None and not flags & {Flag.POOR_FIT, Flag.FIT_NOT_CONVERGED}
+    if (
+        good
+        and fit.tau_s is not None
+        and fit.tau_s > span
+        and Flag.NOT_SETTLED not in pitting.flags
+    ):
+        notes.append(
+            f"fitted tau = {fit.tau_s:.1f} s exceeds the {span:.1f} s observed: the recovery "
+            "did not settle within the window (T_r by the 98 % rule alone would be "
+            f"{pitting.recovery_time_s} s)"
+        )
+        pitting = replace(pitting, flags=pitting.flags | {Flag.NOT_SETTLED})
+    return fit, pitting, notes

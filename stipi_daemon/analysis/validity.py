@@ -139,8 +139,9 @@ FLAG_RULES: Final[Mapping[Flag, FlagRule]] = MappingProxyType(
             (),
             "S_0 or S_max lies outside the calibrated range",
         ),
+        # Informational: the 98 % rule's persistence did its work (noise near the level).
         Flag.EARLY_NOISY_CROSSING: FlagRule(
-            ("recovery_time_s",), (), "a short early crossing of the settling level was ignored"
+            (), (), "a short early crossing of the settling level was ignored"
         ),
         Flag.FIT_NOT_CONVERGED: FlagRule(
             ("tau_s",), ("tau_s",), "the recovery fit did not converge"
@@ -149,9 +150,42 @@ FLAG_RULES: Final[Mapping[Flag, FlagRule]] = MappingProxyType(
             ("tau_s",), (), "the fitted tau lies outside the fitted span"
         ),
         Flag.CONSTANT_SERIES: FlagRule(("tau_s",), ("tau_s",), "S_k did not vary after T_0"),
-        Flag.NON_FINITE_INPUT: FlagRule(_FROM_SK, (), "NaN frames were dropped"),
+        # Informational: a dropped frame is a missing frame, judged where it matters by the
+        # gap rules (release, settling crossing, maximum, fit).
+        Flag.NON_FINITE_INPUT: FlagRule((), (), "NaN frames were dropped"),
         Flag.OUTSIDE_REFERENCE_RANGE: FlagRule(
             ("severity",), (), "the measurement lies beyond the reference grades"
+        ),
+        Flag.RISE_WITHIN_SETTLING_BAND: FlagRule(
+            ("recovery_time_s",),
+            ("recovery_time_s",),
+            "S_k rose by less than the settling band: the recovery did not settle within "
+            "the window, or there was none to time",
+        ),
+        Flag.RELEASE_NOT_OBSERVED: FlagRule(
+            ("depth_mm", "recovery_time_s", "elasticity_kpa"),
+            ("depth_mm",),
+            "no usable frame near the release: S_0 is unknown",
+        ),
+        Flag.FRAME_GAP_AT_SETTLING: FlagRule(
+            ("recovery_time_s",), (), "the 98 % crossing lies in a frame gap"
+        ),
+        Flag.FRAME_GAP_AT_MAXIMUM: FlagRule(
+            ("rebound_force_n",), (), "a frame gap is next to the frame that sets S_max"
+        ),
+        Flag.OUTLIER_FRAMES: FlagRule(
+            ("rebound_force_n", "recovery_time_s", "tau_s"),
+            (),
+            "outlier frames were left out of S_max, T_s and the fit",
+        ),
+        Flag.FRAME_GAPS_IN_FIT: FlagRule(
+            ("tau_s",), (), "frame gaps cover more than 10 % of the fitted span"
+        ),
+        Flag.POOR_FIT: FlagRule(
+            ("tau_s",), ("tau_s",), "the Kelvin-Voigt model fits the recovery poorly"
+        ),
+        Flag.ESTIMATORS_DISAGREE: FlagRule(
+            ("severity",), (), "the paper's estimator and the fitted recovery disagree"
         ),
     }
 )
@@ -198,6 +232,33 @@ class Verdict:
         return {"status": self.status, "line": self.line}
 
 
+def _specific_reason(flag: Flag, result: MeasurementResult) -> str | None:
+    """A flag's reason with this measurement's facts (times, lengths), when it has them."""
+    p, obs = result.pitting, result.pitting.observed
+    if flag is Flag.RELEASE_NOT_OBSERVED and obs.release_gap is not None:
+        return f"{obs.release_gap.describe()} around the release at {p.t0_s:.2f} s"
+    if flag is Flag.FRAME_GAP_AT_SETTLING and obs.settling_gap is not None:
+        g = obs.settling_gap
+        return (
+            f"the 98 % crossing lies in a gap ({g.describe()}): T_r uncertain by {g.length_s:.2f} s"
+        )
+    if flag is Flag.FRAME_GAP_AT_MAXIMUM and obs.maximum_gap is not None:
+        return f"S_max may lie in a gap ({obs.maximum_gap.describe()})"
+    if flag is Flag.OUTLIER_FRAMES and obs.outlier_times_s:
+        n = len(obs.outlier_times_s)
+        return f"{n} outlier frame{'s' if n > 1 else ''} left out of S_max, T_s and the fit"
+    if flag is Flag.POOR_FIT and result.fit.r_squared is not None:
+        return f"the Kelvin-Voigt model fits the recovery poorly (R^2 = {result.fit.r_squared:.2f})"
+    if flag is Flag.ESTIMATORS_DISAGREE:
+        sp, sf = result.severity_paper, result.severity_fit
+        if sp is not None and sf is not None:
+            return (
+                f"estimators disagree: paper {sp.severity} (grade {sp.nearest_grade}), "
+                f"fitted recovery {sf.severity} (grade {sf.nearest_grade})"
+            )
+    return None
+
+
 def _value_missing(result: MeasurementResult, quantity: str) -> str | None:
     """Why ``quantity`` has no value in ``result`` (None when it has one)."""
     p = result.pitting
@@ -239,9 +300,10 @@ def quantity_validity(
         rule = FLAG_RULES.get(flag)
         if rule is None:
             continue
+        reason = _specific_reason(flag, result) or rule.reason
         for q in rule.quantities:
             flags[q].add(str(flag))
-            (invalid if q in rule.invalidates else caveats)[q].append(rule.reason)
+            (invalid if q in rule.invalidates else caveats)[q].append(reason)
     for q, reason in (extra_reasons or {}).items():
         invalid[q].append(reason)
     for q in flags:
