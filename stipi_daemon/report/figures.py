@@ -494,6 +494,9 @@ def _invalid(validity: Mapping[str, QuantityStatus] | None, *quantities: str) ->
 def omitted_curves(validity: Mapping[str, QuantityStatus] | None) -> tuple[str, ...]:
     """Why :func:`measurement_curves` leaves a curve out, one line per curve left out."""
     out = []
+    depth = _invalid(validity, "depth_mm")
+    if depth is not None:
+        out.append(f"this session's depth curves D(t) (D_p not valid: {depth})")
     paper = _invalid(validity, "elasticity_kpa", "viscosity_n_s_per_mm2")
     if paper is not None:
         out.append(f"the paper estimator's curve (E or η not valid: {paper})")

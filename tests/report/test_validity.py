@@ -218,7 +218,8 @@ def test_invalid_quantities_are_not_shown_as_results(inp: ReportInput, tmp_path:
     assert '<tr data-quantity="depth_mm"><td>D_p (pitting depth)</td>' in page
     assert '<tr data-quantity="recovery_time_s">' in page
     assert '<span class="v-invalid">D_p = — (not valid)</span>' in page
-    assert "Not drawn, as not valid: the paper estimator" in page
+    assert "Not drawn, as not valid: this session&#x27;s depth curves D(t) (D_p not valid" in page
+    assert "the paper estimator&#x27;s curve (E or η not valid" in page
 
 
 def test_complete_only_when_every_primary_quantity_is_valid(inp: ReportInput) -> None:
