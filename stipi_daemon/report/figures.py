@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import itertools
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, Final, Literal
 
 import numpy as np
@@ -176,12 +176,13 @@ class SkFigure:
         Capture times of frames whose S_k is not finite (dropped by the analysis) [s].
     outlier_t_s, outlier_s_k_px : numpy.ndarray
         Outlier frames after T_0 [s], [px]: those the analysis recorded leaving out
-        (``observed.outlier_frame_times_s``), else :func:`~.series.isolated_outliers`.
+        (``pitting.observation.outlier_frame_times_s``), else
+        :func:`~.series.isolated_outliers`.
     outlier_source : {"analysis", "report"}
         Which of the two found them.
     release_gap_s : tuple of float or None
         The frames around T_0 when the analysis recorded that the release was not observed
-        (``observed.release_gap_s``) [s].
+        (``pitting.observation.release_gap_s``) [s].
     phases : tuple of PhaseSpan
         Phases of the measurement.
     release_s : float or None
@@ -226,8 +227,8 @@ class SkFigure:
 
 
 def _observed(results: Mapping[str, Any] | None) -> Mapping[str, Any] | None:
-    """What the analysis recorded about frame coverage (``observed``), wherever it is."""
-    for keys in (("pitting", "observed"), ("observed",)):
+    """What the analysis recorded about frame coverage (``results.pitting.observation``)."""
+    for keys in (("pitting", "observation"), ("pitting", "observed")):
         v = value_at(results, *keys)
         if isinstance(v, Mapping):
             return v
@@ -244,17 +245,23 @@ def _recorded_pair(results: Mapping[str, Any] | None, key: str) -> tuple[float, 
     return float(v[0]), float(v[1])
 
 
+def _recorded_outliers(inp: ReportInput) -> NDArray[np.bool_]:
+    """The frames the analysis recorded leaving out as outliers (none when not recorded)."""
+    recorded = value_at(_observed(inp.results), "outlier_frame_times_s")
+    if not isinstance(recorded, list):
+        return np.zeros(inp.frame_times_s.shape, dtype=bool)
+    times = np.asarray(
+        [x for x in recorded if isinstance(x, int | float) and not isinstance(x, bool)],
+        dtype=np.float64,
+    )
+    return np.isin(inp.frame_times_s, times)
+
+
 def _outlier_frames(inp: ReportInput) -> tuple[NDArray[np.bool_], Literal["analysis", "report"]]:
     """The outlier frames the analysis recorded, else the report's own check."""
-    recorded = value_at(_observed(inp.results), "outlier_frame_times_s")
-    t = inp.frame_times_s
-    if isinstance(recorded, list):
-        times = np.asarray(
-            [x for x in recorded if isinstance(x, int | float) and not isinstance(x, bool)],
-            dtype=np.float64,
-        )
-        return np.isin(t, times), "analysis"
-    return isolated_outliers(t, inp.s_k_px, inp.t0_s), "report"
+    if isinstance(value_at(_observed(inp.results), "outlier_frame_times_s"), list):
+        return _recorded_outliers(inp), "analysis"
+    return isolated_outliers(inp.frame_times_s, inp.s_k_px, inp.t0_s), "report"
 
 
 def s_k_figure(inp: ReportInput) -> SkFigure:
@@ -321,6 +328,8 @@ class FitFigure:
         The fit's flags.
     tau_invalid : str or None
         Why tau is not valid (``summary["validity"]``); None when it is not invalid.
+    rejected_t_since_t0_s, rejected_s_k_px : numpy.ndarray
+        Frames of the fit window the analysis left out as outliers [s since T_0], [px].
     """
 
     t_since_t0_s: FloatArray
@@ -337,6 +346,8 @@ class FitFigure:
     n_points: int | None
     flags: tuple[str, ...]
     tau_invalid: str | None = None
+    rejected_t_since_t0_s: FloatArray = field(default_factory=lambda: np.zeros(0))
+    rejected_s_k_px: FloatArray = field(default_factory=lambda: np.zeros(0))
 
 
 def fit_figure(inp: ReportInput) -> FitFigure | None:
@@ -354,6 +365,8 @@ def fit_figure(inp: ReportInput) -> FitFigure | None:
     lo, hi = float(window[0]), float(window[1])
     t, s = inp.frame_times_s, inp.s_k_px
     sel = (t >= lo) & (t <= hi) & (t >= t0) & np.isfinite(s)
+    rejected = sel & _recorded_outliers(inp)
+    sel &= ~rejected
     ts, ss = t[sel], s[sel]
     model = kelvin_voigt_recovery(ts, t0, off, amp, tau)
     n = value_at(fr, "n_points")
@@ -373,6 +386,8 @@ def fit_figure(inp: ReportInput) -> FitFigure | None:
         n_points=n if isinstance(n, int) else None,
         flags=tuple(flags) if isinstance(flags, list) else (),
         tau_invalid=_invalid(read_validity(inp.summary), "tau_s"),
+        rejected_t_since_t0_s=t[rejected] - t0,
+        rejected_s_k_px=s[rejected],
     )
 
 

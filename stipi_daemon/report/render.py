@@ -318,6 +318,17 @@ def draw_fit(data: FitFigure, title: str = "") -> Figure:
         label=f"$S_k$ data ({data.t_since_t0_s.size} frames)",
     )
     pts.set_gid("fit_data")
+    if data.rejected_t_since_t0_s.size:
+        (rej,) = ax.plot(
+            data.rejected_t_since_t0_s,
+            data.rejected_s_k_px,
+            "X",
+            color="#d62728",
+            ms=7,
+            ls="none",
+            label=f"outlier frames left out of the fit ({data.rejected_t_since_t0_s.size})",
+        )
+        rej.set_gid("fit_rejected")
     se = "" if data.tau_se_s is None else f" ± {data.tau_se_s:.2g}"
     (model,) = ax.plot(
         data.t_since_t0_s,

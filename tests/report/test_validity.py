@@ -158,7 +158,10 @@ def test_outlier_frames_are_marked(inp: ReportInput) -> None:
     s = inp.s_k_px.copy()
     k = int(np.searchsorted(inp.frame_times_s, inp.t0_s + 6.0))
     s[k] = 4.0 * float(np.nanmax(s))  # a dark frame mid-recovery
-    dark = ReportInput(**{**inp.__dict__, "s_k_px": s})
+    # A session recorded before the analysis recorded its outliers: the report finds them.
+    old_summary: dict[str, Any] = copy.deepcopy(dict(inp.summary or {}))
+    old_summary["results"]["pitting"].pop("observation", None)
+    dark = ReportInput(**{**inp.__dict__, "s_k_px": s, "summary": old_summary})
     sk = s_k_figure(dark)
     assert sk.outlier_source == "report"
     np.testing.assert_array_equal(sk.outlier_t_s, [inp.frame_times_s[k]])
@@ -168,10 +171,19 @@ def test_outlier_frames_are_marked(inp: ReportInput) -> None:
     # What the analysis recorded wins over the report's own check.
     summary: dict[str, Any] = copy.deepcopy(dict(dark.summary or {}))
     t_other = float(inp.frame_times_s[k + 5])
-    summary["results"]["pitting"]["observed"] = {"outlier_frame_times_s": [t_other]}
+    summary["results"]["pitting"]["observation"] = {"outlier_frame_times_s": [t_other]}
     recorded = s_k_figure(ReportInput(**{**dark.__dict__, "summary": summary}))
     assert recorded.outlier_source == "analysis"
     assert recorded.outlier_t_s.tolist() == [t_other]
+    # The fit figure leaves the recorded outlier out of the fitted frames and marks it.
+    from stipi_daemon.report.figures import fit_figure
+
+    fit = fit_figure(ReportInput(**{**dark.__dict__, "summary": summary}))
+    assert fit is not None and inp.t0_s is not None
+    assert fit.rejected_t_since_t0_s.tolist() == [t_other - inp.t0_s]
+    assert t_other - inp.t0_s not in fit.t_since_t0_s.tolist()
+    x = r.draw_fit(fit)
+    assert list(_line(x, "fit_rejected").get_xdata()) == [t_other - inp.t0_s]
 
 
 # --------------------------------------------------------------------------------------------
