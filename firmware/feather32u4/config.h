@@ -51,6 +51,7 @@
 // the budget adds the interrupt latency.
 #define STIPI_OVERSAMPLE_MAX 16      // power of two, <= 16
 #define STIPI_ADC_CONV_BUDGET_US 115 // time reserved per conversion [us]
+#define STIPI_ADC_CONV_PERIOD_US 115 // start-to-start of chained conversions [us] (114.5 in simavr)
 // Extra bits on the wire: 0 keeps SAMPLES.adc in 10-bit counts (the averaged mean, rounded;
 // calibrations and the host's load-cell model stay valid); 2 sends 12-bit counts (sum of 16
 // conversions / 4) and GET_INFO reports adc_bits = 12 (recalibrate: zero and span change x4).

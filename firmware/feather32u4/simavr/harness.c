@@ -251,6 +251,7 @@ static struct {
 	double ble_connect_s;        /* central connects at this simulated time (< 0: never) */
 	FILE *ble_out;               /* bytes the central received (--ble-out) */
 	uint64_t ble_rx_bytes, spi_bytes, cs_falls;
+	uint64_t cs_fall_cycle, cs_low_cycles, cs_low_max_cycles; /* CS-low time (transactions) */
 
 	avr_uart_t *uart;            /* the bridged UART's simavr state */
 	avr_cycle_count_t uart_cpb;  /* cycles per byte last reported */
@@ -325,8 +326,15 @@ static void ble_cs_hook(struct avr_irq_t *irq, uint32_t value, void *param)
 	(void)irq;
 	(void)param;
 	nrf51_sim_advance(&H.nrf, sim_us());
-	if (!value)
+	if (!value && !H.nrf.selected) {
 		H.cs_falls++;
+		H.cs_fall_cycle = H.avr->cycle;
+	} else if (value && H.nrf.selected) {
+		uint64_t d = H.avr->cycle - H.cs_fall_cycle;
+		H.cs_low_cycles += d;
+		if (d > H.cs_low_max_cycles)
+			H.cs_low_max_cycles = d;
+	}
 	nrf51_sim_select(&H.nrf, value == 0);
 	ble_sync();
 }
@@ -886,10 +894,11 @@ int main(int argc, char **argv)
 		if (H.ble_out)
 			fflush(H.ble_out);
 		printf("BLE sim_s=%.6f event=summary connected=%d central_bytes=%llu spi_bytes=%llu "
-		       "cs_falls=%llu commands=%u packets_in=%u packets_out=%u not_ready=%u "
+		       "cs_falls=%llu cs_low_us=%.0f cs_low_max_us=%.1f commands=%u packets_in=%u packets_out=%u not_ready=%u "
 		       "overreads=%u tx_errors=%u protocol_errors=%u cmd_errors=%u\n",
 		       sim_s(), H.nrf.connected, (unsigned long long)H.ble_rx_bytes,
 		       (unsigned long long)H.spi_bytes, (unsigned long long)H.cs_falls,
+		       H.cs_low_cycles * 1e6 / H.avr->frequency, H.cs_low_max_cycles * 1e6 / H.avr->frequency,
 		       H.nrf.commands, H.nrf.packets_in, H.nrf.packets_out, H.nrf.not_ready,
 		       H.nrf.overreads, H.nrf.tx_errors, H.nrf.protocol_errors, H.nrf.cmd_errors);
 	}

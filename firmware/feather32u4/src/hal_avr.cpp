@@ -29,6 +29,7 @@ volatile uint16_t g_supply_raw = 0;
 volatile uint16_t g_sum = 0;        // conversions of the current sample, summed (<= 16 * 1023)
 volatile uint8_t g_conv_left = 0;   // conversions still to take for the current sample
 uint8_t g_log2n = 0;                // 2^g_log2n conversions per sample (set with the timer)
+uint16_t g_center_us = 0;           // timer instant -> middle of its conversions [us]
 volatile uint16_t g_gain_q14 = kGainOne;  // ratiometric supply correction (oversample.h)
 volatile bool g_corrected = false;
 uint8_t g_loadcell_channel = 0;
@@ -64,7 +65,7 @@ ISR(TIMER1_COMPA_vect) {
     g_sampler.isr_drop();  // previous conversions still running: this sample is lost, counted
     return;
   }
-  g_sample_t_us = t;
+  g_sample_t_us = t + g_center_us;  // the mean stands for the middle of the conversions
   g_sum = 0;
   g_conv_left = static_cast<uint8_t>(1u << g_log2n);
   g_adc_state = kAdcSample;
@@ -126,6 +127,7 @@ void AvrBoard::start_sampling(uint16_t period_us) {
   TCCR1B = 0;
   TCNT1 = 0;
   g_log2n = oversample_log2(period_us);
+  g_center_us = oversample_center_us(g_log2n);
   OCR1A = static_cast<uint16_t>(period_us - 1);  // CTC: period = (OCR1A + 1) ticks of 1 us
   TIFR1 = _BV(OCF1A);
   TIMSK1 |= _BV(OCIE1A);

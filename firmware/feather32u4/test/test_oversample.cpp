@@ -48,3 +48,9 @@ TEST(supply_gain_is_nominal_over_measured_and_refuses_nonsense) {
   CHECK(!supply_gain_q14(1023, &gain));
   CHECK_EQ(gain, kGainOne);
 }
+
+TEST(oversample_timestamp_is_the_middle_of_the_conversions) {
+  CHECK_EQ(oversample_center_us(0), 0);
+  CHECK_EQ(oversample_center_us(2), (3 * STIPI_ADC_CONV_PERIOD_US + 1) / 2);
+  CHECK_EQ(oversample_center_us(4), (15 * STIPI_ADC_CONV_PERIOD_US + 1) / 2);
+}

@@ -38,6 +38,13 @@ inline uint8_t oversample_log2(uint16_t period_us) {
   return k;
 }
 
+// Offset from the sample instant (Timer1 compare) to the middle of its 2^log2n conversions
+// [us]: the mean of a linearly changing input is its value there, so that is the sample's
+// timestamp. Conversions are STIPI_ADC_CONV_PERIOD_US apart (104 us + the ISR's restart).
+inline uint16_t oversample_center_us(uint8_t log2n) {
+  return static_cast<uint16_t>((((1u << log2n) - 1u) * STIPI_ADC_CONV_PERIOD_US + 1u) / 2u);
+}
+
 // One sample from the sum of 2^log2n conversions and the Q14 supply gain, rounded, clipped to
 // STIPI_ADC_OUT_BITS bits.
 inline uint16_t oversample_output(uint32_t sum, uint8_t log2n, uint16_t gain_q14) {
