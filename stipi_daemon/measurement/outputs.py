@@ -78,6 +78,7 @@ class AdvisoryKind(StrEnum):
     RELEASE_OVERRUN = "release_overrun"
     EARLY_RELEASE_REQUEST = "early_release_request"
     RELEASE_UNDER_FORCE = "release_under_force"
+    RELEASE_BEFORE_PITTING_END = "release_before_pitting_end"
     LINK_DOWN = "link_down"
     LINK_RESTORED = "link_restored"
     LINK_LOST_FLAGGED = "link_lost_flagged"

@@ -8,26 +8,28 @@ the tissue recovers and, when the machine asks for it, runs the whole-measuremen
 analysis (:func:`~stipi_daemon.analysis.results.analyze_recovery`). It does no I/O
 and reads no clock: the same inputs give the same outputs, live or replayed.
 
-T_0 (Eq. 6) is the release the state machine reports, refined on the S_k series: the
-frame where S_k is lowest after the pitting peak, searched from the start of pitting to
-``t0_refine_s`` after the reported release
-(:func:`~stipi_daemon.analysis.pitting.detect_recovery_start`). The force drop is sampled
-at the load-cell rate and debounced, and an operator may let go slightly before the
-machine's release prompt, while the occlusion minimum marks the moment the tissue starts
-to push back. If S_k has no minimum there, the reported release is kept and the note
-says so.
+T_0 (Eq. 6) comes from what was observed, never from a timer: the release the state
+machine reports (the force's downward crossing of the release threshold, interpolated
+between samples, or the operator's confirmation), read on the S_k series by
+:func:`~stipi_daemon.measurement.release.observe_release`: S_0 is the frame that shows the
+release (the image jump when it lies within a bound of the force drop), never a value
+interpolated across it, and T_0 is that frame's time. A release whose frames were lost
+leaves S_0 "not observed" (:attr:`MeasurementPipeline.release`), which the validity rules
+turn into an invalid D_p. F_a (Eq. 7) averages the hold up to the last in-band force
+sample before the force drop.
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import Literal
 
 import numpy as np
 
 from stipi_daemon.analysis.calibration import Calibration
 from stipi_daemon.analysis.flags import Flag
-from stipi_daemon.analysis.pitting import compute_pitting_parameters, detect_recovery_start
+from stipi_daemon.analysis.pitting import compute_pitting_parameters
 from stipi_daemon.analysis.recovery_fit import fit_recovery
 from stipi_daemon.analysis.results import (
     AnalysisSettings,
@@ -38,8 +40,16 @@ from stipi_daemon.analysis.results import (
 from stipi_daemon.analysis.severity import SeverityReference
 from stipi_daemon.analysis.vpr import elasticity_kpa
 from stipi_daemon.errors import AnalysisError
-from stipi_daemon.measurement.events import AnalysisDone, Arm, Event, ForceSample, FrameSample
+from stipi_daemon.measurement.events import (
+    AnalysisDone,
+    Arm,
+    Event,
+    ForceSample,
+    FrameSample,
+    Tick,
+)
 from stipi_daemon.measurement.outputs import Output, Phase, StartAnalysis
+from stipi_daemon.measurement.release import ReleaseObservation, observe_release
 from stipi_daemon.measurement.settings import MeasurementConfig
 from stipi_daemon.measurement.state_machine import MachineState, close, initial_state, transition
 
@@ -124,8 +134,9 @@ class MeasurementPipeline:
     t_start_s : float
         Time the pipeline starts [s] (host clock).
     t0_refine_s : float
-        How far after the reported release the T_0 search on S_k extends [s]; 0 disables
-        the refinement.
+        How far around the reported release the image jump is looked for [s]
+        (:func:`~stipi_daemon.measurement.release.observe_release`; also the bound of an
+        operator-confirmed release).
     """
 
     def __init__(
@@ -156,6 +167,10 @@ class MeasurementPipeline:
         self.analysis_error: str | None = None
         #: Notes about how the result was obtained.
         self.notes: list[str] = []
+        #: How T_0 and S_0 were observed, once the analysis ran (facts for the validity).
+        self.release: ReleaseObservation | None = None
+        #: Frames whose S_k was not finite (fed as time only, see :meth:`frame`).
+        self.unmeasurable_frames = 0
         self._live_t0: float | None = None
 
     # ------------------------------------------------------------------ feeding
@@ -203,13 +218,37 @@ class MeasurementPipeline:
         return self.feed(ForceSample(t_s, force_n))
 
     def frame(self, t_s: float, s_k: float) -> list[Output]:
-        """Feed one frame's S_k [s, px]."""
+        """Feed one frame's S_k [s, px]; an unmeasurable frame (S_k not finite) is counted
+        in :attr:`unmeasurable_frames` and only brings the time forward: like a lost frame,
+        it is no observation (S_0 is never interpolated across it)."""
+        if not math.isfinite(s_k):
+            self.unmeasurable_frames += 1
+            return self.feed(Tick(t_s))
         return self.feed(FrameSample(t_s, s_k))
 
     def close(self, t_s: float) -> list[Output]:
-        """Close the session: any non-terminal phase ends (see ``state_machine.close``)."""
+        """Close the session at ``t_s`` [s]: any non-terminal phase ends.
+
+        A recording that ends with the recovery window (at most ``recovery_end_slack_s``
+        before its end, or after it) has watched what the protocol asks for: the window
+        is completed first (the recovery is analysed and the measurement ends DONE), then
+        ``state_machine.close`` ends whatever is left (a fault phase for an earlier end).
+        """
+        out: list[Output] = []
+        t_rel = self.state.t_release_s
+        if self.state.phase is Phase.RECOVERY and t_rel is not None:
+            t_window_end = t_rel + self.config.recovery_max_s
+            now = max(t_s, self.state.now_s)
+            if t_window_end - now <= self.config.recovery_end_slack_s:
+                if now < t_window_end:
+                    self.notes.append(
+                        f"the recording ended {t_window_end - now:.3f} s before the recovery "
+                        f"window's end ({self.config.recovery_max_s:g} s after T_0): window "
+                        "taken as complete"
+                    )
+                out += self.feed(Tick(max(now, t_window_end)))
         self.state, outputs = close(self.state, t_s, self.config)
-        return self._run_requested_analysis(outputs)
+        return out + self._run_requested_analysis(outputs)
 
     def _run_requested_analysis(self, outputs: list[Output]) -> list[Output]:
         """``outputs``, each :class:`StartAnalysis` followed by what the analysis emitted."""
@@ -221,25 +260,36 @@ class MeasurementPipeline:
 
     # ------------------------------------------------------------------ results
 
-    def _refined_t0(self, t_release_s: float, t_pit_start_s: float) -> float:
-        if self.t0_refine_s <= 0.0:
-            return t_release_s
+    def _observe_release(self, t_release_s: float, *, note: bool = True) -> ReleaseObservation:
+        """T_0 and the S_0 frame for the reported release (module docstring); notes it."""
         t, s = self._frames.arrays()
-        # From the start of pitting (S_k high while pressed) to shortly after the reported
-        # release: the release is the lowest S_k after the pitting peak. The force may have
-        # dropped before the machine's release phase began, so the search is not centred
-        # on the reported time.
-        sel = (t >= t_pit_start_s) & (t <= t_release_s + self.t0_refine_s)
-        try:
-            t0 = detect_recovery_start(t[sel], s[sel])
-        except AnalysisError as exc:
-            self.notes.append(f"T_0 kept at the reported release ({t_release_s:.3f} s): {exc}")
-            return t_release_s
-        if t0 != t_release_s:
+        ft, _ = self._force.arrays()
+        source: Literal["force", "operator"] = (
+            "operator" if self.state.release_by == "operator" else "force"
+        )
+        obs = observe_release(
+            t, s, ft, t_release_s, source=source, search_s=max(self.t0_refine_s, 1e-9)
+        )
+        if note and obs.t0_s != t_release_s:
             self.notes.append(
-                f"T_0 refined on S_k from the reported release {t_release_s:.3f} s to {t0:.3f} s"
+                f"T_0 at the frame that shows the release, {obs.t0_s:.3f} s "
+                f"({obs.t0_s - t_release_s:+.3f} s from the {source} release {t_release_s:.3f} s)"
             )
-        return t0
+        if note and obs.reason is not None:
+            self.notes.append(obs.reason)
+        return obs
+
+    def _hold_end_s(self, t_pit_start_s: float, t_pit_end_s: float | None, t0_s: float) -> float:
+        """End of the pitting hold for F_a [s]: the last force sample in the band (at or
+        above its lower edge) before the release, within the pitting interval; the
+        rebound and the operator's letting go are not the applied force of Eq. (7)."""
+        end = t0_s if t_pit_end_s is None else min(t_pit_end_s, t0_s)
+        rel = self.state.t_release_s
+        if rel is None or self.state.release_by != "force":
+            return end
+        ft, fv = self._force.arrays()
+        held = np.flatnonzero((ft >= t_pit_start_s) & (ft <= rel) & (fv >= self.config.band_low_n))
+        return min(end, float(ft[held[-1]])) if held.size else end
 
     def analyse_recording(
         self,
@@ -248,26 +298,26 @@ class MeasurementPipeline:
         t_pit_end_s: float | None,
         t_end_s: float | None = None,
     ) -> tuple[MeasurementResult | None, str | None, float]:
-        """Analyse the recorded recovery: T_0 refined on S_k, F_a, then every result.
+        """Analyse the recorded recovery: T_0 and S_0 as observed, F_a, then every result.
 
         The step the machine's :class:`StartAnalysis` runs; also usable on a recovery the
         recording cut short (``t_end_s=None``: every frame recorded). Notes on T_0 go to
-        :attr:`notes`; the pipeline's own result is not changed.
+        :attr:`notes` and how it was observed to :attr:`release`; the pipeline's own
+        result is not changed.
 
         Returns
         -------
         tuple
             The result (None when the analysis failed), why it failed, and T_0 [s].
         """
-        t0 = self._refined_t0(t_release_s, t_pit_start_s)
+        self.release = self._observe_release(t_release_s)
+        t0 = self.release.t0_s
         try:
             if self.analysis.applied_force_n is not None:
                 f_a = self.analysis.applied_force_n
             else:
                 ft, fv = self._force.arrays()
-                # The hold ends at the release at the latest: force after T_0 is the
-                # rebound, not the applied force of Eq. (7).
-                end = t0 if t_pit_end_s is None else min(t_pit_end_s, t0)
+                end = self._hold_end_s(t_pit_start_s, t_pit_end_s, min(t0, t_release_s))
                 f_a = applied_force_n_from_samples(ft, fv, t_pit_start_s, end)
             t, s = self._frames.arrays()
             if t_end_s is not None:
@@ -310,8 +360,7 @@ class MeasurementPipeline:
         if t.size < 2 or t[-1] <= t_rel:
             return None
         if self.t0_s is None and self._live_t0 is None and t[-1] > t_rel + self.t0_refine_s:
-            pit_start = self.state.t_pit_start_s
-            self._live_t0 = self._refined_t0(t_rel, pit_start) if pit_start is not None else t_rel
+            self._live_t0 = self._observe_release(t_rel, note=False).t0_s
         t0 = self.t0_s if self.t0_s is not None else (self._live_t0 or t_rel)
         elapsed = float(t[-1] - t0)
         try:
@@ -333,7 +382,7 @@ class MeasurementPipeline:
         if pit_start is not None and pit_end is not None and params.depth_mm > 0.0:
             try:
                 f_a = self.analysis.applied_force_n or applied_force_n_from_samples(
-                    ft, fv, pit_start, pit_end
+                    ft, fv, pit_start, self._hold_end_s(pit_start, pit_end, t_rel)
                 )
                 e_kpa = elasticity_kpa(f_a, params.depth_mm, self.analysis.indenter_radius_mm)
             except AnalysisError:

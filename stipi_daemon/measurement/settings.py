@@ -39,6 +39,11 @@ class MeasurementConfig(BaseModel):
         Time in RELEASE after which an over-pitting advisory is issued once [s].
     recovery_max_s : float
         Longest recovery observed after T_0 [s] (paper: 105 s).
+    recovery_end_slack_s : float
+        A session whose sources end (a video file, a simulated scene) at most this long
+        before the recovery window's end has watched the window: it is analysed over what
+        was recorded instead of aborted [s]. A recording of "15 s, release, 105 s" ends
+        within a frame or a force sample of T_0 + 105 s, on either side.
     stop_when_settled : bool
         End the recovery once S_k has settled (see the state machine's module docstring),
         else always after ``recovery_max_s``.
@@ -70,6 +75,7 @@ class MeasurementConfig(BaseModel):
     release_debounce_s: float = Field(0.1, ge=0.0, allow_inf_nan=False)
     release_overrun_warn_s: float = Field(3.0, gt=0.0, allow_inf_nan=False)
     recovery_max_s: float = Field(105.0, gt=0.0, allow_inf_nan=False)
+    recovery_end_slack_s: float = Field(1.0, ge=0.0, allow_inf_nan=False)
     stop_when_settled: bool = True
     settle_fraction: float = Field(0.98, gt=0.0, lt=1.0, allow_inf_nan=False)
     settle_hold_s: float = Field(10.0, gt=0.0, allow_inf_nan=False)

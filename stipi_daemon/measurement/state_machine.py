@@ -41,13 +41,20 @@ Policies (all thresholds are fields of :class:`MeasurementConfig`):
   excursion outside ``target ± tolerance`` is reported (one :class:`Advisory` per
   excursion) and tolerated while it lasts at most ``out_of_band_grace_s`` *continuously*
   and the *cumulative* out-of-band time of the pitting phase stays at or below
-  ``out_of_band_limit_s``; breaking either rule is the fault ``FORCE_OUT_OF_BAND``. A drop
-  below ``release_force_n`` during PITTING (an early release) is therefore a fault after
-  the grace time. The band is not enforced in RELEASE (the operator is letting go).
-* RELEASE means "the operator has been asked to release". Release is *detected* when the
-  force stays below ``release_force_n`` for ``release_debounce_s`` (T_release = first
-  sample below the threshold), or *confirmed* by :class:`OperatorRelease`
-  (T_release = the button's time, flag ``release_confirmed_by_operator``).
+  ``out_of_band_limit_s``; breaking either rule is the fault ``FORCE_OUT_OF_BAND``. The
+  band is not enforced in RELEASE (the operator is letting go).
+* T_0 comes from what was observed, never from a timer. The release time is the force's
+  downward crossing of ``release_force_n``, linearly interpolated between the last sample
+  at or above it and the first below it; it is *detected* once samples have stayed below
+  for ``release_debounce_s`` (counted from the first sample below: only observed samples
+  confirm it). A drop during PITTING that the grace would have carried to the end of the
+  pitting time (the excursion it starts would still be tolerated then) is the release at
+  the end of the hold: PITTING -> RELEASE -> RECOVERY at once, T_0 and the end of the
+  hold at the drop, an advisory ``release_before_pitting_end`` and no "press harder"
+  prompt. An earlier drop is an early release: the fault after the grace time. A drop
+  still being debounced when the pitting time ends keeps its crossing as T_0. A release
+  may also be *confirmed* by :class:`OperatorRelease` in RELEASE (T_release = the button's
+  time, flag ``release_confirmed_by_operator``).
 * Settling decides when the recovery may end before ``recovery_max_s``, from the
   :class:`FrameSample` ``S_k`` values (Eqs. (1)-(2)). The analysis reads T_s of Eq. (6)
   where S_k first reaches ``settle_fraction`` (98 %) of S_max *of the recorded window*,
@@ -254,6 +261,11 @@ class MachineState:
     n_excursions: int = 0
     max_excursion_s: float = 0.0
     below_release_since_s: float | None = None
+    """Downward crossing of ``release_force_n``, interpolated between samples (T_0 if the
+    drop is confirmed)."""
+    below_release_first_s: float | None = None
+    """First force sample below ``release_force_n`` since that crossing (the debounce
+    counts from it: only observed samples confirm a release)."""
     overrun_warned: bool = False
     # watchdogs
     link_down_since_s: float | None = None
@@ -501,12 +513,14 @@ def _pitting_clock(state: MachineState, config: MeasurementConfig) -> Result:
     else:
         state = replace(state, oob_accounted_to_s=max(accounted_s, t_acc))
     if now >= t_complete:
+        # a force already below the release threshold ended the hold where it dropped
+        dropped = state.below_release_since_s
         state, out = _goto(
             state,
             Phase.RELEASE,
             f"pitting complete ({config.pitting_duration_s:.1f} s)",
             config,
-            t_pit_end_s=t_complete,
+            t_pit_end_s=t_complete if dropped is None else min(dropped, t_complete),
             oob_since_s=None,
         )
         return state, out
@@ -736,11 +750,13 @@ def _force_armed(state: MachineState, event: Event, config: MeasurementConfig) -
 
 
 def _force_pitting(state: MachineState, event: Event, config: MeasurementConfig) -> Result:
+    before = state
     state, out, ok = _take_force(state, event)
     if not ok:
         return state, out
     assert isinstance(event, ForceSample)
     f = event.force_n
+    state = _track_release_crossing(before, state, event, config)
     if _in_band(f, config):
         if state.oob_since_s is not None:
             state = replace(state, oob_since_s=None)
@@ -764,22 +780,110 @@ def _force_pitting(state: MachineState, event: Event, config: MeasurementConfig)
                 event.t_s,
             )
         )
+    since = state.below_release_since_s
+    if since is not None and _release_within_grace(state, since, config):
+        if _release_debounced(state, event.t_s, config):
+            state, more = _release_before_timer(state, since, config)
+            return state, out + more
+        # the operator is letting go at the end of the hold: no "press harder"
+        return state, out
     state, more = _prompt(state, _band_prompt(f, config))
     return state, out + more
 
 
+def _release_crossing_s(
+    before: MachineState, event: ForceSample, config: MeasurementConfig
+) -> float:
+    """Time [s] the force crossed ``release_force_n`` downward, linearly interpolated
+    between the previous sample (at or above the threshold) and ``event`` (below it);
+    ``event.t_s`` when there is no previous sample above the threshold."""
+    t_prev, f_prev = before.last_force_t_s, before.last_force_n
+    thr = config.release_force_n
+    if t_prev is None or f_prev is None or f_prev < thr or not event.t_s > t_prev:
+        return event.t_s
+    return t_prev + (f_prev - thr) / (f_prev - event.force_n) * (event.t_s - t_prev)
+
+
+def _track_release_crossing(
+    before: MachineState, state: MachineState, event: ForceSample, config: MeasurementConfig
+) -> MachineState:
+    """``state`` with ``below_release_since_s`` at the force's downward crossing of
+    ``release_force_n`` (None again once the force is back at or above it)."""
+    if event.force_n >= config.release_force_n:
+        return replace(state, below_release_since_s=None, below_release_first_s=None)
+    if state.below_release_since_s is not None:
+        return state
+    return replace(
+        state,
+        below_release_since_s=_release_crossing_s(before, event, config),
+        below_release_first_s=event.t_s,
+    )
+
+
+def _release_debounced(state: MachineState, t_s: float, config: MeasurementConfig) -> bool:
+    """Whether the force has been observed below ``release_force_n`` for the debounce."""
+    first = state.below_release_first_s
+    return first is not None and t_s - first >= config.release_debounce_s
+
+
+def _release_within_grace(state: MachineState, t_drop_s: float, config: MeasurementConfig) -> bool:
+    """Whether a force drop at ``t_drop_s`` [s] during PITTING is a release at the end of
+    the hold: had the force stayed down until the pitting time ended, the excursion it
+    began would still have been tolerated (continuous run <= ``out_of_band_grace_s``,
+    cumulative out-of-band time <= ``out_of_band_limit_s``)."""
+    assert state.t_pit_start_s is not None
+    t_complete = state.t_pit_start_s + config.pitting_duration_s
+    oob_since = state.oob_since_s if state.oob_since_s is not None else t_drop_s
+    accounted = state.oob_accounted_to_s if state.oob_accounted_to_s is not None else t_drop_s
+    run_s = t_complete - oob_since
+    total_s = state.oob_total_s + max(t_complete - accounted, 0.0)
+    return run_s <= config.out_of_band_grace_s and total_s <= config.out_of_band_limit_s
+
+
+def _release_before_timer(
+    state: MachineState, t_drop_s: float, config: MeasurementConfig
+) -> Result:
+    """PITTING -> RELEASE -> RECOVERY for a release inside the grace: T_0 and the end of
+    the hold are the observed force drop ``t_drop_s`` [s], never the timer's end."""
+    assert state.t_pit_start_s is not None
+    early_s = state.t_pit_start_s + config.pitting_duration_s - t_drop_s
+    advisory = Advisory(
+        AdvisoryKind.RELEASE_BEFORE_PITTING_END,
+        f"force below {config.release_force_n:.1f} N {early_s:.2f} s before the pitting time "
+        f"ended (within the {config.out_of_band_grace_s:.2f} s grace): T_0 at the force drop",
+        state.now_s,
+    )
+    state, out = _goto(
+        state,
+        Phase.RELEASE,
+        f"released {early_s:.2f} s before the pitting time ended",
+        config,
+        t_pit_end_s=t_drop_s,
+        oob_since_s=None,
+    )
+    state, more = _goto(
+        state,
+        Phase.RECOVERY,
+        f"release detected: force below {config.release_force_n:.1f} N "
+        f"for {state.now_s - t_drop_s:.2f} s",
+        config,
+        t_release_s=t_drop_s,
+        release_by="force",
+    )
+    return state, [advisory, *out, *more]
+
+
 def _force_release(state: MachineState, event: Event, config: MeasurementConfig) -> Result:
+    before = state
     state, out, ok = _take_force(state, event)
     if not ok:
         return state, out
     assert isinstance(event, ForceSample)
-    if event.force_n >= config.release_force_n:
-        return replace(state, below_release_since_s=None), out
+    state = _track_release_crossing(before, state, event, config)
     since = state.below_release_since_s
     if since is None:
-        since = event.t_s
-        state = replace(state, below_release_since_s=since)
-    if event.t_s - since >= config.release_debounce_s:
+        return state, out
+    if _release_debounced(state, event.t_s, config):
         state, more = _goto(
             state,
             Phase.RECOVERY,

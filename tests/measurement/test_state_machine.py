@@ -307,7 +307,8 @@ def test_release_from_force_needs_the_debounce() -> None:
     assert s.phase is Phase.RELEASE  # one low sample, then back up: a wobble
     s, _ = run([ForceSample(17.1, 3.0), ForceSample(17.15, 3.0), ForceSample(17.25, 3.0)], state=s)
     assert s.phase is Phase.RECOVERY
-    assert s.t_release_s == 17.1  # the first sample below release_force_n
+    # the downward crossing of release_force_n (8 N), interpolated between 15 N and 3 N
+    assert s.t_release_s == pytest.approx(17.05 + (15.0 - 8.0) / (15.0 - 3.0) * 0.05)
     assert s.release_by == "force"
 
 
@@ -685,7 +686,10 @@ class MachineFuzz(RuleBasedStateMachine):
         assert known == sorted(known)
         if s.t_pit_end_s is not None:
             assert s.t_pit_start_s is not None
-            assert s.t_pit_end_s - s.t_pit_start_s == pytest.approx(CFG.pitting_duration_s)
+            # the hold ends with the timer, or at a force drop inside the grace before it
+            held_s = s.t_pit_end_s - s.t_pit_start_s
+            assert held_s <= CFG.pitting_duration_s + 1e-9
+            assert held_s >= CFG.pitting_duration_s - CFG.out_of_band_grace_s - 1e-9
         if s.t_recovery_end_s is not None:
             assert s.t_release_s is not None
             assert s.t_recovery_end_s - s.t_release_s <= CFG.recovery_max_s + 1e-9
