@@ -97,6 +97,7 @@ def _cmd_list(args: argparse.Namespace) -> int:
             s.session_id,
             s.created_utc or "-",
             s.status,
+            s.validity,
             _fmt_optional(s.duration_s, "{:.1f} s"),
             _fmt_optional(s.n_frames),
             _fmt_optional(s.n_samples),
@@ -106,7 +107,17 @@ def _cmd_list(args: argparse.Namespace) -> int:
     ]
     print(
         format_table(
-            ["ID", "CREATED (UTC)", "STATUS", "DURATION", "FRAMES", "SAMPLES", "SEVERITY"], rows
+            [
+                "ID",
+                "CREATED (UTC)",
+                "STATUS",
+                "VALIDITY",
+                "DURATION",
+                "FRAMES",
+                "SAMPLES",
+                "SEVERITY",
+            ],
+            rows,
         )
     )
     for s in listings:

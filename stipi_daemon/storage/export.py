@@ -3,8 +3,12 @@
 This module owns the conversion of the tables read by :class:`~.reader.SessionReader`
 into ``<out>/<table>.csv`` or ``<out>/<table>.parquet`` (via pyarrow), plus copies of
 ``manifest.json`` and ``summary.json`` so that the export carries its configuration,
-calibration and results. All tables are read from one database snapshot. It does not
-open sessions or decide what to export (the ``sessions export`` command does).
+calibration and results, and ``validity.<csv|parquet>``: one row per reported quantity
+(value, unit, ``valid``/``flagged``/``invalid``/``unknown``, the flags that concern it, the
+reason) and a last row ``verdict`` (the session's verdict and its line), so a spreadsheet
+never shows a number without its validity. All tables are read from one database
+snapshot. It does not open sessions or decide what to export (the ``sessions export``
+command does).
 
 CSV: a header row of column names (which carry the units), integers in decimal, floats in
 Python's shortest round-trip form, NULL as an empty field. Parquet: int64, float64 (NULL
@@ -20,7 +24,13 @@ from typing import Any, Final, Literal
 
 from stipi_daemon.errors import SessionError
 from stipi_daemon.storage import layout
-from stipi_daemon.storage.reader import SessionReader
+from stipi_daemon.storage.reader import (
+    QUANTITY_PATHS,
+    SessionReader,
+    quantity_status,
+    quantity_value,
+    verdict_of,
+)
 from stipi_daemon.storage.schema import TABLES, Table
 
 ExportFormat = Literal["csv", "parquet"]
@@ -64,6 +74,67 @@ def _write_parquet(path: Path, table: Table, rows: list[tuple[Any, ...]]) -> Non
     pq.write_table(pa.Table.from_arrays(arrays, schema=schema), path)
 
 
+#: Columns of the validity file: name, kind ("text" or "real_null"), unit, doc.
+VALIDITY_COLUMNS: Final = (
+    ("quantity", "text", "", "quantity name (summary.json 'validity' key) or 'verdict'"),
+    ("value", "real_null", "", "the recorded value (numeric quantities; in the unit column)"),
+    ("label", "text", "", "the recorded value of a non-numeric quantity (severity class)"),
+    ("unit", "text", "", "unit of value"),
+    ("status", "text", "", "valid, flagged, invalid or unknown; for 'verdict' its status"),
+    ("flags", "text", "", "the flags that concern the quantity, separated by ';'"),
+    ("reason", "text", "", "why the quantity is flagged or invalid; for 'verdict' its line"),
+)
+
+
+def validity_rows(summary: dict[str, Any] | None) -> list[tuple[Any, ...]]:
+    """One row per quantity of the validity schema, then the verdict (see
+    :data:`VALIDITY_COLUMNS`); quantities of an old summary read as ``unknown``."""
+    validity = (summary or {}).get("validity")
+    validity = validity if isinstance(validity, dict) else {}
+    rows: list[tuple[Any, ...]] = []
+    for quantity, (_, unit) in QUANTITY_PATHS.items():
+        value = quantity_value(summary, quantity)
+        entry = validity.get(quantity)
+        entry = entry if isinstance(entry, dict) else {}
+        number = float(value) if isinstance(value, int | float) else None
+        label = None if value is None or number is not None else str(value)
+        flags = ";".join(str(f) for f in entry.get("flags") or [])
+        status = quantity_status(summary, quantity)
+        rows.append((quantity, number, label, unit, status, flags, entry.get("reason")))
+    verdict = (summary or {}).get("verdict")
+    line = verdict.get("line") if isinstance(verdict, dict) else None
+    rows.append(("verdict", None, None, "", verdict_of(summary), "", line))
+    return rows
+
+
+def _summary_or_none(reader: SessionReader) -> dict[str, Any] | None:
+    """The session's summary; None when it is missing or unreadable (validity unknown)."""
+    try:
+        return reader.summary
+    except SessionError:
+        return None
+
+
+def _write_validity(path: Path, fmt: ExportFormat, rows: list[tuple[Any, ...]]) -> None:
+    names = [c[0] for c in VALIDITY_COLUMNS]
+    if fmt == "csv":
+        with open(path, "w", encoding="utf-8", newline="") as f:
+            writer = csv.writer(f, lineterminator="\n")
+            writer.writerow(names)
+            writer.writerows([_csv_value(v) for v in row] for row in rows)
+        return
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    fields, arrays = [], []
+    for i, (name, kind, unit, doc) in enumerate(VALIDITY_COLUMNS):
+        pa_type = pa.float64() if kind == "real_null" else pa.string()
+        fields.append(pa.field(name, pa_type, metadata={"unit": unit, "doc": doc}))
+        arrays.append(pa.array([row[i] for row in rows], type=pa_type))
+    schema = pa.schema(fields, metadata={"table": "validity", "doc": "validity per quantity"})
+    pq.write_table(pa.Table.from_arrays(arrays, schema=schema), path)
+
+
 def export_session(
     reader: SessionReader, out_dir: Path | str, fmt: ExportFormat, *, overwrite: bool = False
 ) -> list[Path]:
@@ -83,7 +154,8 @@ def export_session(
     Returns
     -------
     list of Path
-        The files written (tables in :data:`~.schema.TABLES` order, then the JSON files).
+        The files written (tables in :data:`~.schema.TABLES` order, the validity file, then
+        the JSON files).
 
     Raises
     ------
@@ -94,13 +166,14 @@ def export_session(
         raise SessionError(f"export format {fmt!r} is not one of {', '.join(EXPORT_FORMATS)}")
     out = Path(out_dir)
     targets = [out / f"{t.name}.{fmt}" for t in TABLES]
+    validity_target = out / f"validity.{fmt}"
     extras = [
         src
         for src in (reader.manifest_path, reader.summary_path)
         if src.exists() and src.name in (layout.MANIFEST_NAME, layout.SUMMARY_NAME)
     ]
     if not overwrite:
-        for target in [*targets, *(out / src.name for src in extras)]:
+        for target in [*targets, validity_target, *(out / src.name for src in extras)]:
             if target.exists():
                 raise SessionError(f"{target}: exists already (use --force to overwrite)")
     writer = _write_csv if fmt == "csv" else _write_parquet
@@ -111,6 +184,8 @@ def export_session(
             for table, target in zip(TABLES, targets, strict=True):
                 writer(target, table, list(reader.iter_rows(table)))
                 written.append(target)
+        _write_validity(validity_target, fmt, validity_rows(_summary_or_none(reader)))
+        written.append(validity_target)
         for src in extras:
             shutil.copyfile(src, out / src.name)
             written.append(out / src.name)

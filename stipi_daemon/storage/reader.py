@@ -388,20 +388,12 @@ class SessionListing:
     n_frames: int | None = None
     n_samples: int | None = None
     severity: str | None = None
+    validity: str = "unknown"
     error: str | None = None
 
 
-def severity_of(summary: dict[str, Any] | None) -> str | None:
-    """The severity shown for a summary, or None.
-
-    ``summary["severity"]`` may be a string, or an object such as a serialised
-    :class:`~stipi_daemon.analysis.severity.SeverityResult`: its class (``severity``,
-    ``label`` or ``class``) and grade (``nearest_grade`` or ``grade``) are shown as
-    ``"severe (3+)"``.
-    """
-    if summary is None:
-        return None
-    value = summary.get("severity")
+def _severity_text(value: Any) -> str | None:
+    """A severity value as shown: a string, or ``"<class> (<grade>)"`` from an object."""
     if isinstance(value, dict):
         label = next((value[k] for k in ("severity", "label", "class") if k in value), None)
         grade = next((value[k] for k in ("nearest_grade", "grade") if k in value), None)
@@ -409,6 +401,72 @@ def severity_of(summary: dict[str, Any] | None) -> str | None:
             return f"{label} ({grade})"
         return None if label is None and grade is None else str(label or grade)
     return None if value is None else str(value)
+
+
+def severity_of(summary: dict[str, Any] | None) -> str | None:
+    """The severity shown for a summary, or None.
+
+    The daemon writes the paper estimator's class under
+    ``summary["results"]["severity"]["paper_estimator"]`` (a serialised
+    :class:`~stipi_daemon.analysis.severity.SeverityResult`); older or hand-written
+    summaries may hold ``summary["severity"]``. A string is shown as it is; an object's
+    class (``severity``, ``label`` or ``class``) and grade (``nearest_grade`` or ``grade``)
+    as ``"severe (3+)"``. A severity whose validity is ``invalid`` is never shown as a
+    result: ``"invalid"`` instead.
+    """
+    if summary is None:
+        return None
+    results = summary.get("results")
+    value: Any = None
+    if isinstance(results, dict) and isinstance(results.get("severity"), dict):
+        value = results["severity"].get("paper_estimator")
+    if value is None:
+        value = summary.get("severity")
+    shown = _severity_text(value)
+    if shown is not None and quantity_status(summary, "severity") == "invalid":
+        return "invalid"
+    return shown
+
+
+#: Where each quantity of the validity schema sits in ``summary["results"]``, and its unit.
+QUANTITY_PATHS: Final[dict[str, tuple[tuple[str, ...], str]]] = {
+    "depth_mm": (("pitting", "depth_mm"), "mm"),
+    "rebound_force_n": (("pitting", "rebound_force_n"), "N"),
+    "recovery_time_s": (("pitting", "recovery_time_s"), "s"),
+    "elasticity_kpa": (("paper_estimator", "elasticity_kpa"), "kPa"),
+    "viscosity_n_s_per_mm2": (("paper_estimator", "viscosity_n_s_per_mm2"), "N*s/mm^2"),
+    "severity": (("severity", "paper_estimator", "severity"), ""),
+    "tau_s": (("fitted_recovery", "tau_s"), "s"),
+    "applied_force_n": (("applied_force_n",), "N"),
+}
+
+
+def quantity_value(summary: dict[str, Any] | None, quantity: str) -> Any:
+    """The recorded value of one quantity of :data:`QUANTITY_PATHS` (None when absent)."""
+    node: Any = None if summary is None else summary.get("results")
+    for key in QUANTITY_PATHS[quantity][0]:
+        if not isinstance(node, dict):
+            return None
+        node = node.get(key)
+    return node
+
+
+def quantity_status(summary: dict[str, Any] | None, quantity: str) -> str:
+    """``valid``, ``flagged``, ``invalid``, or ``unknown`` (no validity recorded)."""
+    validity = None if summary is None else summary.get("validity")
+    entry = validity.get(quantity) if isinstance(validity, dict) else None
+    status = entry.get("status") if isinstance(entry, dict) else None
+    return status if status in ("valid", "flagged", "invalid") else "unknown"
+
+
+def verdict_of(summary: dict[str, Any] | None) -> str:
+    """The verdict's status (``complete``, ``flagged``, ``invalid``, ``incomplete``), or
+    ``unknown`` for a summary written before verdicts existed (or none at all)."""
+    verdict = None if summary is None else summary.get("verdict")
+    status = verdict.get("status") if isinstance(verdict, dict) else None
+    if status in ("complete", "flagged", "invalid", "incomplete"):
+        return str(status)
+    return "unknown"
 
 
 def _is_session_dir(path: Path) -> bool:
@@ -434,9 +492,10 @@ def list_sessions(root: Path | str) -> list[SessionListing]:
             with SessionReader(directory) as reader:
                 counts = reader.counts()
                 try:
-                    severity = severity_of(reader.summary)
+                    summary = reader.summary
+                    severity, validity = severity_of(summary), verdict_of(summary)
                 except SessionError:
-                    severity = "(bad summary)"
+                    severity, validity = "(bad summary)", "unknown"
                 out.append(
                     SessionListing(
                         session_id=reader.session_id,
@@ -447,6 +506,7 @@ def list_sessions(root: Path | str) -> list[SessionListing]:
                         n_frames=counts[FRAMES.name],
                         n_samples=counts[FORCE_SAMPLES.name],
                         severity=severity,
+                        validity=validity,
                     )
                 )
         except SessionError as exc:

@@ -33,16 +33,36 @@ def test_list(root: Path, capsys: pytest.CaptureFixture[str]) -> None:
         "CREATED",
         "(UTC)",
         "STATUS",
+        "VALIDITY",
         "DURATION",
         "FRAMES",
         "SAMPLES",
         "SEVERITY",
     ]
     a = lines[1].split()
-    assert a[0] == "a-complete" and a[2:] == ["complete", "0.1", "s", "3", "6", "severe", "(3+)"]
+    # An old summary (no validity recorded) reads as "unknown", never as a verdict.
+    assert a[0] == "a-complete"
+    assert a[2:] == ["complete", "unknown", "0.1", "s", "3", "6", "severe", "(3+)"]
     assert lines[2].split()[2] == "interrupted"
     assert lines[3].split()[:3] == ["c-bad", "-", "error"]
     assert lines[4].startswith("c-bad: ") and "file is not a database" in lines[4]
+
+
+def test_list_shows_the_verdict_and_the_daemons_severity(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The daemon writes the class under results.severity.paper_estimator (not at the top)."""
+    summary = {
+        "status": "complete",
+        "results": {"severity": {"paper_estimator": {"severity": "mild", "nearest_grade": "1+"}}},
+        "verdict": {"status": "flagged", "line": "Complete with caveats on T_r."},
+    }
+    root = tmp_path / "sessions"
+    write_full_session(root, "a", summary=summary)
+    assert main(["sessions", "list", "--root", str(root)]) == 0
+    row = capsys.readouterr().out.splitlines()[1].split()
+    assert row[2:4] == ["complete", "flagged"]
+    assert row[-2:] == ["mild", "(1+)"]
 
 
 def test_list_empty_and_missing_root(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
@@ -82,7 +102,7 @@ def test_export(root: Path, tmp_path: Path, fmt: str, capsys: pytest.CaptureFixt
     args = ["sessions", "export", "a-complete", "--root", str(root), "--format", fmt]
     assert main([*args, "--out", str(out)]) == 0
     printed = capsys.readouterr().out.splitlines()
-    assert len(printed) == len(TABLES) + 2
+    assert len(printed) == len(TABLES) + 3  # tables, validity, manifest, summary
     read = read_csv_table if fmt == "csv" else read_parquet_table
     with SessionReader(root / "a-complete") as reader:
         for table in TABLES:

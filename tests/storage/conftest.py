@@ -41,9 +41,14 @@ class Recorded:
 
 
 def write_full_session(
-    root: Path, session_id: str = "s-full", *, finish: str | None = "complete"
+    root: Path,
+    session_id: str = "s-full",
+    *,
+    finish: str | None = "complete",
+    summary: dict[str, Any] | None = None,
 ) -> Recorded:
-    """Write every kind of row (edge values included) and optionally finish the session."""
+    """Write every kind of row (edge values included) and optionally finish the session
+    (with ``summary``, default :data:`SUMMARY`)."""
     t0 = 1000.0
     force = [
         (i, 500 + i, (4_294_967_000 + 1000 * i) % 2**32, 4_294_967_000 + 1000 * i, t0 + i * 1e-3, f)
@@ -93,7 +98,7 @@ def write_full_session(
         writer.add_live_parameters(t0 + 1.0, {"d_p_mm": 4.2, "e_kpa": float("nan")})
         writer.add_live_parameters(t0 + 2.0, {"t_r_s": math.inf})
         if finish is not None:
-            writer.finish(finish, SUMMARY)
+            writer.finish(finish, SUMMARY if summary is None else summary)
     return Recorded(
         root,
         session_id,

@@ -70,6 +70,7 @@ def test_export_reads_back_equal(recorded: Recorded, tmp_path: Path, fmt: str) -
     with SessionReader(recorded.directory) as reader:
         written = export_session(reader, out, fmt)  # type: ignore[arg-type]
         assert [p.name for p in written] == [f"{t.name}.{fmt}" for t in TABLES] + [
+            f"validity.{fmt}",
             "manifest.json",
             "summary.json",
         ]
@@ -105,3 +106,51 @@ def test_export_of_an_empty_session(tmp_path: Path) -> None:
         "seq,t_capture_host_s,t_host_s,s_k,flags\n"
     )
     assert pq.read_table(tmp_path / "parquet" / "frames.parquet").num_rows == 0
+
+
+_VALID_SUMMARY = {
+    "status": "complete",
+    "results": {
+        "pitting": {"depth_mm": 3.5, "rebound_force_n": 7.25, "recovery_time_s": 27.5},
+        "paper_estimator": {"elasticity_kpa": 356.0, "viscosity_n_s_per_mm2": 9.8},
+        "severity": {"paper_estimator": {"severity": "moderate", "nearest_grade": "2+"}},
+        "fitted_recovery": {"tau_s": 12.0},
+        "applied_force_n": 16.0,
+    },
+    "validity": {
+        "depth_mm": {"status": "invalid", "flags": ["release_not_observed"], "reason": "gap"},
+        "rebound_force_n": {"status": "flagged", "flags": ["a", "b"], "reason": "caveat"},
+    },
+    "verdict": {"status": "invalid", "line": "Not valid: D_p (gap)."},
+}
+
+
+@pytest.mark.parametrize("fmt", ["csv", "parquet"])
+def test_export_carries_the_validity_of_each_quantity(tmp_path: Path, fmt: str) -> None:
+    from stipi_daemon.storage import SessionWriter, StorageOptions
+
+    options = StorageOptions(min_free_bytes=0)
+    with SessionWriter.create(tmp_path, {}, {}, session_id="v", options=options) as w:
+        w.finish("complete", _VALID_SUMMARY)
+    with SessionReader(tmp_path / "v") as reader:
+        export_session(reader, tmp_path / "out", fmt)  # type: ignore[arg-type]
+    path = tmp_path / "out" / f"validity.{fmt}"
+    if fmt == "csv":
+        import csv
+
+        with open(path, encoding="utf-8") as f:
+            rows = {r["quantity"]: r for r in csv.DictReader(f)}
+        value = float(rows["depth_mm"]["value"])
+    else:
+        table = pq.read_table(path).to_pylist()
+        rows = {r["quantity"]: r for r in table}
+        value = rows["depth_mm"]["value"]
+    assert value == 3.5
+    assert rows["depth_mm"]["status"] == "invalid"
+    assert rows["depth_mm"]["reason"] == "gap"
+    assert rows["rebound_force_n"]["status"] == "flagged"
+    assert rows["rebound_force_n"]["flags"] == "a;b"
+    assert rows["recovery_time_s"]["status"] == "unknown"
+    assert rows["severity"]["label"] == "moderate"
+    assert rows["verdict"]["status"] == "invalid"
+    assert rows["verdict"]["reason"] == "Not valid: D_p (gap)."

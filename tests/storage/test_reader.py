@@ -271,9 +271,43 @@ def test_list_sessions(tmp_path: Path) -> None:
         ({"severity": {"severity": "severe", "nearest_grade": "4+"}}, "severe (4+)"),
         ({"severity": {"grade": "2+"}}, "2+"),
         ({"severity": {"other": 1}}, None),
+        # Where the daemon writes it: the paper estimator's class under results.
+        (
+            {
+                "results": {
+                    "severity": {"paper_estimator": {"severity": "mild", "nearest_grade": 1}}
+                }
+            },
+            "mild (1)",
+        ),
+        (
+            {
+                "results": {"severity": {"paper_estimator": {"severity": "mild"}}},
+                "validity": {"severity": {"status": "invalid", "flags": [], "reason": "x"}},
+            },
+            "invalid",
+        ),
     ],
 )
 def test_severity_of(summary: dict[str, object] | None, shown: str | None) -> None:
     from stipi_daemon.storage.reader import severity_of
 
     assert severity_of(summary) == shown
+
+
+@pytest.mark.parametrize(
+    ("summary", "shown"),
+    [
+        (None, "unknown"),
+        ({"status": "complete"}, "unknown"),
+        ({"verdict": {"status": "flagged", "line": "x"}}, "flagged"),
+        ({"verdict": {"status": "bogus"}}, "unknown"),
+        ({"verdict": "complete"}, "unknown"),
+    ],
+)
+def test_verdict_of_reads_old_sessions_as_unknown(
+    summary: dict[str, object] | None, shown: str
+) -> None:
+    from stipi_daemon.storage.reader import verdict_of
+
+    assert verdict_of(summary) == shown
