@@ -198,17 +198,25 @@ def gap_covering(gaps: tuple[FrameGap, ...], lo_s: float, hi_s: float) -> FrameG
 
 
 def running_median(values: NDArray[np.float64], half_width: int) -> NDArray[np.float64]:
-    """Centred running median over 2 * half_width + 1 frames (edges repeat the end frames).
+    """Centred running median over 2 * half_width + 1 frames.
 
-    A monotone series is its own running median, so the maximum of this running median
-    equals the plain maximum on a clean monotone series, while a single outlier frame
-    (indeed up to ``half_width`` of them in a row) cannot raise it.
+    At the start the first frame is repeated (a monotone rise keeps its first value: the
+    S_0 frame right after the release is not an outlier); at the end the windows are cut
+    to the frames that exist, so the last frame never outvotes its neighbours (a dark
+    frame at the end of the window cannot pass as the maximum). Away from the end, a
+    monotone series is its own running median; at the end, its last value differs from
+    the median of the last half_width + 1 frames by about half_width / 2 frame-to-frame
+    steps, under 1 px on a recovery's plateau. A single outlier frame (indeed up to
+    ``half_width`` of them in a row, away from the end) cannot raise the maximum.
     """
-    if half_width < 1 or values.size == 0:
+    n = values.size
+    if half_width < 1 or n == 0:
         return values.astype(np.float64, copy=True)
     out: NDArray[np.float64] = median_filter(
         values.astype(np.float64), size=2 * half_width + 1, mode="nearest"
     )
+    for i in range(max(0, n - half_width), n):
+        out[i] = float(np.median(values[max(0, i - half_width) :]))
     return out
 
 
@@ -225,9 +233,18 @@ def find_outlier_frames(values: NDArray[np.float64]) -> NDArray[np.bool_]:
     numpy.ndarray of bool
         True for each outlier frame.
     """
-    if values.size < 2 * OUTLIER_HALF_WIDTH + 1:
+    h = OUTLIER_HALF_WIDTH
+    if values.size < 2 * h + 1:
         return np.zeros(values.size, dtype=bool)
-    residual = values - running_median(values, OUTLIER_HALF_WIDTH)
+    reference = running_median(values, h)
+    # The last h windows are cut: their median lags a rising series by the local slope
+    # times the distance to the window's centre; add it back (slope: median step of the
+    # last 2h + 1 frames, which one outlier cannot set).
+    n = values.size
+    slope = float(np.median(np.diff(values[n - 2 * h - 1 :])))
+    for i in range(n - h, n):
+        reference[i] += slope * (i - (i - h + n - 1) / 2.0)
+    residual = values - reference
     sigma = _MAD_TO_SIGMA * float(np.median(np.abs(residual - np.median(residual))))
     floor = OUTLIER_FLOOR_FRACTION * float(np.median(np.abs(values)))
     bound = max(OUTLIER_THRESHOLD * sigma, floor, 1.0)

@@ -68,8 +68,9 @@ DEFAULT_END_SLOPE_FRACTION = 0.1
 #: The default of :attr:`RecoveryTime.observed` for records built by hand: no facts.
 NOTHING_OBSERVED = Observed(frame_period_s=0.0)
 #: Half-width of the running median whose maximum is S_max [frames]: S_max is the largest
-#: median of 5 consecutive frames, which equals the plain maximum on a monotone series and
-#: which no single outlier frame can raise.
+#: median of 5 consecutive frames (of the last 3 at the end of the window), which equals
+#: the plain maximum on a clean monotone recovery within a fraction of a pixel and which no
+#: single outlier frame can raise.
 S_MAX_MEDIAN_HALF_WIDTH = 2
 #: A gap around the settling crossing shorter than this fraction of T_r is immaterial [-].
 SETTLING_GAP_FRACTION = 0.01
@@ -336,10 +337,12 @@ def recovery_time(
       the release was not observed: ``RELEASE_NOT_OBSERVED``, and S_0 (hence D_p) is unknown.
     * The recovery window holds the frames with T_0 < t <= T_0 + ``window_s``.
     * S_max is the maximum over the window of the running median of
-      2 * :data:`S_MAX_MEDIAN_HALF_WIDTH` + 1 consecutive frames: on a clean monotone
-      recovery it is the plain maximum of the paper (a monotone series is its own running
-      median), and a single outlier frame cannot raise it by more than the spread of its
-      neighbours. With ``s_max_top_frames = n > 1`` it is the median of the n largest
+      2 * :data:`S_MAX_MEDIAN_HALF_WIDTH` + 1 consecutive frames
+      (:func:`~stipi_daemon.analysis.observation.running_median`): on a clean monotone
+      recovery it is the plain maximum of the paper within a fraction of a pixel (a
+      monotone series is its own running median but for the last frames, where the
+      windows are cut), and a single outlier frame cannot raise it by more than the spread
+      of its neighbours. With ``s_max_top_frames = n > 1`` it is the median of the n largest
       values of that running median.
     * T_s is the first time S_k reaches ``settle_fraction * S_max`` (98 %, the paper's
       reading "S_k reaches 98.0 % of S_max"; the level is a fraction of S_max itself, not

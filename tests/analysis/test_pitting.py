@@ -114,7 +114,9 @@ def test_recovery_time_of_ideal_recovery_matches_closed_form(tau_s: float) -> No
     expected = tau_s * math.log(10000.0 / (13000.0 - 0.98 * s_max))
     assert r.flags == frozenset()
     assert r.s0_px == 3000.0
-    assert r.s_max_px == pytest.approx(s_max, rel=1e-12)
+    # The robust S_max (running median, cut at the window's end) lies below the plain
+    # maximum by at most the last frame's rise: a fraction of a pixel here.
+    assert s_max - 1.0 <= r.s_max_px <= s_max
     assert r.recovery_time_s is not None
     # Linear interpolation between frames on a smooth curve: error << one frame.
     assert r.recovery_time_s == pytest.approx(expected, abs=0.01 * FRAME_S)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 
 import numpy as np
+import pytest
 
 from stipi_daemon.analysis.calibration import Calibration
 from stipi_daemon.analysis.flags import Flag
@@ -74,3 +75,170 @@ def test_no_recovery_invalidates_tr_and_what_is_derived_from_it() -> None:
     assert v["depth_mm"]["status"] == "valid"
     assert out["verdict"]["status"] == "invalid"
     assert all(x["reason"] for x in v.values() if x["status"] != "valid")
+
+
+# --- issue 14 case 3: a camera gap over the release, gaps in the recovery -------------------
+
+
+def gap(t: np.ndarray, s: np.ndarray, lo_s: float, hi_s: float) -> tuple[np.ndarray, np.ndarray]:
+    """The series without the frames strictly between lo_s and hi_s (lost by the camera)."""
+    keep = ~((t > lo_s) & (t < hi_s))
+    return t[keep], s[keep]
+
+
+def noisy_kv(
+    tau_s: float, t0_s: float = 19.5, noise_px: float = 20.0, seed: int = 0, fps: float = 60.0
+) -> tuple[np.ndarray, np.ndarray]:
+    """A 3 mm pit recovering to 6.5 N with time constant tau [s], from T_0 for 105 s."""
+    s0 = CAL.s0_for_depth_change(CAL.indenter_length_mm - 3.0)
+    s_inf = CAL.area_for_force_px(6.5)
+    t = np.arange(0.0, t0_s + 105.0 + 1e-9, 1.0 / fps)
+    x = np.clip(t - t0_s, 0.0, None)
+    s = np.where(t < t0_s, 40000.0, s_inf - (s_inf - s0) * np.exp(-x / tau_s))
+    return t, np.clip(s + np.random.default_rng(seed).normal(0.0, noise_px, t.size), 0.0, None)
+
+
+def test_gap_over_the_release_invalidates_depth_and_what_follows_with_the_gap_named() -> None:
+    t, s = gap(*noisy_kv(7.5), 18.8, 20.0)
+    res = analyse(t, s, 19.5)
+    out = assess_validity(res, ended_done=True)
+    v = out["validity"]
+    assert Flag.RELEASE_NOT_OBSERVED in res.flags
+    for q in ("depth_mm", "elasticity_kpa", "viscosity_n_s_per_mm2", "severity"):
+        assert v[q]["status"] == "invalid", q
+    assert (
+        "no frame between 18.80 and 20.00 s around the release at 19.50 s"
+        in (v["depth_mm"]["reason"])
+    )
+    assert "18.80" in v["elasticity_kpa"]["reason"]
+    assert v["rebound_force_n"]["status"] == "valid"
+    assert out["verdict"]["status"] == "invalid"
+    assert "18.80" in out["verdict"]["line"]
+    assert res.to_dict()["pitting"]["observation"]["release_gap_s"] == [
+        pytest.approx(18.8, abs=0.02),
+        pytest.approx(20.0, abs=0.02),
+    ]
+
+
+def test_a_nan_frame_at_t0_is_not_interpolated_across_the_release() -> None:
+    t, s = noisy_kv(7.5, noise_px=0.0)
+    clean = analyse(t, s, 19.5)
+    s = s.copy()
+    s[int(np.searchsorted(t, 19.5))] = np.nan
+    res = analyse(t, s, 19.5)
+    # S_0 comes from the next frame (1/60 s into the recovery), not from the pitting frame.
+    assert res.pitting.depth_mm == pytest.approx(clean.pitting.depth_mm, rel=0.02)
+    assert Flag.RELEASE_NOT_OBSERVED not in res.flags
+
+
+def test_gap_over_the_settling_crossing_flags_tr_with_the_gap_length() -> None:
+    t, s = noisy_kv(7.5, noise_px=0.0)
+    clean = analyse(t, s, 19.5)
+    ts = clean.pitting.ts_s
+    assert ts is not None
+    t2, s2 = gap(t, s, ts - 1.0, ts + 1.0)
+    res = analyse(t2, s2, 19.5)
+    v = assess_validity(res, ended_done=True)["validity"]["recovery_time_s"]
+    assert Flag.FRAME_GAP_AT_SETTLING in res.flags
+    assert v["status"] == "flagged"
+    assert "uncertain by 2.0" in v["reason"]
+    assert res.pitting.observed.settling_gap is not None
+    assert (
+        res.pitting.observed.settling_gap.start_s <= ts <= res.pitting.observed.settling_gap.end_s
+    )
+
+
+def test_gap_beside_the_maximum_flags_fr_and_long_gaps_flag_the_fit() -> None:
+    t, s = noisy_kv(7.5, noise_px=0.0)
+    t2, s2 = gap(t, s, 100.0, t[-1] - 0.01)  # the last frame (the maximum) after a gap
+    v = assess_validity(analyse(t2, s2, 19.5), ended_done=True)["validity"]
+    assert v["rebound_force_n"]["status"] == "flagged"
+    assert "frame_gap_at_maximum" in v["rebound_force_n"]["flags"]
+    assert "frame_gaps_in_fit" in v["tau_s"]["flags"]
+
+
+def test_a_short_gap_away_from_release_crossing_and_maximum_changes_nothing() -> None:
+    t, s = noisy_kv(7.5)
+    t2, s2 = gap(t, s, 70.0, 71.5)
+    res = analyse(t2, s2, 19.5)
+    assert len(res.pitting.observed.gaps) == 1
+    out = assess_validity(res, ended_done=True)
+    assert out["verdict"]["status"] == "complete", out
+
+
+# --- issue 14 case 4: one outlier frame ------------------------------------------------------
+
+
+@pytest.mark.parametrize("value", [70000.0, 0.0])  # a dark frame (whole ROI), a bright one
+@pytest.mark.parametrize("at_s", [20.0, 30.0, 49.5, 110.0])
+def test_one_outlier_frame_changes_no_result_and_is_flagged(value: float, at_s: float) -> None:
+    t, s = noisy_kv(7.5)
+    clean = analyse(t, s, 19.5)
+    s = s.copy()
+    s[int(np.searchsorted(t, at_s))] = value
+    res = analyse(t, s, 19.5)
+    p, c = res.pitting, clean.pitting
+    assert p.rebound_force_n == pytest.approx(c.rebound_force_n, rel=1e-3)
+    assert p.recovery_time_s == pytest.approx(c.recovery_time_s, abs=0.1)
+    assert p.depth_mm == pytest.approx(c.depth_mm, rel=1e-3)
+    assert res.fit.tau_s == pytest.approx(7.5, rel=0.01)
+    assert res.fit.r_squared is not None and res.fit.r_squared > 0.999
+    assert Flag.OUTLIER_FRAMES in res.flags
+    v = assess_validity(res, ended_done=True)["validity"]
+    assert v["rebound_force_n"]["status"] == "flagged"
+    assert "1 outlier frame" in v["rebound_force_n"]["reason"]
+
+
+def test_a_recovery_the_model_does_not_describe_is_a_poor_fit_and_tau_invalid() -> None:
+    # Two time scales: half the rise in 1 s, half linearly over the whole window.
+    t = np.arange(0.0, 125.0, 1 / 60)
+    x = np.clip(t - 19.5, 0.0, None)
+    s = np.where(t < 19.5, 40000.0, 5000.0 + 6000.0 * (1 - np.exp(-x / 1.0)) + 60.0 * x)
+    res = analyse(t, s, 19.5)
+    assert Flag.POOR_FIT in res.fit.flags
+    v = assess_validity(res, ended_done=True)["validity"]
+    assert v["tau_s"]["status"] == "invalid"
+    assert "R^2" in v["tau_s"]["reason"]
+
+
+# --- issue 14 case 5: tissue that barely recovers --------------------------------------------
+
+
+@pytest.mark.parametrize("tau_s", [300.0, 1000.0, 1e4])
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_a_recovery_slower_than_the_window_is_never_a_confident_result(
+    tau_s: float, seed: int
+) -> None:
+    res = analyse(*noisy_kv(tau_s, seed=seed), 19.5)
+    out = assess_validity(res, ended_done=True)
+    v = out["validity"]
+    assert v["recovery_time_s"]["status"] == "invalid"
+    assert "did not settle" in v["recovery_time_s"]["reason"]
+    assert v["severity"]["status"] == "invalid"
+    assert v["viscosity_n_s_per_mm2"]["status"] == "invalid"
+    assert out["verdict"]["status"] == "invalid"
+
+
+def test_no_recovery_at_all_with_noise_is_never_mild() -> None:
+    t, s = noisy_kv(7.5)
+    s = np.where(t < 19.5, 40000.0, 5000.0 + np.random.default_rng(3).normal(0.0, 20.0, t.size))
+    out = assess_validity(analyse(t, s, 19.5), ended_done=True)
+    assert out["validity"]["recovery_time_s"]["status"] == "invalid"
+    assert out["validity"]["severity"]["status"] == "invalid"
+
+
+def test_a_rise_within_the_settling_band_cannot_be_timed() -> None:
+    t = np.arange(0.0, 125.0, 1 / 60)
+    x = np.clip(t - 19.5, 0.0, None)
+    s = np.where(t < 19.5, 40000.0, 10000.0 + 100.0 * (1 - np.exp(-x / 5.0)))  # 1 % rise
+    res = analyse(t, s, 19.5)
+    assert Flag.RISE_WITHIN_SETTLING_BAND in res.flags
+    assert assess_validity(res, ended_done=True)["validity"]["recovery_time_s"]["status"] == (
+        "invalid"
+    )
+
+
+@pytest.mark.parametrize("tau_s", [1.0, 3.0, 7.5, 10.0])
+def test_kelvin_voigt_recoveries_that_settle_are_complete(tau_s: float) -> None:
+    out = assess_validity(analyse(*noisy_kv(tau_s), 19.5), ended_done=True)
+    assert out["verdict"]["status"] == "complete", out
