@@ -47,11 +47,12 @@
 #define STIPI_VBAT_DIVIDER 2UL       // VBAT is read through a 1:2 divider on the Feather
 // Oversampling (src/core/oversample.h): up to STIPI_OVERSAMPLE_MAX conversions back to back from
 // each sample instant, averaged; fewer at high rates so that they fit the period (16 up to
-// 500 Hz, 8 up to 900 Hz, 4 at 1000 Hz). A conversion is 13 ADC clocks = 104 us at 125 kHz;
+// 486 Hz, 8 up to 881 Hz, 4 above). A conversion is 13 ADC clocks = 104 us at 125 kHz;
 // the budget adds the interrupt latency.
 #define STIPI_OVERSAMPLE_MAX 16      // power of two, <= 16
 #define STIPI_ADC_CONV_BUDGET_US 115 // time reserved per conversion [us]
 #define STIPI_ADC_CONV_PERIOD_US 115 // start-to-start of chained conversions [us] (114.5 in simavr)
+#define STIPI_ADC_MARGIN_US 100      // left free per period for interrupt latency [us]
 // Extra bits on the wire: 0 keeps SAMPLES.adc in 10-bit counts (the averaged mean, rounded;
 // calibrations and the host's load-cell model stay valid); 2 sends 12-bit counts (sum of 16
 // conversions / 4) and GET_INFO reports adc_bits = 12 (recalibrate: zero and span change x4).

@@ -7,12 +7,14 @@ using namespace stipi;
 TEST(oversample_count_fits_the_period) {
   CHECK_EQ(oversample_log2(62500), 4);  // 16 Hz: 16 conversions
   CHECK_EQ(oversample_log2(10000), 4);  // 100 Hz
-  CHECK_EQ(oversample_log2(2000), 4);   // 500 Hz: 17 * 115 us = 1955 us
-  CHECK_EQ(oversample_log2(1111), 3);   // 900 Hz: 8
-  CHECK_EQ(oversample_log2(1000), 2);   // 1000 Hz: 4 (9 * 115 us > 1000 us)
+  CHECK_EQ(oversample_log2(2058), 4);   // 486 Hz: 17 * 115 + 100 = 2055 us
+  CHECK_EQ(oversample_log2(2000), 3);   // 500 Hz: 8
+  CHECK_EQ(oversample_log2(1135), 3);   // 881 Hz: 9 * 115 + 100 = 1135 us
+  CHECK_EQ(oversample_log2(1111), 2);   // 900 Hz: 4
+  CHECK_EQ(oversample_log2(1000), 2);   // 1000 Hz: 4
   for (uint32_t p = 1000; p <= 65535; p += 7) {
     const uint8_t k = oversample_log2(static_cast<uint16_t>(p));
-    CHECK(((1u << k) + 1u) * STIPI_ADC_CONV_BUDGET_US <= p);
+    CHECK(((1u << k) + 1u) * STIPI_ADC_CONV_BUDGET_US + STIPI_ADC_MARGIN_US <= p);
   }
 }
 
