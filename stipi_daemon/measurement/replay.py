@@ -33,6 +33,7 @@ from stipi_daemon.analysis.severity import SeverityReference
 from stipi_daemon.analysis.validity import assess_validity
 from stipi_daemon.errors import AnalysisError, CalibrationError
 from stipi_daemon.measurement.pipeline import LiveParameters, MeasurementPipeline
+from stipi_daemon.measurement.release import ReleaseObservation
 from stipi_daemon.measurement.state_machine import (
     Arm,
     CameraRecovered,
@@ -47,6 +48,7 @@ from stipi_daemon.measurement.state_machine import (
     Phase,
     PhaseChanged,
     StartAnalysis,
+    Tick,
 )
 
 __all__ = [
@@ -254,6 +256,8 @@ class ReplayOutcome:
         Samples fed to the pipeline.
     live : tuple of LiveParameters
         The live parameters as the live shell would have shown them.
+    release : ReleaseObservation or None
+        How T_0 and S_0 were observed (None when the analysis never ran).
     """
 
     phase: Phase
@@ -270,6 +274,7 @@ class ReplayOutcome:
     frames_fed: int
     force_samples_fed: int
     live: tuple[LiveParameters, ...] = ()
+    release: ReleaseObservation | None = None
 
     def summary(self) -> dict[str, Any]:
         """The results in the layout of the live ``summary.json`` (without ground truth).
@@ -291,6 +296,7 @@ class ReplayOutcome:
             "results": None if self.result is None else self.result.to_dict(),
             "analysis_error": self.analysis_error,
             "notes": list(self.pipeline_notes),
+            "release": None if self.release is None else self.release.to_dict(),
             **assess_validity(
                 self.result,
                 ended_done=self.phase == Phase.DONE and not self.partial,
@@ -304,6 +310,7 @@ class ReplayOutcome:
 class _Feed:
     events: list[Event] = field(default_factory=list)
     skipped_force: int = 0
+    skipped_frames: int = 0
 
 
 def _events(rec: Recording) -> _Feed:
@@ -312,7 +319,8 @@ def _events(rec: Recording) -> _Feed:
     Frames and force samples are merged by time, force first at equal times (the live
     shell drains every force sample at or before a frame's time before the frame). The
     arm event comes before every sample at or after the arm time. Non-finite forces are
-    left out (counted).
+    left out (counted); a frame whose S_k is not finite (unmeasurable) is fed as a
+    :class:`Tick` at its time (counted).
     """
     feed = _Feed()
     ok = np.isfinite(rec.force_n)
@@ -346,8 +354,13 @@ def _events(rec: Recording) -> _Feed:
             feed.events.append(ForceSample(ft_l[i], fv_l[i]))
         elif kinds[k] == 1:
             feed.events.append(rec.link_events[i])
-        else:
+        elif math.isfinite(sv_l[i]):
             feed.events.append(FrameSample(st_l[i], sv_l[i]))
+        else:
+            # an unmeasurable frame is no observation: only its time is fed (as the live
+            # shell's ticks); S_0 is never interpolated across it
+            feed.events.append(Tick(st_l[i]))
+            feed.skipped_frames += 1
     if not armed:
         feed.events.append(Arm(t_arm))
     return feed
@@ -394,6 +407,8 @@ def replay(rec: Recording, setup: ReplaySetup, *, partial_recovery: bool = False
     notes: list[str] = []
     if feed.skipped_force:
         notes.append(f"{feed.skipped_force} force sample(s) without a finite value not fed")
+    if feed.skipped_frames:
+        notes.append(f"{feed.skipped_frames} frame(s) without a finite S_k fed as time only")
     transitions: list[PhaseChanged] = []
     frames_fed = force_fed = 0
     n_events = len(feed.events)
@@ -464,4 +479,5 @@ def replay(rec: Recording, setup: ReplaySetup, *, partial_recovery: bool = False
         frames_fed=frames_fed,
         force_samples_fed=force_fed,
         live=tuple(live),
+        release=pipeline.release,
     )

@@ -34,6 +34,7 @@ from stipi_daemon.app.config import load_config
 from stipi_daemon.app.daemon import run_daemon
 from stipi_daemon.measurement.outputs import Phase
 from stipi_daemon.measurement.pipeline import MeasurementPipeline
+from stipi_daemon.measurement.replay import Recording, ReplaySetup, replay
 from stipi_daemon.measurement.settings import MeasurementConfig
 from stipi_daemon.sim.physics import SceneModel
 from stipi_daemon.sim.scene import load_scene
@@ -87,7 +88,8 @@ class Synth:
             before = np.zeros_like(t)
         return np.where(t < self.t_release_s, before, after)
 
-    def run(self) -> MeasurementPipeline:
+    def arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Frame times, S_k (NaN where asked), force times and forces."""
         rng = np.random.default_rng(self.seed)
         end = self.t_release_s + self.window_s + 1.0
         tf = np.arange(rng.uniform(0.0, FORCE_S), end, FORCE_S)
@@ -98,10 +100,16 @@ class Synth:
         first_after = int(np.searchsorted(tv, self.t_release_s))
         for k in self.nan_frames_rel:
             sv[first_after + k] = math.nan
+        return tv, sv, tf, fv
+
+    def measurement(self) -> MeasurementConfig:
+        return MeasurementConfig(recovery_max_s=self.window_s, settle_hold_s=self.window_s / 4)
+
+    def run(self) -> MeasurementPipeline:
+        tv, sv, tf, fv = self.arrays()
+        end = float(max(tv[-1], tf[-1]))
         mp = MeasurementPipeline(
-            measurement=MeasurementConfig(
-                recovery_max_s=self.window_s, settle_hold_s=self.window_s / 4
-            ),
+            measurement=self.measurement(),
             analysis=AnalysisSettings(indenter_radius_mm=7.5, recovery_window_s=self.window_s),
             calibration=CAL,
             reference=load_reference(),
@@ -188,6 +196,24 @@ def test_nan_frame_at_the_release_takes_s0_from_the_next_valid_frame(occlusion: 
     sy = Synth(occlusion=occlusion, nan_frames_rel=(0,), seed=5)
     mp = sy.run()
     _check(mp, sy)
+
+
+def test_replay_of_a_recording_with_a_nan_frame_at_the_release() -> None:
+    sy = Synth(occlusion="none", nan_frames_rel=(0,), seed=2)
+    tv, sv, tf, fv = sy.arrays()
+    setup = ReplaySetup(
+        measurement=sy.measurement(),
+        analysis=AnalysisSettings(indenter_radius_mm=7.5, recovery_window_s=sy.window_s),
+        calibration=CAL,
+        reference=load_reference(),
+    )
+    out = replay(Recording(tv, sv, tf, fv, t_arm_s=0.0), setup)
+    assert out.phase is Phase.DONE and out.result is not None
+    assert out.t0_s is not None and sy.t_release_s < out.t0_s <= sy.t_release_s + BOUND_S
+    assert out.result.pitting.depth_mm == pytest.approx(sy.true_depth_mm(), rel=0.01)
+    summary = out.summary()
+    assert summary["release"]["s0_observed"] is True
+    assert any("without a finite S_k" in n for n in out.notes)
 
 
 @pytest.mark.parametrize("occlusion", ["applied_force", "none"])
