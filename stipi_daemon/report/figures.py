@@ -169,7 +169,8 @@ class SkFigure:
     t_s, s_k_px : numpy.ndarray
         Every frame as stored: capture time [s], S_k [px].
     line_t_s, line_s_k_px : numpy.ndarray
-        The same with a NaN point inside each gap of :attr:`gaps` (the plotted line).
+        The plotted line: every frame but the outlier frames (drawn as markers), with a NaN
+        point inside each gap of :attr:`gaps`.
     gaps : tuple of TimeGap
         Intervals without frames (:func:`~.series.find_gaps`).
     nan_frame_t_s : numpy.ndarray
@@ -272,8 +273,8 @@ def s_k_figure(inp: ReportInput) -> SkFigure:
     flags = value_at(p, "flags")
     t, s = inp.frame_times_s, inp.s_k_px
     gaps = find_gaps(t)
-    line_t, line_s = broken_line(t, s, gaps)
     outliers, source = _outlier_frames(inp)
+    line_t, line_s = broken_line(t[~outliers], s[~outliers], gaps)
     return SkFigure(
         t_s=t,
         s_k_px=s,

@@ -32,6 +32,7 @@ from stipi_daemon.report.figures import (
     VprFigure,
     WindowSearchFigure,
 )
+from stipi_daemon.report.inputs import FloatArray
 from stipi_daemon.report.panels import FramePanel
 from stipi_daemon.report.series import TimeGap
 
@@ -209,20 +210,53 @@ def draw_force(data: ForceFigure, title: str = "") -> Figure:
     return fig
 
 
+def _within_line_range(ax: Axes, line: FloatArray, markers: FloatArray) -> FloatArray:
+    """Scale the y axis to ``line`` and return ``markers`` clipped to it.
+
+    An outlier frame far off the series (a dark frame counts the whole ROI) would otherwise
+    squash the series it does not belong to; it is drawn at the axis edge instead.
+    """
+    finite = line[np.isfinite(line)]
+    if finite.size == 0 or markers.size == 0:
+        return markers
+    lo, hi = float(finite.min()), float(finite.max())
+    pad = 0.08 * (hi - lo) if hi > lo else max(1.0, 0.08 * abs(hi))
+    lo, hi = lo - pad, hi + pad
+    ax.set_ylim(lo, hi)
+    return np.clip(markers, lo, hi)
+
+
 def _mark_frames(ax: Axes, data: SkFigure) -> None:
-    """Outlier frames (red crosses) and frames without a finite S_k (ticks at the bottom)."""
+    """Outlier frames (red crosses), frames without a finite S_k (ticks at the bottom) and
+    the span around T_0 without frames when the release was not observed (red hatch)."""
     if data.outlier_t_s.size:
+        who = "left out by the analysis" if data.outlier_source == "analysis" else "isolated"
         (mk,) = ax.plot(
             data.outlier_t_s,
-            data.outlier_s_k_px,
+            _within_line_range(ax, data.line_s_k_px, data.outlier_s_k_px),
             "X",
             color="#d62728",
             ms=8,
             ls="none",
-            label=f"isolated outlier frames ({data.outlier_t_s.size})",
+            clip_on=False,
+            label=f"outlier frames, {who} ({data.outlier_t_s.size}; at the edge if off scale)",
             zorder=5,
         )
         mk.set_gid("outliers")
+    if data.release_gap_s is not None:
+        lo, hi = data.release_gap_s
+        hi = hi if math.isfinite(hi) else float(np.max(data.t_s, initial=lo))
+        span = ax.axvspan(
+            lo,
+            hi,
+            facecolor="none",
+            edgecolor="#d62728",
+            hatch="xx",
+            lw=1.0,
+            zorder=2,
+            label="release not observed (no frame around $T_0$)",
+        )
+        span.set_gid("release_gap")
     if data.nan_frame_t_s.size:
         (nan,) = ax.plot(
             data.nan_frame_t_s,
@@ -321,12 +355,16 @@ def draw_fit(data: FitFigure, title: str = "") -> Figure:
     if data.rejected_t_since_t0_s.size:
         (rej,) = ax.plot(
             data.rejected_t_since_t0_s,
-            data.rejected_s_k_px,
+            _within_line_range(ax, data.s_k_px, data.rejected_s_k_px),
             "X",
             color="#d62728",
             ms=7,
             ls="none",
-            label=f"outlier frames left out of the fit ({data.rejected_t_since_t0_s.size})",
+            clip_on=False,
+            label=(
+                f"outlier frames left out of the fit ({data.rejected_t_since_t0_s.size}; "
+                "at the edge if off scale)"
+            ),
         )
         rej.set_gid("fit_rejected")
     se = "" if data.tau_se_s is None else f" ± {data.tau_se_s:.2g}"

@@ -136,10 +136,24 @@ def test_a_gap_over_the_release_breaks_the_line_and_is_shaded(inp: ReportInput) 
     assert (gap.start_s, gap.end_s) in [pytest.approx(v) for v in xs]
     texts = [t.get_text() for t in fig.axes[0].texts]
     assert f"frame gap {gap.duration_s:.2f} s" in texts
+    assert not [p for p in fig.axes[0].patches if p.get_gid() == "release_gap"]
     labels = [t.get_text() for t in fig.axes[0].get_legend().get_texts()]
     assert any(lb.startswith(f"frame gaps: {len(sk.gaps)} (longest") for lb in labels)
     assert "release detected" in labels and "$T_0$ (start of recovery)" in labels
     assert any(lb.startswith("$S_0$ =") for lb in labels)
+    # When the analysis records that the release was not observed, its span is marked.
+    summary: dict[str, Any] = copy.deepcopy(dict(cut.summary or {}))
+    summary["results"]["pitting"]["observation"] = {
+        "release_gap_s": [gap.start_s, gap.end_s],
+        "outlier_frame_times_s": [],
+    }
+    fig = r.draw_s_k(s_k_figure(ReportInput(**{**cut.__dict__, "summary": summary})))
+    (span,) = [p for p in fig.axes[0].patches if p.get_gid() == "release_gap"]
+    assert (span.get_x(), span.get_x() + span.get_width()) == pytest.approx(
+        (gap.start_s, gap.end_s)
+    )
+    labels = [t.get_text() for t in fig.axes[0].get_legend().get_texts()]
+    assert "release not observed (no frame around $T_0$)" in labels
 
 
 def test_the_recorded_session_has_no_gap_and_the_force_line_is_the_samples(
@@ -166,8 +180,11 @@ def test_outlier_frames_are_marked(inp: ReportInput) -> None:
     assert sk.outlier_source == "report"
     np.testing.assert_array_equal(sk.outlier_t_s, [inp.frame_times_s[k]])
     fig = r.draw_s_k(sk)
+    assert sk.outlier_s_k_px.tolist() == [s[k]]
+    # The line leaves the outlier out (no spike); the marker sits at the axis edge.
+    assert inp.frame_times_s[k] not in sk.line_t_s.tolist()
     y = _line(fig, "outliers").get_ydata()
-    assert list(y) == [s[k]]
+    assert list(y) == [fig.axes[0].get_ylim()[1]] and s[k] > fig.axes[0].get_ylim()[1]
     # What the analysis recorded wins over the report's own check.
     summary: dict[str, Any] = copy.deepcopy(dict(dark.summary or {}))
     t_other = float(inp.frame_times_s[k + 5])
