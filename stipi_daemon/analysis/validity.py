@@ -22,7 +22,7 @@ severity class from E and eta, Section IV.C). The rules are documented in
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from types import MappingProxyType
 from typing import TYPE_CHECKING, Any, Final, Literal
@@ -277,6 +277,8 @@ def _value_missing(result: MeasurementResult, quantity: str) -> str | None:
 def quantity_validity(
     result: MeasurementResult,
     extra_reasons: Mapping[str, str] | None = None,
+    extra_caveats: Mapping[str, str] | None = None,
+    extra_flags: Sequence[str] = (),
 ) -> dict[str, QuantityValidity]:
     """The validity of every primary and secondary quantity of one measurement.
 
@@ -284,9 +286,16 @@ def quantity_validity(
     ----------
     result : MeasurementResult
         The measurement; its flags (and those of its parts) are applied per
-        :data:`FLAG_RULES`, then invalidity propagates along :data:`DEPENDS_ON`.
+        :data:`FLAG_RULES`, then invalidity and caveats propagate along
+        :data:`DEPENDS_ON`.
     extra_reasons : mapping, optional
-        Quantity -> reason that makes it invalid, for facts not carried by a flag.
+        Quantity -> reason that makes it invalid, for facts not carried by a result flag
+        (e.g. the release as the measurement pipeline observed it).
+    extra_caveats : mapping, optional
+        Quantity -> caveat that flags it, likewise.
+    extra_flags : sequence of str
+        Flag values attached to every quantity named in ``extra_reasons`` or
+        ``extra_caveats``.
 
     Returns
     -------
@@ -304,21 +313,30 @@ def quantity_validity(
         for q in rule.quantities:
             flags[q].add(str(flag))
             (invalid if q in rule.invalidates else caveats)[q].append(reason)
-    for q, reason in (extra_reasons or {}).items():
-        invalid[q].append(reason)
+    for extra, into in ((extra_reasons, invalid), (extra_caveats, caveats)):
+        for q, reason in (extra or {}).items():
+            into[q].append(reason)
+            flags[q].update(extra_flags)
     for q in flags:
         why = _value_missing(result, q)
         if why is not None:
             invalid[q].append(why)
+    # Derived quantities name the root cause: "D_p is invalid: no frame between ...".
+    root = {q: f"{QUANTITY_SYMBOLS[q]} is invalid: {why[0]}" for q, why in invalid.items() if why}
     for q in ("elasticity_kpa", "viscosity_n_s_per_mm2", "severity"):
         for source in DEPENDS_ON[q]:
             if invalid[source] and not invalid[q]:
-                invalid[q].append(f"{QUANTITY_SYMBOLS[source]} is invalid ({invalid[source][0]})")
+                invalid[q].append(root[source])
+                root[q] = root[source]
+            elif caveats[source] and not caveats[q]:
+                caveats[q].append(f"{QUANTITY_SYMBOLS[source]} is flagged: {caveats[source][0]}")
+            if invalid[source] or caveats[source]:
+                flags[q] |= flags[source]
     out: dict[str, QuantityValidity] = {}
     for q, fl in flags.items():
         if invalid[q]:
             out[q] = QuantityValidity("invalid", tuple(sorted(fl)), invalid[q][0])
-        elif fl:
+        elif fl or caveats[q]:
             out[q] = QuantityValidity("flagged", tuple(sorted(fl)), "; ".join(caveats[q]))
         else:
             out[q] = QuantityValidity("valid", (), None)
@@ -368,6 +386,9 @@ def assess_validity(
     ended_done: bool,
     end_reason: str | None = None,
     analysis_error: str | None = None,
+    invalid_reasons: Mapping[str, str] | None = None,
+    caveats: Mapping[str, str] | None = None,
+    extra_flags: Sequence[str] = (),
 ) -> dict[str, Any]:
     """``summary.json``'s ``validity`` and ``verdict`` entries for one session.
 
@@ -381,6 +402,10 @@ def assess_validity(
         Why the session ended, for an incomplete verdict.
     analysis_error : str or None
         Why the analysis failed (the reason of every quantity when there is no result).
+    invalid_reasons, caveats, extra_flags
+        Facts observed outside the analysis result (quantity -> reason that invalidates
+        it, quantity -> caveat, and the flag values they carry), e.g. the measurement
+        pipeline's release observation; see :func:`quantity_validity`.
 
     Returns
     -------
@@ -396,7 +421,7 @@ def assess_validity(
         }
         v = verdict({}, ended_done=ended_done, end_reason=end_reason)
     else:
-        validity = quantity_validity(result)
+        validity = quantity_validity(result, invalid_reasons, caveats, extra_flags)
         v = verdict(validity, ended_done=ended_done, end_reason=end_reason)
     return {
         "validity": {q: qv.to_dict() for q, qv in validity.items()},

@@ -242,3 +242,33 @@ def test_a_rise_within_the_settling_band_cannot_be_timed() -> None:
 def test_kelvin_voigt_recoveries_that_settle_are_complete(tau_s: float) -> None:
     out = assess_validity(analyse(*noisy_kv(tau_s), 19.5), ended_done=True)
     assert out["verdict"]["status"] == "complete", out
+
+
+def test_facts_from_outside_the_result_invalidate_or_flag_and_propagate() -> None:
+    res = analyse(*kv_measurement())
+    out = assess_validity(
+        res,
+        ended_done=True,
+        invalid_reasons={"depth_mm": "S_0 not observed"},
+        extra_flags=("s0_not_observed",),
+    )
+    v = out["validity"]
+    assert v["depth_mm"] == {
+        "status": "invalid",
+        "flags": ["s0_not_observed"],
+        "reason": "S_0 not observed",
+    }
+    assert v["severity"]["reason"] == "D_p is invalid: S_0 not observed"
+    assert v["severity"]["flags"] == ["s0_not_observed"]
+    out = assess_validity(
+        res,
+        ended_done=True,
+        caveats={"recovery_time_s": "image and force disagree on T_0"},
+        extra_flags=("t0_image_force_disagree",),
+    )
+    v = out["validity"]
+    assert v["recovery_time_s"]["status"] == "flagged"
+    assert v["viscosity_n_s_per_mm2"]["status"] == "flagged"
+    assert "image and force disagree" in v["viscosity_n_s_per_mm2"]["reason"]
+    assert v["depth_mm"]["status"] == "valid"
+    assert out["verdict"]["status"] == "flagged"
