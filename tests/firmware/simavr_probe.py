@@ -49,9 +49,10 @@ ADC_CHANNEL = 7
 OCR3AL_ADDR = 0x98
 """Data address of OCR3AL, the LED PWM duty: D5 = PC6 = OC3A (config.h ``STIPI_PIN_LED_PWM``)."""
 BLE_PROBE_DONE_S = 2.0
-"""Simulated time by which the firmware has given up on the (absent) nRF51822 [s]: reset
-20 ms + boot wait 1 s + two blocking 250 ms SDEP probes (config.h). simavr has no BLE module,
-and the probe stalls the main loop, so streaming at high rates starts after this."""
+"""Simulated time by which the firmware has given up on an absent nRF51822 (or, with the
+harness's ``--nrf51``, has it booted and ready) [s]: reset 20 ms + boot wait 1 s + up to two
+250 ms SDEP probes (config.h). The probes no longer block the main loop; the tests still start
+their streams after this so that the boot sequence is not part of what they measure."""
 
 _KV = re.compile(r"(\w+)=(\S+)")
 LINK_FAULTS = frozenset(FAULT_COUNTERS)

@@ -223,17 +223,25 @@ def test_commands_are_acked_and_take_effect(probe_factory: Callable[..., SimProb
     assert not probe.link_faults(), probe.link_faults()
 
 
-def test_max_rate_streams_without_drops(probe_factory: Callable[..., SimProbe]) -> None:
+# 1000 Hz: the protocol's cap (4 conversions per sample); 486 and 500 Hz: the two sides of
+# the 16 -> 8 conversions step, where the supply reading chained after a sample must still
+# end before the next sample instant (16 at 500 Hz lost one sample per heartbeat).
+@pytest.mark.parametrize(("rate", "n_conv"), [(1000, 4), (500, 8), (486, 16)])
+def test_max_rate_streams_without_drops(
+    probe_factory: Callable[..., SimProbe], rate: int, n_conv: int
+) -> None:
     probe = probe_factory("triangle:200:3100:0.5")
     probe.wait_sim_time(BLE_PROBE_DONE_S)
-    assert probe.command(SetRate(1000)).status == AckStatus.OK
+    assert probe.command(SetRate(rate)).status == AckStatus.OK
     assert probe.command(StreamStart()).status == AckStatus.OK
-    s = flatten(probe.collect_samples(1500))
+    s = flatten(probe.collect_samples(int(1.5 * rate)))
     assert probe.command(StreamStop()).status == AckStatus.OK
     status = probe.next_status()
     assert np.array_equal(np.diff(s.index), np.ones(len(s.index) - 1, dtype=np.int64))
-    assert abs(rate_hz(s) / 1000 - 1) < 0.01, rate_hz(s)
+    assert abs(rate_hz(s) / rate - 1) < 0.01, rate_hz(s)
     assert status.dropped == 0
+    _, _, burst_mv = probe.log.bursts()
+    assert np.median([len(b) for b in burst_mv]) == n_conv
     assert not probe.link_faults(), probe.link_faults()
 
 
