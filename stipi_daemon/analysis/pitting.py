@@ -74,6 +74,11 @@ NOTHING_OBSERVED = Observed(frame_period_s=0.0)
 S_MAX_MEDIAN_HALF_WIDTH = 2
 #: A gap around the settling crossing shorter than this fraction of T_r is immaterial [-].
 SETTLING_GAP_FRACTION = 0.01
+#: A step of S_k is a jump (:func:`detect_recovery_start`) when at least this fraction of the
+#: largest step in the search range [-] ...
+JUMP_FRACTION = 0.25
+#: ... and larger than this many robust standard deviations of the steps [-].
+JUMP_NOISE_FACTOR = 6.0
 #: Consecutive frames that must stay at or above the settling level for a crossing to count.
 #: At the paper's 60 fps, 3 frames are 50 ms: long enough to reject one noisy frame, short
 #: against any recovery time in Table I (2.19 s and longer).
@@ -660,13 +665,18 @@ def detect_recovery_start(
 ) -> float:
     """Estimate T_0, the start of the recovery, from the S_k series alone.
 
-    Use this only when the recording has no release event. The series is assumed to hold
-    the pitting phase (S_k high while the force is applied), then the release (S_k drops to
-    S_0) and the recovery (S_k rises toward S_max). T_0 is the time of the frame where S_k
-    (optionally median-smoothed) is lowest after the pitting peak: the search starts at the
-    largest S_k in the search range, or at ``search_start_s`` when given (e.g. the time of a
-    release command), and ends at ``search_end_s``. When several frames share the minimum,
-    the last one is taken: the recovery starts when S_k leaves its minimum.
+    Use this only when the recording has no release event (the measurement pipeline places
+    T_0 at the observed force drop, :mod:`stipi_daemon.measurement.release`). The release is
+    the last *jump* of S_k in the search range: the last step between consecutive frames
+    larger than :data:`JUMP_FRACTION` of the largest step there and than
+    :data:`JUMP_NOISE_FACTOR` robust standard deviations of the steps. Steps are taken on a
+    3-frame moving median (after the optional ``smooth_frames`` one), so a single outlier
+    frame is no jump. This holds whether S_k is high while the force is applied (the tip
+    carries it: the press is an earlier jump up, the release a jump down) or about 0 (the
+    locked indenter leaves the waveguide clear, Fig. 4 (a): the release is the only jump,
+    upward). From the frame after the jump, T_0 follows the frames while S_k keeps falling
+    by more than the noise threshold (the bottom of a release transient spread over
+    frames), and is that frame's time.
 
     Parameters
     ----------
@@ -675,7 +685,7 @@ def detect_recovery_start(
     s_k : array_like
         Occluded-pixel counts S_k [px]; NaN/inf frames are ignored.
     search_start_s, search_end_s : float, optional
-        Bounds of the search [s], inclusive. Default: from the pitting peak to the end.
+        Bounds of the search [s], inclusive. Default: the whole series.
     smooth_frames : int
         Width of a moving median applied before the search, >= 1 (odd widths are centred).
 
@@ -687,8 +697,8 @@ def detect_recovery_start(
     Raises
     ------
     AnalysisError
-        Invalid series or bounds, no frame in the search range, or the minimum is the last
-        frame of the range (nothing recovers after it).
+        Invalid series or bounds, fewer than three frames in the search range, or T_0 is
+        the last frame of the range (nothing recovers after it).
     """
     series = validate_series(times_s, s_k)
     t, s = series.times_s, series.s_px
@@ -701,17 +711,23 @@ def detect_recovery_start(
     idx = np.flatnonzero((t >= lo) & (t <= hi))
     if idx.size == 0:
         raise AnalysisError(f"no finite frame between search_start_s={lo} and search_end_s={hi}")
-    if search_start_s is None:
-        peak = int(idx[np.argmax(s[idx])])
-        idx = idx[idx >= peak]
-    seg = s[idx]
-    last_min = int(idx[seg.size - 1 - int(np.argmin(seg[::-1]))])
-    if last_min == int(idx[-1]):
+    if idx.size < 3:
+        raise AnalysisError(f"need at least 3 frames between {lo} and {hi} s, got {idx.size}")
+    seg = median_filter(s[idx], size=3, mode="nearest")
+    steps = np.abs(np.diff(seg))
+    sigma = 1.4826 * float(np.median(np.abs(steps - np.median(steps))))
+    threshold = max(JUMP_NOISE_FACTOR * sigma, JUMP_FRACTION * float(np.max(steps)))
+    jumps = np.flatnonzero(steps >= threshold)
+    k = int(jumps[-1]) + 1 if jumps.size else int(np.argmin(seg))
+    fall = JUMP_NOISE_FACTOR * sigma
+    while k + 1 < seg.size and seg[k + 1] < seg[k] - fall:
+        k += 1
+    if k == seg.size - 1:
         raise AnalysisError(
-            f"S_k is lowest at the last searched frame (t = {t[last_min]} s): "
+            f"S_k's release is at the last searched frame (t = {t[idx[k]]} s): "
             "no recovery follows; pass search_start_s/search_end_s around the release"
         )
-    return float(t[last_min])
+    return float(t[idx[k]])
 
 
 @dataclass(frozen=True)

@@ -28,6 +28,7 @@ import pytest
 import yaml
 
 from stipi_daemon.analysis.calibration import Calibration
+from stipi_daemon.analysis.pitting import detect_recovery_start
 from stipi_daemon.analysis.results import AnalysisSettings
 from stipi_daemon.analysis.severity import load_reference
 from stipi_daemon.app.config import load_config
@@ -288,3 +289,32 @@ async def test_grade_scene_through_the_daemon_reaches_done(grade: str, tmp_path:
     assert res is not None
     assert res["pitting"]["depth_mm"] == pytest.approx(gt["depth_mm"], rel=0.02)
     assert res["paper_estimator"]["elasticity_kpa"] == pytest.approx(gt["elasticity_kpa"], rel=0.02)
+
+
+# ----------------------------------------------------------------------- T_0 without a release
+
+
+@pytest.mark.parametrize("occlusion", ["applied_force", "none"])
+def test_detect_recovery_start_in_both_occlusion_modes_with_noise(occlusion: str) -> None:
+    for seed in range(12):
+        sy = Synth(occlusion=occlusion, tau_s=44.0, noise_px=20.0, seed=seed)
+        tv, sv, _, _ = sy.arrays()
+        t0 = detect_recovery_start(tv, sv)
+        assert sy.t_release_s <= t0 <= sy.t_release_s + 2.0 * FRAME_S
+
+
+def test_detect_recovery_start_ignores_one_outlier_frame_in_the_recovery() -> None:
+    sy = Synth(occlusion="none", tau_s=5.0, noise_px=5.0, seed=4)
+    tv, sv, _, _ = sy.arrays()
+    sv[np.searchsorted(tv, sy.t_release_s + 8.0)] = 0.0  # one dark frame
+    t0 = detect_recovery_start(tv, sv)
+    assert sy.t_release_s <= t0 <= sy.t_release_s + 2.0 * FRAME_S
+
+
+def test_detect_recovery_start_follows_a_release_transient_to_its_bottom() -> None:
+    sy = Synth(occlusion="applied_force", seed=6)
+    tv, sv, _, _ = sy.arrays()
+    first = int(np.searchsorted(tv, sy.t_release_s))
+    bottom = float(sv[first])
+    sv[first : first + 6] = np.linspace(41500.0, bottom, 6)
+    assert detect_recovery_start(tv, sv) == float(tv[first + 5])
