@@ -87,8 +87,16 @@ class CaterinaSim:
                 os.write(fd, reply)
 
     def _command(self, fd: int, cmd: str, addr: int) -> tuple[bytes, int]:
-        simple = {"S": b"CATERIN", "V": b"10", "v": b"?", "p": b"S", "a": b"Y",
-                  "t": b"\x44\x00", "s": SIGNATURE, "b": b"Y" + BLOCK.to_bytes(2, "big")}
+        simple = {
+            "S": b"CATERIN",
+            "V": b"10",
+            "v": b"?",
+            "p": b"S",
+            "a": b"Y",
+            "t": b"\x44\x00",
+            "s": SIGNATURE,
+            "b": b"Y" + BLOCK.to_bytes(2, "big"),
+        }
         if cmd in simple:
             return simple[cmd], addr
         if cmd in "TxyPLEe":  # select device, LEDs, enter/leave programming, exit, erase
