@@ -57,6 +57,7 @@ figcaption { font-size: 0.9em; color: #444; margin-top: 0.3em; }
 .v-unknown { color: #777; }
 tr.invalid td { background: #fbeaea; }
 .not-valid { color: #999; font-size: 0.85em; display: block; }
+td.verdict-cell { min-width: 18em; font-size: 0.9em; }
 dl.meta { display: grid; grid-template-columns: max-content auto; gap: 0.15em 1em; }
 dl.meta dt { font-weight: bold; }
 dl.meta dd { margin: 0; }
@@ -372,7 +373,8 @@ def compare_page(
         cells = [
             f"<td>{_e(sid)}</td>",
             f"<td>{_e(label)}</td>",
-            f'<td><span class="badge badge-{_e(v.status)}">{_e(v.status)}</span> {_e(v.line)}</td>',
+            f'<td class="verdict-cell"><span class="badge badge-{_e(v.status)}">'
+            f"{_e(v.status)}</span> {_e(v.line)}</td>",
         ]
         cells += [_session_value_cell(s.values[i], s.statuses[i]) for s in table.overall.stats]
         cells.append(f"<td>{_e(table.severities[i] or '-')}</td>")

@@ -484,8 +484,8 @@ def write_compare_report(
     ]
     embedded, written, missing = _make_figures(makers, out)
     meta: list[tuple[str, Any]] = [
-        (f"{label}", f"{inp.session_id} ({inp.status})")
-        for label, inp in zip(names, inputs, strict=True)
+        (f"{label}", f"{inp.session_id} (ended {inp.status}; verdict {v.status})")
+        for label, inp, v in zip(names, inputs, table.verdicts, strict=True)
     ]
     page = compare_page(table=table, figures=embedded, meta=[(k, str(v)) for k, v in meta])
     html_path = out / REPORT_HTML

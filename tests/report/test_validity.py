@@ -328,3 +328,19 @@ def test_figures_say_when_t_r_or_tau_is_not_valid(inp: ReportInput) -> None:
     title = r.draw_fit(fit).axes[0].get_title()
     assert "τ not valid: the recovery fit did not converge" in title
     assert s_k_figure(with_validity(inp)).recovery_time_invalid is None
+
+
+def test_compare_page_says_what_was_excluded(inp: ReportInput) -> None:
+    from stipi_daemon.report.html import compare_page
+
+    a = with_validity(inp, sid="a")
+    c = with_validity(
+        inp,
+        ("invalid", "Not valid: D_p."),
+        sid="c",
+        depth_mm=("invalid", ["release_not_observed"], "release not observed"),
+    )
+    page = compare_page(table=compare_table([a, c]), figures=[], meta=[])
+    assert '<span class="not-valid">1 invalid excluded</span>' in page
+    assert '<td class="num" data-validity="invalid">—<span class="not-valid">' in page
+    assert '<span class="badge badge-invalid">invalid</span> Not valid: D_p.' in page

@@ -153,6 +153,9 @@ def test_compare_report_tabulates_mean_and_spread(
     assert f"{mean:.4g} ± {sd:.4g} ({100 * sd / mean:.1f} %)" in page
     assert f"{depths[0]:.4g} ± 0 (0.0 %)" in page
     assert "<th>I (n = 2)</th>" in page and "<th>all sessions (n = 3)</th>" in page
+    # Each session's verdict is shown (the recorded sessions are complete and valid).
+    assert page.count('<td class="verdict-cell"><span class="badge badge-complete">') == 3
+    assert "(ended complete; verdict complete)" in page
 
 
 def test_compare_needs_two_sessions_and_matching_labels(demo_session: Path, tmp_path: Path) -> None:
