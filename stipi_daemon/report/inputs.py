@@ -78,6 +78,11 @@ class ReportInput:
         The calibration recorded in the manifest (``threshold_p``, ``roi``...).
     representative : tuple of RepresentativeFrame
         Representative raw frames stored with the session (may be empty).
+    rescued : mapping or None
+        The summary of the newest analysis of this recording written beside the session by
+        ``stipi-daemon analyze`` (``analysis-*.json``), when there is one.
+    rescued_file : str or None
+        That file's name.
     """
 
     session_id: str
@@ -93,6 +98,8 @@ class ReportInput:
     config: Mapping[str, Any]
     calibration: Mapping[str, Any]
     representative: tuple[RepresentativeFrame, ...] = ()
+    rescued: Mapping[str, Any] | None = None
+    rescued_file: str | None = None
 
     def __post_init__(self) -> None:
         if not (self.frame_seq.shape == self.frame_times_s.shape == self.s_k_px.shape):

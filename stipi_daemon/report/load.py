@@ -2,14 +2,19 @@
 
 The I/O side of the report's data: the session's rows are read in one database snapshot
 through :class:`~stipi_daemon.storage.SessionReader` (read-only, so a report never changes
-a session), with the manifest, ``summary.json`` and the representative frames
-(:mod:`stipi_daemon.report.frames`). Frames are timed by their capture time, as the
+a session), with the manifest, ``summary.json``, the representative frames
+(:mod:`stipi_daemon.report.frames`) and the newest analysis of the recording that
+``stipi-daemon analyze`` wrote beside it (``analysis-*.json``: for a session that ended
+early, the results its recording allows). Frames are timed by their capture time, as the
 pipeline and an offline replay time them. Nothing is computed here.
 """
 
 from __future__ import annotations
 
+import json
+from collections.abc import Mapping
 from pathlib import Path
+from typing import Any, Final
 
 import numpy as np
 
@@ -17,7 +22,32 @@ from stipi_daemon.report.frames import read_representative_frames
 from stipi_daemon.report.inputs import ReportInput
 from stipi_daemon.storage import SessionReader
 
-__all__ = ["load_report_input"]
+__all__ = ["ANALYSIS_FORMAT", "load_report_input", "read_rescued_analysis"]
+
+#: ``format`` of the documents ``stipi-daemon analyze`` writes (app/analyze.OUTPUT_FORMAT).
+ANALYSIS_FORMAT: Final = "stipi-offline-analysis"
+
+
+def read_rescued_analysis(directory: Path, session_id: str) -> tuple[str, Mapping[str, Any]] | None:
+    """The newest ``analysis-*.json`` of this session beside it: (file name, its summary).
+
+    Files that cannot be read, are not an analysis document of this session, or hold no
+    summary are passed over (an analysis beside the session never stops its report).
+    """
+    for path in sorted(directory.glob("analysis-*.json"), reverse=True):
+        try:
+            doc = json.loads(path.read_text(encoding="utf-8"))
+        except (OSError, ValueError):
+            continue
+        if not isinstance(doc, dict) or doc.get("format") != ANALYSIS_FORMAT:
+            continue
+        source = doc.get("input")
+        summary = doc.get("summary")
+        if not isinstance(source, dict) or source.get("session_id") != session_id:
+            continue
+        if isinstance(summary, dict):
+            return path.name, summary
+    return None
 
 
 def load_report_input(directory: str | Path) -> ReportInput:
@@ -40,6 +70,7 @@ def load_report_input(directory: str | Path) -> ReportInput:
         path = reader.directory
     calibration = manifest.get("calibration")
     config = manifest.get("config")
+    rescued = read_rescued_analysis(path, session_id)
     return ReportInput(
         session_id=session_id,
         status=status,
@@ -54,4 +85,6 @@ def load_report_input(directory: str | Path) -> ReportInput:
         config=config if isinstance(config, dict) else {},
         calibration=calibration if isinstance(calibration, dict) else {},
         representative=read_representative_frames(path),
+        rescued=None if rescued is None else rescued[1],
+        rescued_file=None if rescued is None else rescued[0],
     )

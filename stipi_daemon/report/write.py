@@ -12,8 +12,8 @@ atomically (written to ``*.tmp``, then renamed) so a reader never sees half a pa
 from __future__ import annotations
 
 import os
-from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Final
 
@@ -187,7 +187,7 @@ def _key_results(rows: Sequence[ParameterRow]) -> list[tuple[str, str, str]]:
     return out
 
 
-def _meta(inp: ReportInput) -> list[tuple[str, str]]:
+def _meta(inp: ReportInput, results_from: str) -> list[tuple[str, str]]:
     s = inp.summary or {}
     run = s.get("run") or {}
     cam = ((run.get("camera") or {}).get("source") or {}).get("name")
@@ -195,6 +195,7 @@ def _meta(inp: ReportInput) -> list[tuple[str, str]]:
     meta = [
         ("Created (UTC)", inp.created_utc or "-"),
         ("Session ended", inp.status),
+        ("Results from", results_from),
         ("Phase / end", f"{s.get('phase', '-')} / {s.get('end_reason') or '-'}"),
         (
             "Recorded",
@@ -316,6 +317,31 @@ def _session_makers(
     ]
 
 
+def _with_rescued_results(inp: ReportInput) -> tuple[ReportInput, str]:
+    """The session as the page shows it, and a sentence on where its results come from.
+
+    A session without recorded results (it ended early, or its analysis failed) is shown
+    with the results of the newest ``stipi-daemon analyze`` of its recording written beside
+    it (:attr:`ReportInput.rescued`), never mixed with the recorded summary (only the run's
+    statistics and a simulator's ground truth are kept from it). Without one, the sentence
+    says how to compute what the recording allows.
+    """
+    if inp.results is not None:
+        return inp, ""
+    rescued = inp.rescued
+    if rescued is None or not isinstance(rescued.get("results"), Mapping):
+        return inp, (
+            "No results were recorded; stipi-daemon analyze computes what the recording "
+            "allows (written beside the session)."
+        )
+    kept = {k: v for k, v in (inp.summary or {}).items() if k in ("run", "ground_truth")}
+    shown = ReportInput(**{**inp.__dict__, "summary": {**rescued, **kept}})
+    return shown, (
+        f"Results computed from the recording by stipi-daemon analyze ({inp.rescued_file}); "
+        "the recorded session is unchanged."
+    )
+
+
 def render_session_report(
     inp: ReportInput, out_dir: Path, reference: SeverityReference | None = None
 ) -> WrittenReport:
@@ -332,14 +358,23 @@ def render_session_report(
     except OSError as exc:
         raise SessionError(f"{out_dir}: cannot create report directory: {exc}") from exc
     ref = reference if reference is not None else load_reference()
+    recorded = inp
+    inp, source = _with_rescued_results(recorded)
     embedded, written, missing = _make_figures(_session_makers(inp, ref), out_dir)
     rows = parameter_table(inp.summary)
-    verdict = session_verdict(inp.summary, inp.status)
+    verdict = session_verdict(inp.summary, recorded.status)
+    if source:
+        verdict = replace(verdict, line=f"{verdict.line} {source}")
     page = session_page(
         session_id=inp.session_id,
         verdict=verdict,
         key_results=_key_results(rows),
-        meta=_meta(inp),
+        meta=_meta(
+            inp,
+            "summary.json (recorded)"
+            if inp is recorded
+            else f"{inp.rescued_file} (stipi-daemon analyze of the recording)",
+        ),
         figures=embedded,
         rows=rows,
         flag_descriptions=flag_descriptions(),

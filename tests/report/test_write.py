@@ -112,6 +112,7 @@ def test_report_of_a_session_without_results(demo_session: Path, tmp_path: Path)
     assert "The session has no results." in page
     assert "Not drawn: the session has no results" in page
     assert "no summary.json" in page
+    assert "No results were recorded; stipi-daemon analyze computes what the recording" in page
     with SessionReader(session) as reader:  # the session itself is untouched
         assert reader.status is SessionState.INTERRUPTED
         assert reader.integrity_check().ok
@@ -163,3 +164,32 @@ def test_compare_needs_two_sessions_and_matching_labels(demo_session: Path, tmp_
         write_compare_report([demo_session], tmp_path)
     with pytest.raises(AnalysisError, match="1 labels for 2 sessions"):
         write_compare_report([demo_session, demo_session], tmp_path, ["a"])
+
+
+def test_an_early_ended_session_shows_the_results_its_recording_allows(
+    demo_session: Path, tmp_path: Path
+) -> None:
+    """An interrupted session analysed by ``analyze``: results shown, verdict incomplete."""
+    from stipi_daemon.app.analyze import OUTPUT_FORMAT
+    from stipi_daemon.cli import main
+    from stipi_daemon.report.load import ANALYSIS_FORMAT
+
+    assert ANALYSIS_FORMAT == OUTPUT_FORMAT
+    with SessionReader(demo_session) as reader:
+        transitions = reader.transitions()
+    t_recovery = next(t.t_host_s for t in transitions if t.new_state == "recovery")
+    session = interrupted_copy(demo_session, tmp_path / "root", "cut", t_recovery + 10.0)
+    assert main(["analyze", str(session), "--quiet"]) == 0
+    (doc,) = session.glob("analysis-*.json")
+    (session / "analysis-00000000T000000Z.json").write_text("not json")  # passed over
+    written = write_session_report(session)
+    page = written.html_path.read_text(encoding="utf-8")
+    assert 'id="status">incomplete<' in page
+    assert f"Results computed from the recording by stipi-daemon analyze ({doc.name})" in page
+    assert f"{doc.name} (stipi-daemon analyze of the recording)" in page
+    assert "The session has no results." not in page
+    assert 'data-key="depth_mm"' in page and "recovery_fit" in written.figures
+    assert written.verdict.startswith("incomplete: ")
+    with SessionReader(session) as reader:  # the recording itself is untouched
+        assert reader.status is SessionState.INTERRUPTED
+        assert reader.summary is None
