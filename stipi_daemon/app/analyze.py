@@ -290,6 +290,15 @@ def _status_notes(data: SessionData) -> list[str]:
     return []
 
 
+def _roi_field(source: str) -> str:
+    """How an ROI error names what set the ROI (``--roi``, a config field, a file)."""
+    if source in ("--roi",):
+        return source
+    if source == "config imaging.roi":
+        return "field 'imaging.roi'"
+    return f"the ROI ({source})"
+
+
 def _recount(
     data: SessionData, imaging: Imaging, settings: ImagingSettings, notes: list[str]
 ) -> tuple[SessionData, np.ndarray[Any, np.dtype[np.float64]], dict[str, Any]]:
@@ -308,6 +317,7 @@ def _recount(
         threshold.value,
         roi,
         saturation_limit_fraction=settings.saturation_limit_fraction,
+        roi_field=None if imaging.roi is None else _roi_field(imaging.roi.source),
     )
     n_rows, n_video = data.frame_times_s.size, video.s_k_px.size
     if n_video < n_rows:
@@ -464,6 +474,7 @@ def analyze_files(request: AnalyzeRequest) -> AnalysisRun:
         threshold.value,
         roi,
         saturation_limit_fraction=settings.saturation_limit_fraction,
+        roi_field=None if imaging.roi is None else _roi_field(imaging.roi.source),
     )
     t, s_k, more = match_frame_times(video, frame_times, str(times_path))
     notes.extend(more)

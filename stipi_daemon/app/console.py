@@ -20,6 +20,11 @@ from rich.progress_bar import ProgressBar
 from rich.table import Table
 from rich.text import Text
 
+from stipi_daemon.analysis.validity import (
+    PRIMARY_QUANTITIES,
+    QUANTITY_SYMBOLS,
+    SECONDARY_QUANTITIES,
+)
 from stipi_daemon.measurement.pipeline import LiveParameters
 from stipi_daemon.measurement.state_machine import (
     Advisory,
@@ -31,7 +36,13 @@ from stipi_daemon.measurement.state_machine import (
     PhaseChanged,
 )
 
-__all__ = ["OperatorConsole", "format_results"]
+__all__ = [
+    "VERDICT_STYLES",
+    "OperatorConsole",
+    "format_results",
+    "verdict_lines",
+    "verdict_status",
+]
 
 #: Plain mode repeats an unchanged instruction at most this often [s of session time].
 PROMPT_REPEAT_S = 5.0
@@ -96,12 +107,18 @@ class OperatorConsole:
             self._live.__exit__(None, None, None)
             self._live = None
 
-    def line(self, text: str) -> None:
-        """Print one line above the live view (or plainly)."""
+    def line(self, text: str, style: str | None = None) -> None:
+        """Print one line above the live view (or plainly).
+
+        ``style`` (a rich style, e.g. ``"bold green"``) colours the line on a terminal;
+        plain output (logs, pipes) gets the text alone.
+        """
         if self.quiet:
             return
         if self._live is not None:
-            self._live.console.print(text, markup=False, highlight=False)
+            self._live.console.print(text, style=style, markup=False, highlight=False)
+        elif style is not None and self.out.isatty():
+            self.rich.print(text, style=style, markup=False, highlight=False, soft_wrap=True)
         else:
             print(text, file=self.out, flush=True)
 
@@ -205,41 +222,120 @@ class OperatorConsole:
         return Panel(Group(head, bar, readings, params, prompt), title="STIP-I measurement")
 
 
+#: Rich style of the verdict line, by verdict status: green only for ``complete``.
+VERDICT_STYLES: dict[str, str] = {
+    "complete": "bold green",
+    "flagged": "bold yellow",
+    "invalid": "bold red",
+    "incomplete": "bold red",
+    "unknown": "bold",
+}
+
+
+def verdict_status(summary: dict[str, Any]) -> str:
+    """The summary's verdict status; ``unknown`` for a summary written before verdicts."""
+    v = summary.get("verdict")
+    status = v.get("status") if isinstance(v, dict) else None
+    return str(status) if status in VERDICT_STYLES else "unknown"
+
+
+def verdict_lines(summary: dict[str, Any]) -> list[str]:
+    """The verdict, then each flagged or invalid quantity with its reason, one per line.
+
+    The first line is the verdict (``complete`` only when the session ended DONE and every
+    primary quantity is valid, docs/analysis.md); a summary without a verdict (an older
+    session) reads ``verdict: UNKNOWN``.
+    """
+    status = verdict_status(summary)
+    v = summary.get("verdict")
+    line = v.get("line") if isinstance(v, dict) else None
+    if status == "unknown":
+        line = "validity not recorded (a session from before validity was assessed)"
+    out = [f"verdict: {status.upper()}: {line or ''}".rstrip(": ")]
+    validity = summary.get("validity")
+    if not isinstance(validity, dict) or not summary.get("results"):
+        return out
+    for q in (*PRIMARY_QUANTITIES, *SECONDARY_QUANTITIES):
+        entry = validity.get(q)
+        if not isinstance(entry, dict) or entry.get("status") not in ("flagged", "invalid"):
+            continue
+        flags = entry.get("flags") or []
+        tail = f" [{', '.join(str(f) for f in flags)}]" if flags else ""
+        out.append(f"  {QUANTITY_SYMBOLS[q]} {entry['status']}: {entry.get('reason') or '-'}{tail}")
+    return out
+
+
+def _shown(summary: dict[str, Any], quantity: str, text: str) -> str:
+    """A value as the results show it: ``invalid`` for an invalid quantity (its value is
+    recorded in the summary, never shown as a result), marked ``(flagged)`` when flagged."""
+    validity = summary.get("validity")
+    entry = validity.get(quantity) if isinstance(validity, dict) else None
+    status = entry.get("status") if isinstance(entry, dict) else None
+    if status == "invalid":
+        return "invalid"
+    return f"{text} (flagged)" if status == "flagged" else text
+
+
 def format_results(summary: dict[str, Any]) -> list[str]:
-    """The final results as console lines (parameters, both estimators, severity)."""
+    """The final results as console lines: the verdict and the reasons
+    (:func:`verdict_lines`), then the parameters, both estimators and the severity, invalid
+    values replaced by ``invalid``."""
     res = summary.get("results")
+    head = verdict_lines(summary)
     if not res:
-        return [f"no results: {summary.get('analysis_error') or summary.get('end_reason')}"]
+        why = summary.get("analysis_error") or summary.get("end_reason")
+        return [*head, f"no results: {why}"]
     p = res["pitting"]
     paper = res["paper_estimator"] or {}
     fit = res["fitted_recovery"]
     fm = fit["model"] or {}
     tau_se = fit.get("tau_se_s")
+
+    def val(q: str, v: float | None, unit: str) -> str:
+        return _shown(summary, q, _fmt(v, unit, 4))
+
+    tau = _fmt(fit["tau_s"], "s", 4) + (f" +- {tau_se:.2g} s" if tau_se is not None else "")
     lines = [
         "",
+        *head,
+        "",
         "results",
-        f"  pitting depth      D_p = {_fmt(p['depth_mm'], 'mm', 4)}      (Eq. 3)",
-        f"  rebound force      F_r = {_fmt(p['rebound_force_n'], 'N', 4)}       (Eq. 5)",
-        f"  recovery time      T_r = {_fmt(p['recovery_time_s'], 's', 4)}       (Eq. 6)",
-        f"  applied force      F_a = {_fmt(res['applied_force_n'], 'N', 4)}",
-        f"  elasticity         E   = {_fmt(paper.get('elasticity_kpa'), 'kPa', 4)}  (Eq. 7)",
-        f"  viscosity (paper)  eta = {_fmt(paper.get('viscosity_n_s_per_mm2'), 'N*s/mm^2', 4)}"
-        " (Eq. 8, E*T_r)",
-        f"  time constant      tau = {_fmt(fit['tau_s'], 's', 4)}"
-        + (f" +- {tau_se:.2g} s" if tau_se is not None else "")
-        + "  (fitted Kelvin-Voigt recovery)",
+        f"  pitting depth      D_p = {val('depth_mm', p['depth_mm'], 'mm')}      (Eq. 3)",
+        f"  rebound force      F_r = {val('rebound_force_n', p['rebound_force_n'], 'N')}"
+        "       (Eq. 5)",
+        f"  recovery time      T_r = {val('recovery_time_s', p['recovery_time_s'], 's')}"
+        "       (Eq. 6)",
+        f"  applied force      F_a = {val('applied_force_n', res['applied_force_n'], 'N')}",
+        f"  elasticity         E   = {val('elasticity_kpa', paper.get('elasticity_kpa'), 'kPa')}"
+        "  (Eq. 7)",
+        "  viscosity (paper)  eta = "
+        + val("viscosity_n_s_per_mm2", paper.get("viscosity_n_s_per_mm2"), "N*s/mm^2")
+        + " (Eq. 8, E*T_r)",
+        f"  time constant      tau = {_shown(summary, 'tau_s', tau)}"
+        "  (fitted Kelvin-Voigt recovery)",
         f"  viscosity (fit)    eta = {_fmt(fm.get('viscosity_n_s_per_mm2'), 'N*s/mm^2', 4)}"
         " (E*tau)",
     ]
-    for name, sev in res["severity"].items():
+    lines.extend(_severity_lines(summary, res["severity"]))
+    if res["flags"]:
+        lines.append(f"  flags: {', '.join(res['flags'])}")
+    return lines
+
+
+def _severity_lines(summary: dict[str, Any], severity: dict[str, Any]) -> list[str]:
+    """One line per severity estimator; the paper's class is never shown when invalid."""
+    lines = []
+    for name, sev in severity.items():
         if sev is None:
             continue
+        label = f"  severity ({name.replace('_', ' ')}): "
+        if name == "paper_estimator" and _shown(summary, "severity", "") == "invalid":
+            lines.append(label + "invalid")
+            continue
         lines.append(
-            f"  severity ({name.replace('_', ' ')}): {sev['severity'].upper()},"
+            label + f"{sev['severity'].upper()},"
             f" nearest grade {sev['nearest_grade']}, recovered {sev['recovered_percent']:.1f} %"
             f" in {sev['window_s'][0]:g}-{sev['window_s'][1]:g} s"
             f" (threshold {sev['threshold_recovered_percent']:.1f} %)"
         )
-    if res["flags"]:
-        lines.append(f"  flags: {', '.join(res['flags'])}")
     return lines

@@ -3,9 +3,11 @@
 This module owns the daemon's set-up and tear-down of its I/O: :func:`open_devices` builds
 the probe (a :class:`~stipi_daemon.probe.link.ProbeLink` over the configured transport) and
 the camera (a :class:`~stipi_daemon.cameras.stream.CameraStream` over the configured
-source), connects and opens them, and only then creates the session
-(:class:`~stipi_daemon.storage.writer.SessionWriter`), so a missing port or camera is one
-clear line and no empty session; :func:`close_devices` stops and closes them.
+source), connects and opens them, checks that the ROI lies within the camera's frame
+(:func:`~stipi_daemon.app.imaging.check_roi_fits`), and only then creates the session
+(:class:`~stipi_daemon.storage.writer.SessionWriter`), so a missing port or camera, or an
+ROI outside the frame, is one clear line and no empty session; :func:`close_devices`
+stops and closes them.
 
 Simulated and replayed devices (emulated probe, simulator camera, paced video file) play
 one scene: they share its time origin on the session clock (:func:`scene_origin`), set
@@ -24,7 +26,7 @@ from typing import Any
 from stipi_daemon.analysis.calibration import Calibration
 from stipi_daemon.analysis.imaging import CircleROI, RectROI, sk_kernel
 from stipi_daemon.app.config import DaemonConfig
-from stipi_daemon.app.imaging import calibration_record
+from stipi_daemon.app.imaging import calibration_record, check_roi_fits
 from stipi_daemon.cameras import CameraStream, open_camera
 from stipi_daemon.clock import ScaledClock
 from stipi_daemon.measurement.pipeline import MeasurementPipeline
@@ -172,6 +174,31 @@ def _create_session(
     )
 
 
+def frame_size(metadata: dict[str, Any]) -> tuple[int, int] | None:
+    """An opened camera's frame size ``(width, height)`` [px] from its metadata, or None.
+
+    Cameras record it as ``size: [w, h]`` (simulator, video file) or ``width`` and
+    ``height`` (V4L2, what the driver granted).
+    """
+    size = metadata.get("size")
+    if isinstance(size, list | tuple) and len(size) == 2:
+        w, h = size
+    else:
+        w, h = metadata.get("width"), metadata.get("height")
+    if isinstance(w, int) and isinstance(h, int) and w > 0 and h > 0:
+        return w, h
+    return None
+
+
+def _check_roi(config: DaemonConfig, camera: CameraStream, roi: CircleROI | RectROI | None) -> None:
+    """:class:`ConfigError` naming the field when the ROI does not fit the camera's frame."""
+    size = frame_size(camera.camera.metadata())
+    if size is None or roi is None:
+        return
+    field = "field 'imaging.roi'" if config.imaging.roi is not None else "the scene's ROI"
+    check_roi_fits(roi, size[0], size[1], field)
+
+
 async def open_devices(
     config: DaemonConfig,
     clock: ScaledClock,
@@ -197,15 +224,20 @@ async def open_devices(
     Raises
     ------
     StipiError
-        A device cannot be opened or the session cannot be created (one line; what was
-        opened is closed again and nothing is recorded).
+        A device cannot be opened, the ROI does not lie within the camera's frame
+        (:class:`~stipi_daemon.errors.ConfigError` naming the field), or the session
+        cannot be created (one line; what was opened is closed again and nothing is
+        recorded).
     """
     probe = _probe_link(config, clock, origin_s)
     camera = _camera_stream(config, clock, origin_s)
     await probe.connect()
     try:
         await camera.open()
+        _check_roi(config, camera, roi)
     except BaseException:
+        with contextlib.suppress(Exception):
+            await camera.close()
         await probe.close()
         raise
     try:

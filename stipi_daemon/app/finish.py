@@ -21,7 +21,12 @@ import numpy as np
 
 from stipi_daemon import __version__
 from stipi_daemon.analysis.validity import assess_validity
-from stipi_daemon.app.console import OperatorConsole, format_results
+from stipi_daemon.app.console import (
+    VERDICT_STYLES,
+    OperatorConsole,
+    format_results,
+    verdict_status,
+)
 from stipi_daemon.app.devices import Devices
 from stipi_daemon.errors import SessionError, StipiError
 from stipi_daemon.measurement.pipeline import MeasurementPipeline
@@ -173,9 +178,12 @@ def print_results(
     session_dir: Path,
     stop_error: BaseException | None,
 ) -> None:
-    """Print the results, where the session is, the report's fate and a source's error."""
+    """Print the results, where the session is, the report's fate and a source's error.
+
+    The verdict line is green only when the verdict is ``complete``."""
+    style = VERDICT_STYLES[verdict_status(summary)]
     for line in format_results(summary):
-        console.line(line)
+        console.line(line, style if line.startswith("verdict: ") else None)
     console.line(f"session written to {session_dir}")
     console.line(write_report(session_dir))
     if stop_error is not None and isinstance(stop_error, StipiError):

@@ -17,20 +17,31 @@ A simulated scene is read through the lazy registry (``"scene:imaging"``,
 simulator's ``ground_truth.json`` offers the same as the scene (:func:`truth_source`).
 The manifest's calibration record is written (:func:`calibration_record`) and read back
 (:func:`recorded_source`) here, so both sides keep every field the analysis reads.
+
+An ROI must lie entirely within the camera's frame (:func:`check_roi_fits`): one that lies
+outside it, wholly or in part, is a config error before anything is recorded. Wholly
+outside, every S_k would be 0 (a pit of full depth, no recovery); partly outside, the
+pixels beyond the border are never counted, so S_k - and D_p through the calibration
+(Eqs. 4-5), which was fitted on whole-ROI counts - would read low with nothing to show
+it. Pixel membership is the analysis's own (:mod:`stipi_daemon.analysis.imaging`:
+pixel centres within the circle's radius, or the rectangle's pixels).
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Generic, TypeVar
 
+import numpy as np
 from pydantic import ValidationError
 
 from stipi_daemon import registry
 from stipi_daemon.analysis.calibration import Calibration, load_calibration
-from stipi_daemon.analysis.imaging import CircleROI, RectROI
+from stipi_daemon.analysis.flags import Flag
+from stipi_daemon.analysis.imaging import CircleROI, FrameProcessor, RectROI
 from stipi_daemon.app.config import DaemonConfig, ImagingSettings
 from stipi_daemon.errors import ConfigError
 from stipi_daemon.measurement.replay import calibration_from_mapping
@@ -40,9 +51,11 @@ __all__ = [
     "Imaging",
     "ImagingSource",
     "calibration_record",
+    "check_roi_fits",
     "choose_imaging",
     "recorded_source",
     "resolve_imaging",
+    "roi_fit_problem",
     "roi_from_truth",
     "scene_source",
     "settings_source",
@@ -290,6 +303,90 @@ def calibration_record(
 
 def _pair(rng: tuple[float, float] | None) -> list[float] | None:
     return None if rng is None else [float(rng[0]), float(rng[1])]
+
+
+# --------------------------------------------------------------------------------------------
+# The ROI against the frame
+# --------------------------------------------------------------------------------------------
+
+#: Largest ROI bounding box measured pixel by pixel [px]; larger ones are judged by geometry.
+_MAX_EXACT_ROI_PX = 16_000_000
+
+
+def _describe_roi(roi: CircleROI | RectROI) -> str:
+    if isinstance(roi, CircleROI):
+        return f"circle centre ({roi.cx_px:g}, {roi.cy_px:g}) r {roi.radius_px:g} px"
+    return f"rect at ({roi.x_px}, {roi.y_px}) size {roi.width_px}x{roi.height_px} px"
+
+
+def _roi_placement(roi: CircleROI | RectROI, width_px: int, height_px: int) -> str:
+    """``inside``, ``partly`` or ``outside`` the ``width_px`` x ``height_px`` frame."""
+    if isinstance(roi, CircleROI):
+        # Distance from the centre to the nearest pixel centre of the frame [px].
+        dx = max(0.0 - roi.cx_px, 0.0, roi.cx_px - (width_px - 1))
+        dy = max(0.0 - roi.cy_px, 0.0, roi.cy_px - (height_px - 1))
+        if math.hypot(dx, dy) > roi.radius_px:
+            return "outside"
+        if (2.0 * roi.radius_px + 3.0) ** 2 > _MAX_EXACT_ROI_PX:
+            # Wider than any frame measured exactly: it cannot lie within the frame.
+            return "partly"
+    else:
+        x1, y1 = roi.x_px + roi.width_px, roi.y_px + roi.height_px
+        if x1 <= 0 or y1 <= 0 or roi.x_px >= width_px or roi.y_px >= height_px:
+            return "outside"
+        inside = roi.x_px >= 0 and roi.y_px >= 0 and x1 <= width_px and y1 <= height_px
+        return "inside" if inside else "partly"
+    blank = np.zeros((height_px, width_px), dtype=np.uint8)
+    flags = FrameProcessor((height_px, width_px), 128, roi).measure(blank).flags
+    if Flag.EMPTY_ROI in flags:
+        return "outside"
+    return "partly" if Flag.ROI_CLIPPED in flags else "inside"
+
+
+def roi_fit_problem(
+    roi: CircleROI | RectROI | None, width_px: int, height_px: int, field: str
+) -> str | None:
+    """Why ``roi`` does not fit a ``width_px`` x ``height_px`` frame, or None when it does.
+
+    Parameters
+    ----------
+    roi : CircleROI or RectROI or None
+        The ROI [px] (None: the whole frame, which always fits).
+    width_px, height_px : int
+        The camera's frame size [px].
+    field : str
+        What set the ROI, for the message (``"field 'imaging.roi'"``, ``"--roi"``).
+
+    Returns
+    -------
+    str or None
+        One line, e.g. ``"field 'imaging.roi': circle centre (900, 100) r 200 px lies
+        outside the 640x480 frame"``.
+    """
+    if roi is None:
+        return None
+    placement = _roi_placement(roi, width_px, height_px)
+    if placement == "inside":
+        return None
+    where = "outside" if placement == "outside" else "partly outside"
+    why = (
+        "every S_k would be 0"
+        if placement == "outside"
+        else "pixels beyond the border are not counted, so S_k and D_p would read low"
+    )
+    return (
+        f"{field}: {_describe_roi(roi)} lies {where} the {width_px}x{height_px} frame "
+        f"({why}; the ROI must lie within the frame)"
+    )
+
+
+def check_roi_fits(
+    roi: CircleROI | RectROI | None, width_px: int, height_px: int, field: str
+) -> None:
+    """Raise :class:`ConfigError` when ``roi`` does not fit the frame (:func:`roi_fit_problem`)."""
+    problem = roi_fit_problem(roi, width_px, height_px, field)
+    if problem is not None:
+        raise ConfigError(problem)
 
 
 # --------------------------------------------------------------------------------------------

@@ -29,6 +29,7 @@ import numpy.typing as npt
 
 from stipi_daemon.analysis.flags import Flag
 from stipi_daemon.analysis.imaging import CircleROI, FrameProcessor, RectROI
+from stipi_daemon.app.imaging import check_roi_fits
 from stipi_daemon.errors import DataFileError
 from stipi_daemon.measurement.replay import Recording
 from stipi_daemon.measurement.state_machine import (
@@ -298,14 +299,19 @@ def count_video(
     *,
     saturation_limit_fraction: float = 0.01,
     max_frames: int | None = None,
+    roi_field: str | None = None,
 ) -> VideoCount:
     """Decode a video with OpenCV and count S_k on every frame (Eqs. 1-2).
 
     Frames are decoded as 8-bit BGR and converted to gray inside the ROI by
-    :class:`~stipi_daemon.analysis.imaging.FrameProcessor`.
+    :class:`~stipi_daemon.analysis.imaging.FrameProcessor`. With ``roi_field`` (what set
+    the ROI, e.g. ``"--roi"``), an ROI that does not lie within the first frame is refused
+    before anything is counted (:func:`~stipi_daemon.app.imaging.check_roi_fits`).
 
     Raises
     ------
+    ConfigError
+        ``roi_field`` is given and the ROI lies (partly) outside the frame.
     DataFileError
         The file is missing, OpenCV cannot open it, it holds no decodable frame, or a
         frame's size differs from the first one's (frame number named).
@@ -330,6 +336,8 @@ def count_video(
             if not ok or frame is None:
                 break
             if processor is None:
+                if roi_field is not None:
+                    check_roi_fits(roi, int(frame.shape[1]), int(frame.shape[0]), roi_field)
                 processor = FrameProcessor(
                     frame.shape,
                     threshold_p,

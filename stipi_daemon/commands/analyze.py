@@ -107,6 +107,11 @@ def _check(args: argparse.Namespace) -> None:
         raise ConfigError(
             "--recompute-sk applies to a SESSION (with --video S_k is always counted)"
         )
+    if args.session is not None and args.roi is not None and not args.recompute_sk:
+        raise ConfigError(
+            "--roi applies where S_k is counted (--video, or SESSION with --recompute-sk); "
+            "the session's S_k was counted live with its recorded ROI"
+        )
     if args.session is not None and (args.force is not None or args.frame_times is not None):
         raise ConfigError("--force/--frame-times apply to --video; a SESSION has its own samples")
 

@@ -277,6 +277,17 @@ def test_refusals_are_one_line(
     assert "the session has no video file" in err
     err = _error(capsys, ["analyze", "--video", video, "--force", force, "--roi", "oval:1"])
     assert "--roi 'oval:1': expected circle:CX,CY,R" in err
+    # Issue 14 case 6: an ROI off the frame is refused before anything is counted.
+    out = tmp_path / "never.json"
+    argv = ["analyze", "--video", video, "--force", force, "--out", str(out)]
+    err = _error(capsys, [*argv, "--roi", "circle:900,100,200"])
+    assert "--roi: circle centre (900, 100) r 200 px lies outside the 640x480 frame" in err
+    err = _error(capsys, [*argv, "--roi", "rect:620,10,40,20"])
+    assert "--roi: rect at (620, 10) size 40x20 px lies partly outside the 640x480 frame" in err
+    assert not out.exists()
+    # A stored session's S_k was counted live: --roi without --recompute-sk is refused.
+    err = _error(capsys, ["analyze", str(session_dir), "--roi", "circle:900,100,200"])
+    assert "--roi applies where S_k is counted" in err
     err = _error(capsys, ["analyze", "nope", "--root", str(tmp_path)])
     assert "no such session" in err
     # No ground truth, no calibration: the user must give one.

@@ -226,3 +226,35 @@ def test_bad_calibration_file_names_it(tmp_path: Path, capsys: pytest.CaptureFix
     proc = run_main(tmp_path, {**BASE, "calibration": "cal.json"}, capsys)
     assert_one_line_error(proc, str(tmp_path / "cal.json"), "invalid JSON")
     assert not (tmp_path / "sessions").exists()
+
+
+# ---------------------------------------------------------------------- the ROI against the frame
+
+
+@pytest.mark.parametrize(
+    ("roi", "needle"),
+    [
+        (
+            {"kind": "circle", "cx_px": 900.0, "cy_px": 100.0, "radius_px": 200.0},
+            "field 'imaging.roi': circle centre (900, 100) r 200 px lies outside the 640x480 frame",
+        ),
+        (
+            {"kind": "rect", "x_px": 600, "y_px": 10, "width_px": 100, "height_px": 50},
+            "field 'imaging.roi': rect at (600, 10) size 100x50 px lies partly outside the "
+            "640x480 frame",
+        ),
+    ],
+    ids=["entirely-outside", "partly-outside"],
+)
+def test_roi_outside_the_frame_is_a_config_error_before_recording(
+    tmp_path: Path, roi: dict[str, Any], needle: str
+) -> None:
+    """Issue 14 case 6: an ROI off the camera's frame recorded 105 s of empty_roi frames
+    and reported D_p 12 mm, F_r 0 N, exit 0. Now: one line naming the field, exit 2,
+    nothing recorded (the check runs once the camera is open, before the session)."""
+    proc = run_cli(
+        tmp_path,
+        {"probe": {"transport": EMULATED}, "camera": SIMULATOR, "imaging": {"roi": roi}},
+    )
+    assert_one_line_error(proc, needle)
+    assert not (tmp_path / "sessions").exists()
