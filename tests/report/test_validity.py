@@ -344,3 +344,28 @@ def test_compare_page_says_what_was_excluded(inp: ReportInput) -> None:
     assert '<span class="not-valid">1 invalid excluded</span>' in page
     assert '<td class="num" data-validity="invalid">—<span class="not-valid">' in page
     assert '<span class="badge badge-invalid">invalid</span> Not valid: D_p.' in page
+
+
+def test_force_gaps_break_the_force_line_and_nan_frames_are_marked(inp: ReportInput) -> None:
+    assert inp.t0_s is not None
+    t = inp.force_times_s
+    keep = (t < inp.t0_s - 0.5) | (t > inp.t0_s + 0.5)  # a force dropout over the release
+    cut = ReportInput(**{**inp.__dict__, "force_times_s": t[keep], "force_n": inp.force_n[keep]})
+    f = force_figure(cut)
+    gap = max(f.gaps, key=lambda g: g.duration_s)
+    assert gap.duration_s > 1.0
+    fig = r.draw_force(f)
+    y = np.asarray(_line(fig, "force").get_ydata(), dtype=float)
+    x = np.asarray(_line(fig, "force").get_xdata(), dtype=float)
+    inside = (x > gap.start_s) & (x < gap.end_s)
+    assert inside.sum() == 1 and np.isnan(y[inside]).all()
+    assert [p for p in fig.axes[0].patches if p.get_gid() == "force_gap"]
+    assert any(tx.get_text().startswith("force gap ") for tx in fig.axes[0].texts)
+    # Frames whose S_k is NaN are ticked at the bottom of the S_k figure.
+    s = inp.s_k_px.copy()
+    k = int(np.searchsorted(inp.frame_times_s, inp.t0_s + 3.0))
+    s[k] = np.nan
+    sk = s_k_figure(ReportInput(**{**inp.__dict__, "s_k_px": s}))
+    assert sk.nan_frame_t_s.tolist() == [inp.frame_times_s[k]]
+    ticks = _line(r.draw_s_k(sk), "nan_frames")
+    assert list(ticks.get_xdata()) == [inp.frame_times_s[k]]
