@@ -126,6 +126,21 @@ def _cmd_list(args: argparse.Namespace) -> int:
     return 0
 
 
+def _video_text(path: Path) -> str:
+    """``video.mkv (1234567 B, mjpeg 1920x1080, 7200 frames)``; the error if unreadable."""
+    from stipi_daemon.storage.video import probe_video
+
+    try:
+        info = probe_video(path)
+    except SessionError as exc:
+        return f"{path.name} ({path.stat().st_size} B, unreadable: {exc})"
+    crop = "" if info.crop is None else ", crop " + ",".join(str(v) for v in info.crop)
+    return (
+        f"{path.name} ({info.size_bytes} B, {info.codec} {info.width}x{info.height} "
+        f"{info.image}{crop}, {info.frames} frames)"
+    )
+
+
 def _cmd_show(args: argparse.Namespace) -> int:
     with SessionReader(_session_dir(args.root, args.session_id)) as reader:
         status = reader.status
@@ -136,7 +151,7 @@ def _cmd_show(args: argparse.Namespace) -> int:
         if video is None:
             video_text = "none"
         elif video.exists():
-            video_text = f"{video.name} ({video.stat().st_size} B)"
+            video_text = _video_text(video)
         else:
             video_text = f"{video.name} (reserved, not present)"
         facts = [

@@ -2,13 +2,13 @@
 
 This module owns the conversion of the tables read by :class:`~.reader.SessionReader`
 into ``<out>/<table>.csv`` or ``<out>/<table>.parquet`` (via pyarrow), plus copies of
-``manifest.json`` and ``summary.json`` so that the export carries its configuration,
-calibration and results, and ``validity.<csv|parquet>``: one row per reported quantity
-(value, unit, ``valid``/``flagged``/``invalid``/``unknown``, the flags that concern it, the
-reason) and a last row ``verdict`` (the session's verdict and its line), so a spreadsheet
-never shows a number without its validity. All tables are read from one database
-snapshot. It does not open sessions or decide what to export (the ``sessions export``
-command does).
+``manifest.json``, ``summary.json`` and the video (``video.mkv``, unchanged) so that the
+export carries its configuration, calibration, results and primary data, and
+``validity.<csv|parquet>``: one row per reported quantity (value, unit,
+``valid``/``flagged``/``invalid``/``unknown``, the flags that concern it, the reason) and a
+last row ``verdict`` (the session's verdict and its line), so a spreadsheet never shows a
+number without its validity. All tables are read from one database snapshot. It does not
+open sessions or decide what to export (the ``sessions export`` command does).
 
 CSV: a header row of column names (which carry the units), integers in decimal, floats in
 Python's shortest round-trip form, NULL as an empty field. Parquet: int64, float64 (NULL
@@ -155,7 +155,7 @@ def export_session(
     -------
     list of Path
         The files written (tables in :data:`~.schema.TABLES` order, the validity file, then
-        the JSON files).
+        the JSON files and the session's ``video.mkv``, copied as it is).
 
     Raises
     ------
@@ -169,8 +169,10 @@ def export_session(
     validity_target = out / f"validity.{fmt}"
     extras = [
         src
-        for src in (reader.manifest_path, reader.summary_path)
-        if src.exists() and src.name in (layout.MANIFEST_NAME, layout.SUMMARY_NAME)
+        for src in (reader.manifest_path, reader.summary_path, reader.video_path)
+        if src is not None
+        and src.exists()
+        and src.name in (layout.MANIFEST_NAME, layout.SUMMARY_NAME, layout.VIDEO_NAME)
     ]
     if not overwrite:
         for target in [*targets, validity_target, *(out / src.name for src in extras)]:

@@ -29,7 +29,7 @@ from stipi_daemon.storage.schema import FORMAT_NAME, FORMAT_VERSION, SCHEMA_VERS
 DB_NAME: Final = "session.sqlite"
 MANIFEST_NAME: Final = "manifest.json"
 SUMMARY_NAME: Final = "summary.json"
-VIDEO_NAME: Final = "video.avi"
+VIDEO_NAME: Final = "video.mkv"
 LOCK_NAME: Final = "writer.lock"
 
 #: Default root of the session directories, relative to the working directory.

@@ -36,15 +36,18 @@ from stipi_daemon.storage.schema import (
     FRAMES,
     GAPS,
     LIVE_PARAMETERS,
+    READABLE_SCHEMA_VERSIONS,
     SCHEMA_VERSION,
     TABLES,
     TABLES_BY_NAME,
     TRANSITIONS,
+    VIDEO_FRAMES,
     Event,
     SessionState,
     Table,
     Transition,
     rows_to_array,
+    tables_of_version,
 )
 
 _MAX_INTEGRITY_MESSAGES: Final = 5
@@ -103,6 +106,8 @@ class SessionReader:
 
     def __init__(self, directory: Path | str) -> None:
         self.directory = Path(directory)
+        #: Schema version of the database (1: written before video was recorded).
+        self.schema_version: int = SCHEMA_VERSION
         if not self.directory.is_dir():
             raise SessionError(f"{self.directory}: session directory does not exist")
         self.manifest: dict[str, Any] = layout.load_manifest(self.manifest_path)
@@ -181,24 +186,25 @@ class SessionReader:
         }
         if version == 0 and "meta" not in names:
             return "not a stipi session database (no schema version, no meta table)"
-        if version != SCHEMA_VERSION:
+        if version not in READABLE_SCHEMA_VERSIONS:
             return (
-                f"schema version {version} is not supported "
-                f"(this stipi-daemon reads version {SCHEMA_VERSION})"
+                f"schema version {version} is not supported (this stipi-daemon reads "
+                f"versions {', '.join(str(v) for v in sorted(READABLE_SCHEMA_VERSIONS))})"
             )
         if "meta" not in names:
             return "table 'meta' is missing"
         meta = dict(self._conn.execute("SELECT key, value FROM meta").fetchall())
         if meta.get("format") != FORMAT_NAME:
             return f"meta format is {meta.get('format')!r}, expected {FORMAT_NAME!r}"
-        if meta.get("schema_version") != str(SCHEMA_VERSION):
+        if meta.get("schema_version") != str(version):
             return (
                 f"meta schema_version {meta.get('schema_version')!r} disagrees with "
                 f"PRAGMA user_version {version}"
             )
         if "state" not in meta:
             return "meta row 'state' is missing"
-        for table in TABLES:
+        self.schema_version = int(version)
+        for table in tables_of_version(version):
             if table.name not in names:
                 return f"table {table.name!r} is missing"
             have = {r[1] for r in self._conn.execute(f"PRAGMA table_info({table.name})")}
@@ -248,9 +254,15 @@ class SessionReader:
         finally:
             self._conn.execute("COMMIT")
 
+    def has_table(self, table: str | Table) -> bool:
+        """Whether this session's schema version has ``table`` (version 1: no video_frames)."""
+        return _resolve_table(table) in tables_of_version(self.schema_version)
+
     def count(self, table: str | Table) -> int:
-        """Number of rows in ``table``."""
+        """Number of rows in ``table`` (0 for a table its schema version lacks)."""
         t = _resolve_table(table)
+        if not self.has_table(t):
+            return 0
         return int(self._query(f"SELECT count(*) FROM {t.name}")[0][0])
 
     def counts(self) -> dict[str, int]:
@@ -258,8 +270,11 @@ class SessionReader:
         return {t.name: self.count(t) for t in TABLES}
 
     def iter_rows(self, table: str | Table, batch_size: int = 10_000) -> Iterator[tuple[Any, ...]]:
-        """Rows of ``table`` in insertion order, as stored (NULL is None)."""
+        """Rows of ``table`` in insertion order, as stored (NULL is None); none for a table
+        the session's schema version lacks."""
         t = _resolve_table(table)
+        if not self.has_table(t):
+            return
         try:
             cursor = self._conn.execute(t.select_sql)
             while batch := cursor.fetchmany(batch_size):
@@ -280,6 +295,11 @@ class SessionReader:
     def frames(self) -> npt.NDArray[np.void]:
         """Fields ``seq, t_capture_host_s [s], t_host_s [s], s_k [px], flags``."""
         return self.array(FRAMES)
+
+    def video_frames(self) -> npt.NDArray[np.void]:
+        """Fields ``seq, frame_index, pts_ms [ms], t_capture_host_s [s]`` (empty for a
+        session without video)."""
+        return self.array(VIDEO_FRAMES)
 
     def gaps(self) -> npt.NDArray[np.void]:
         """Fields ``stream, start_index, count, t_host_s [s], cause``."""
@@ -357,7 +377,44 @@ class SessionReader:
             self.summary  # noqa: B018 - parse it
         except SessionError as exc:
             problems.append(str(exc))
+        try:
+            problems += self._video_problems()
+        except (sqlite3.DatabaseError, SessionError) as exc:
+            problems.append(f"{self.db_path}: video_frames not readable ({exc})")
         return IntegrityReport(self.directory, tuple(problems))
+
+    def _video_problems(self) -> list[str]:
+        """The video against its ``video_frames`` rows.
+
+        Frame indices must run 0, 1, 2, ...; a ``complete`` session's file holds exactly one
+        frame per row. An unfinished (killed) recording may hold a frame or two more than
+        rows, or lack the newest frames, by at most one commit interval of capture time
+        (the muxer keeps the newest block until the next frame arrives).
+        """
+        rows = self.iter_rows(VIDEO_FRAMES)
+        table = [(int(r[1]), float(r[3])) for r in rows]
+        n = len(table)
+        path = self.video_path
+        if path is None or not path.is_file():
+            missing = f"{path or self.directory}: video is missing, {n} video_frames rows"
+            return [missing] if n else []
+        from stipi_daemon.storage.video import probe_video
+
+        info = probe_video(path)
+        problems: list[str] = []
+        if [i for i, _ in table] != list(range(n)):
+            problems.append(f"{self.db_path}: video_frames frame_index is not 0..{n - 1}")
+        meta = self.meta()
+        state = meta.get("state")
+        interval_s = float(meta.get("commit_interval_s", "0.2"))
+        if state == SessionState.COMPLETE.value and info.frames != n:
+            problems.append(f"{path}: video holds {info.frames} frames, video_frames has {n} rows")
+        elif info.frames < n and table[-1][1] - table[info.frames][1] > interval_s:
+            problems.append(
+                f"{path}: video holds {info.frames} frames, video_frames has {n} rows "
+                f"(more than one commit interval, {interval_s:g} s, missing)"
+            )
+        return problems
 
     # ------------------------------------------------------------------ lifetime
     def close(self) -> None:

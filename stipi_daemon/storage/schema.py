@@ -31,7 +31,10 @@ FORMAT_NAME: Final = "stipi-session"
 #: Version of the directory layout and manifest (``manifest.json`` ``format_version``).
 FORMAT_VERSION: Final = 1
 #: Version of the SQLite schema (``PRAGMA user_version`` and ``meta.schema_version``).
-SCHEMA_VERSION: Final = 1
+#: 2 added the ``video_frames`` table (every stored video frame tied to its ``frames`` row).
+SCHEMA_VERSION: Final = 2
+#: Schema versions a reader accepts; version 1 sessions have no ``video_frames`` table.
+READABLE_SCHEMA_VERSIONS: Final = frozenset({1, 2})
 
 _INT64_MIN: Final = -(2**63)
 _INT64_MAX: Final = 2**63 - 1
@@ -214,6 +217,17 @@ LIVE_PARAMETERS: Final = Table(
     ),
 )
 
+VIDEO_FRAMES: Final = Table(
+    "video_frames",
+    "Frames stored in the session's video file, each tied to its frames row by seq.",
+    (
+        Column("seq", "int", "-", "camera frame sequence number (the frames row's seq)"),
+        Column("frame_index", "int", "-", "position of the frame in the video file, from 0"),
+        Column("pts_ms", "int", "ms", "presentation time in the video file"),
+        Column("t_capture_host_s", "real", "s", "capture time on the host monotonic clock"),
+    ),
+)
+
 #: Every table, in the order they are documented and exported.
 TABLES: Final[tuple[Table, ...]] = (
     FORCE_SAMPLES,
@@ -223,6 +237,7 @@ TABLES: Final[tuple[Table, ...]] = (
     GAPS,
     CLOCK_PROBES,
     LIVE_PARAMETERS,
+    VIDEO_FRAMES,
 )
 TABLES_BY_NAME: Final[dict[str, Table]] = {t.name: t for t in TABLES}
 
@@ -231,8 +246,13 @@ META_DDL: Final = "CREATE TABLE meta (key TEXT PRIMARY KEY, value TEXT NOT NULL)
 
 
 def schema_ddl() -> list[str]:
-    """Every statement that creates an empty schema-version-1 session database."""
+    """Every statement that creates an empty session database of :data:`SCHEMA_VERSION`."""
     return [META_DDL, *(t.ddl for t in TABLES)]
+
+
+def tables_of_version(version: int) -> tuple[Table, ...]:
+    """The tables a session database of schema ``version`` holds (1: no ``video_frames``)."""
+    return tuple(t for t in TABLES if version >= 2 or t is not VIDEO_FRAMES)
 
 
 class ForceSampleRow(NamedTuple):
@@ -254,6 +274,15 @@ class FrameRow(NamedTuple):
     t_host_s: float
     s_k: int
     flags: str | Iterable[str] = ""
+
+
+class VideoFrameRow(NamedTuple):
+    """One stored video frame, in the column order of :data:`VIDEO_FRAMES`."""
+
+    seq: int
+    frame_index: int
+    pts_ms: int
+    t_capture_host_s: float
 
 
 class Event(NamedTuple):

@@ -39,6 +39,7 @@ from stipi_daemon.storage.schema import (
     SCHEMA_VERSION,
     TABLES,
     TRANSITIONS,
+    VIDEO_FRAMES,
     SessionState,
     Table,
     coerce_row,
@@ -183,7 +184,8 @@ class SessionWriter:
         session_id : str, optional
             Directory name; by default UTC time plus random digits (:func:`layout.new_session_id`).
         video : bool
-            Reserve ``video.avi`` in the manifest; the caller writes the file.
+            Reserve ``video.mkv`` in the manifest; the caller writes the file
+            (:class:`~stipi_daemon.storage.video.VideoRecorder`).
         options : StorageOptions, optional
             Commit interval, durability, free-space minimum.
         software : mapping, optional
@@ -308,6 +310,23 @@ class SessionWriter:
         (:class:`~stipi_daemon.analysis.flags.Flag`); ``""`` for none.
         """
         return self._add(FRAMES, coerce_rows(FRAMES, rows))
+
+    def add_video_frames(self, rows: Iterable[object]) -> int:
+        """Add stored video frames: ``(seq, frame_index, pts_ms [ms], t_capture_host_s [s])``.
+
+        Each ties a frame of the session's video file to the ``frames`` row of the same
+        ``seq`` (:mod:`.video`).
+        """
+        return self._add(VIDEO_FRAMES, coerce_rows(VIDEO_FRAMES, rows))
+
+    def fail(self, error: SessionError) -> None:
+        """Stop storing because a companion file failed (the video on a full disk).
+
+        The next ``add_*``/``commit`` call raises ``error``, as after a failed commit, so the
+        daemon stops recording rows and video together; rows buffered so far are kept.
+        """
+        with self._cond:
+            self._failure = error
 
     def add_event(
         self, t_host_s: float, kind: str, detail: Mapping[str, Any] | None = None

@@ -78,7 +78,8 @@ def test_show(root: Path, capsys: pytest.CaptureFixture[str]) -> None:
     out = capsys.readouterr().out
     assert "status     complete" in out
     assert "integrity  ok" in out
-    assert "video      video.avi (reserved, not present)" in out
+    assert "video      video.mkv (" in out
+    assert "ffv1 8x8 gray, 3 frames)" in out
     assert re.search(r"^  force_samples +6$", out, re.MULTILINE)
     assert re.search(r"^  frames +3$", out, re.MULTILINE)
     assert '"alpha1": 1.2e-09' in out  # manifest calibration
@@ -102,7 +103,8 @@ def test_export(root: Path, tmp_path: Path, fmt: str, capsys: pytest.CaptureFixt
     args = ["sessions", "export", "a-complete", "--root", str(root), "--format", fmt]
     assert main([*args, "--out", str(out)]) == 0
     printed = capsys.readouterr().out.splitlines()
-    assert len(printed) == len(TABLES) + 3  # tables, validity, manifest, summary
+    assert len(printed) == len(TABLES) + 4  # tables, validity, manifest, summary, video
+    assert printed[-1].endswith("video.mkv")
     read = read_csv_table if fmt == "csv" else read_parquet_table
     with SessionReader(root / "a-complete") as reader:
         for table in TABLES:

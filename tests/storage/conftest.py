@@ -7,9 +7,11 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 
 from stipi_daemon.storage import SessionWriter, StorageOptions
+from stipi_daemon.storage.video import VideoRecorder
 
 CONFIG: dict[str, Any] = {"transport": "sim:scenes/grade3.yaml", "camera": {"fps": 60}}
 CALIBRATION: dict[str, Any] = {"alpha1": 1.2e-9, "alpha2": 3.4e-4, "c1": 120.0, "c2": 55.0}
@@ -97,6 +99,26 @@ def write_full_session(
             writer.add_clock_probe(raw, unwrapped, host)
         writer.add_live_parameters(t0 + 1.0, {"d_p_mm": 4.2, "e_kpa": float("nan")})
         writer.add_live_parameters(t0 + 2.0, {"t_r_s": math.inf})
+        assert writer.video_path is not None
+        recorder = VideoRecorder(writer.video_path, writer, "lossless")
+        for seq, t_capture, *_ in frames:
+            recorder.record(seq, t_capture, np.full((8, 8), seq, dtype=np.uint8), None)
+        recorder.close()
+        events.append(
+            (
+                frames[0][1],
+                "video_started",
+                {
+                    "file": "video.mkv",
+                    "mode": "lossless",
+                    "codec": "ffv1",
+                    "image": "gray",
+                    "size": [8, 8],
+                    "crop": None,
+                    "t0_s": frames[0][1],
+                },
+            )
+        )
         if finish is not None:
             writer.finish(finish, SUMMARY if summary is None else summary)
     return Recorded(
@@ -110,6 +132,9 @@ def write_full_session(
             "gaps": gaps,
             "clock_probes": clock,
             "live_parameters": live,
+            "video_frames": [
+                (seq, i, round((tc - t0) * 1000), tc) for i, (seq, tc, *_) in enumerate(frames)
+            ],
         },
     )
 

@@ -73,7 +73,9 @@ def test_export_reads_back_equal(recorded: Recorded, tmp_path: Path, fmt: str) -
             f"validity.{fmt}",
             "manifest.json",
             "summary.json",
+            "video.mkv",
         ]
+        assert (out / "video.mkv").read_bytes() == (reader.directory / "video.mkv").read_bytes()
         read = read_csv_table if fmt == "csv" else read_parquet_table
         for table in TABLES:
             assert_equal_to_reader(reader, table, read(out / f"{table.name}.{fmt}", table))

@@ -88,7 +88,7 @@ BAD_CASES: dict[str, tuple[str, Callable[[Path], object], str]] = {
     "unknown schema version": (
         "session.sqlite",
         _set_user_version,
-        "schema version 99 is not supported (this stipi-daemon reads version 1)",
+        "schema version 99 is not supported (this stipi-daemon reads versions 1, 2)",
     ),
     "manifest missing": ("manifest.json", lambda p: p.unlink(), "manifest is missing"),
     "manifest not json": (

@@ -84,7 +84,7 @@ def test_manifest_contents(recorded: Recorded) -> None:
     assert manifest["files"] == {
         "database": "session.sqlite",
         "summary": "summary.json",
-        "video": "video.avi",
+        "video": "video.mkv",
     }
     assert set(manifest["software"]) == {
         "stipi_daemon",
@@ -101,11 +101,11 @@ def test_manifest_contents(recorded: Recorded) -> None:
 
 def test_finished_session_is_one_file_and_lock_is_gone(recorded: Recorded) -> None:
     names = sorted(p.name for p in recorded.directory.iterdir())
-    assert names == ["manifest.json", "session.sqlite", "summary.json"]
+    assert names == ["manifest.json", "session.sqlite", "summary.json", "video.mkv"]
     conn = sqlite3.connect(recorded.directory / "session.sqlite")
     try:
         assert conn.execute("PRAGMA journal_mode").fetchone()[0] == "delete"
-        assert conn.execute("PRAGMA user_version").fetchone()[0] == 1
+        assert conn.execute("PRAGMA user_version").fetchone()[0] == 2
     finally:
         conn.close()
 

@@ -1,0 +1,402 @@
+"""A session's video: the camera stream as received, in ``video.mkv``, and reading it back.
+
+This module owns recording the frames the daemon measured into the session's Matroska file
+with PyAV (FFmpeg's muxer and codecs) and reading them back. :class:`VideoRecorder` writes
+one video stream in one of two ways:
+
+* ``passthrough``: a frame that carries its encoded packet (an MJPG camera's JPEG, see
+  :attr:`~stipi_daemon.cameras.base.CameraFrame.packet`) is muxed as it came, without
+  decoding or re-encoding (codec ``mjpeg``, every frame a keyframe). Frames without a
+  packet (raw, YUYV, gray cameras; the simulator) are recorded losslessly instead;
+* ``lossless``: the decoded image the daemon counted S_k on is encoded with FFV1 (level 3,
+  every frame intra, CRC per slice), gray as ``gray``, BGR as ``bgr0`` (the same bytes padded
+  to 32 bits); optionally only a rectangle of it (the gray bounding box of the ROI).
+
+Every stored frame is tied to its ``frames`` row by a ``video_frames`` row
+(``seq, frame_index, pts_ms, t_capture_host_s``) added to the session as the frame is
+muxed. The muxer flushes its I/O after every packet (``flush_packets=1``), so a process
+killed at any moment leaves a file that FFmpeg opens and plays up to the last frame or
+two written, which is never behind the newest committed ``frames`` row by more than
+that (the frame is muxed before its row is stored). When writing fails (disk full), the
+recorder stops, closes the file as far as it can and hands the error to the session
+writer (:meth:`~.writer.SessionWriter.fail`), so rows and video stop together.
+
+Reading: :func:`probe_video` (codec, size, frame count), :func:`iter_video_images` (the
+images exactly as the daemon counted them: JPEG packets decoded by ``cv2.imdecode`` as the
+camera did, FFV1 frames decoded to the recorded pixel layout), :func:`read_video_image`.
+It computes nothing about the images.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Iterator
+from dataclasses import dataclass
+from fractions import Fraction
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Final, Literal
+
+import numpy as np
+import numpy.typing as npt
+
+from stipi_daemon.errors import SessionError
+
+if TYPE_CHECKING:
+    from stipi_daemon.storage.writer import SessionWriter
+
+__all__ = [
+    "VIDEO_MODES",
+    "VideoInfo",
+    "VideoMode",
+    "VideoRecorder",
+    "iter_video_images",
+    "probe_video",
+    "read_video_image",
+]
+
+_log = logging.getLogger(__name__)
+
+VideoMode = Literal["passthrough", "lossless", "off"]
+#: The ``storage.video`` settings.
+VIDEO_MODES: Final[tuple[VideoMode, ...]] = ("passthrough", "lossless", "off")
+
+#: Time base of the stored presentation times: milliseconds (Matroska's own unit).
+PTS_TIME_BASE: Final = Fraction(1, 1000)
+#: Muxer options: flush the file after every packet (the crash-survival argument).
+MUXER_OPTIONS: Final = {"flush_packets": "1"}
+#: Matroska tag naming the pixel layout the daemon counted on (``gray`` or ``bgr``).
+TAG_IMAGE: Final = "STIPI_IMAGE"
+#: Matroska tag holding the stored rectangle ``x0,y0,x1,y1`` of the camera frame [px].
+TAG_CROP: Final = "STIPI_CROP"
+
+Image = npt.NDArray[np.uint8]
+
+
+@dataclass(frozen=True)
+class VideoInfo:
+    """What a stored video holds.
+
+    Attributes
+    ----------
+    path : Path
+        The file.
+    size_bytes : int
+        File size [B].
+    codec : str
+        FFmpeg codec name (``mjpeg``, ``ffv1``).
+    frames : int
+        Complete frames (non-empty packets) in the file [-].
+    width, height : int
+        Stored frame size [px].
+    image : str
+        Pixel layout the frames decode to for counting (``gray`` or ``bgr``).
+    crop : tuple of int or None
+        ``(x0, y0, x1, y1)`` of the camera frame the file stores [px]; None: the whole frame.
+    """
+
+    path: Path
+    size_bytes: int
+    codec: str
+    frames: int
+    width: int
+    height: int
+    image: str
+    crop: tuple[int, int, int, int] | None
+
+
+class VideoRecorder:
+    """Records the measured frames into a session's ``video.mkv``.
+
+    The file is opened at the first frame (its size and pixel layout decide the stream).
+
+    Parameters
+    ----------
+    path : Path
+        The video file (``<session>/video.mkv``).
+    writer : SessionWriter
+        The session: receives a ``video_frames`` row per frame, a ``video_started`` event,
+        and the error when writing fails.
+    mode : {"passthrough", "lossless"}
+        See the module docstring.
+    crop : tuple of int, optional
+        ``(x0, y0, x1, y1)`` [px]: store only this rectangle (lossless frames only; a
+        passthrough packet is always the whole frame).
+    """
+
+    def __init__(
+        self,
+        path: Path,
+        writer: SessionWriter,
+        mode: VideoMode,
+        *,
+        crop: tuple[int, int, int, int] | None = None,
+    ) -> None:
+        if mode not in ("passthrough", "lossless"):
+            raise ValueError(f"video mode {mode!r}: a recorder records passthrough or lossless")
+        self.path = Path(path)
+        self.mode = mode
+        self._writer = writer
+        self._crop = crop
+        self._container: Any = None
+        self._stream: Any = None
+        self._codec = ""
+        self._t0_s = 0.0
+        self._last_pts = -1
+        self._failed: str | None = None
+        self._closed = False
+        #: Frames stored [-].
+        self.frames = 0
+
+    @property
+    def failed(self) -> str | None:
+        """Why recording stopped early, or None."""
+        return self._failed
+
+    def stats(self) -> dict[str, Any]:
+        """Mode, codec, frames stored, file size and failure, for the run's statistics."""
+        size = self.path.stat().st_size if self.path.exists() else 0
+        return {
+            "file": self.path.name,
+            "mode": self.mode,
+            "codec": self._codec or None,
+            "frames": self.frames,
+            "size_bytes": size,
+            "crop": list(self._crop) if self._crop and self._codec == "ffv1" else None,
+            "error": self._failed,
+        }
+
+    def record(self, seq: int, t_capture_s: float, image: Image, packet: bytes | None) -> bool:
+        """Store one frame and its ``video_frames`` row; False once recording has stopped.
+
+        Parameters
+        ----------
+        seq : int
+            The frame's sequence number (its ``frames`` row).
+        t_capture_s : float
+            Capture time on the session clock [s].
+        image : numpy.ndarray
+            The decoded frame the daemon counts S_k on (gray ``(H, W)`` or BGR ``(H, W, 3)``).
+        packet : bytes or None
+            The camera's encoded frame (a complete JPEG), if it has one.
+        """
+        if self._failed is not None or self._closed:
+            return False
+        try:
+            if self._container is None:
+                self._open(t_capture_s, image, packet)
+            pts = max(self._last_pts + 1, round((t_capture_s - self._t0_s) * 1000.0))
+            self._mux(pts, image, packet)
+            self._last_pts = pts
+            self._writer.add_video_frames([(seq, self.frames, pts, t_capture_s)])
+        except SessionError as exc:  # the database failed: stop the video with the rows
+            self._stop(str(exc), exc)
+            return False
+        except (OSError, ValueError) as exc:  # av.FFmpegError is an OSError or ValueError
+            self._stop(f"{self.path}: video recording stopped: {exc}")
+            return False
+        self.frames += 1
+        return True
+
+    def _open(self, t_capture_s: float, image: Image, packet: bytes | None) -> None:
+        import av
+
+        passthrough = self.mode == "passthrough" and packet is not None
+        layout = "gray" if image.ndim == 2 else "bgr"
+        container = av.open(str(self.path), "w", format="matroska", options=MUXER_OPTIONS)
+        try:
+            h, w = image.shape[:2]
+            crop = None if passthrough else self._crop
+            if crop is not None:
+                x0, y0, x1, y1 = crop
+                if not (0 <= x0 < x1 <= w and 0 <= y0 < y1 <= h):
+                    raise ValueError(f"video crop {crop} lies outside the {w}x{h} frame")
+                w, h = x1 - x0, y1 - y0
+            else:
+                self._crop = None
+            if passthrough:
+                stream = container.add_stream("mjpeg")
+                stream.pix_fmt = "yuvj420p"
+            else:
+                stream = container.add_stream("ffv1", options={"level": "3", "slicecrc": "1"})
+                stream.pix_fmt = "gray" if layout == "gray" else "bgr0"
+                stream.codec_context.gop_size = 1
+            stream.width, stream.height = w, h
+            stream.time_base = PTS_TIME_BASE
+            container.metadata[TAG_IMAGE] = layout
+            if self._crop is not None:
+                container.metadata[TAG_CROP] = ",".join(str(v) for v in self._crop)
+        except BaseException:
+            container.close()
+            raise
+        self._container, self._stream = container, stream
+        self._codec = "mjpeg" if passthrough else "ffv1"
+        self._t0_s = t_capture_s
+        self._writer.add_event(
+            t_capture_s,
+            "video_started",
+            {
+                "file": self.path.name,
+                "mode": self.mode,
+                "codec": self._codec,
+                "image": layout,
+                "size": [w, h],
+                "crop": None if self._crop is None else list(self._crop),
+                "t0_s": t_capture_s,
+            },
+        )
+
+    def _mux(self, pts: int, image: Image, packet: bytes | None) -> None:
+        import av
+
+        stream, container = self._stream, self._container
+        if self._codec == "mjpeg":
+            if packet is None:
+                raise ValueError("a frame without its JPEG packet in an MJPG recording")
+            pkt = av.Packet(packet)
+            pkt.stream = stream
+            pkt.time_base = PTS_TIME_BASE
+            pkt.pts = pkt.dts = pts
+            pkt.is_keyframe = True
+            container.mux_one(pkt)
+            return
+        if self._crop is not None:
+            x0, y0, x1, y1 = self._crop
+            image = image[y0:y1, x0:x1]
+        fmt = "gray" if image.ndim == 2 else "bgr24"
+        frame = av.VideoFrame.from_ndarray(np.ascontiguousarray(image), format=fmt)
+        frame.pts = pts
+        frame.time_base = PTS_TIME_BASE
+        for out in stream.encode(frame):
+            container.mux_one(out)
+
+    def _stop(self, reason: str, error: SessionError | None = None) -> None:
+        self._failed = reason
+        _log.error("%s", reason)
+        self._close_container()
+        self._writer.fail(error if error is not None else SessionError(reason))
+
+    def _close_container(self) -> None:
+        container, self._container = self._container, None
+        if container is None:
+            return
+        try:
+            if self._codec == "ffv1" and self._failed is None:
+                for out in self._stream.encode(None):
+                    container.mux_one(out)
+            container.close()
+        except (OSError, ValueError) as exc:
+            if self._failed is None:
+                self._failed = f"{self.path}: video could not be closed cleanly: {exc}"
+
+    def close(self) -> None:
+        """Finish the file (cues, duration). Idempotent; never raises."""
+        if self._closed:
+            return
+        self._closed = True
+        self._close_container()
+
+
+# ------------------------------------------------------------------------------ reading
+
+
+def _open_input(path: Path) -> Any:
+    import av
+
+    if not path.is_file():
+        raise SessionError(f"{path}: video file is missing")
+    try:
+        return av.open(str(path), "r")
+    except (OSError, ValueError) as exc:
+        raise SessionError(f"{path}: not a readable video ({exc})") from None
+
+
+def _crop_tag(text: str | None) -> tuple[int, int, int, int] | None:
+    if not text:
+        return None
+    x0, y0, x1, y1 = (int(v) for v in text.split(","))
+    return x0, y0, x1, y1
+
+
+def probe_video(path: Path | str) -> VideoInfo:
+    """Codec, size and complete-frame count of a stored video (demuxes every packet).
+
+    Raises
+    ------
+    SessionError
+        The file is missing or FFmpeg cannot read it.
+    """
+    p = Path(path)
+    container = _open_input(p)
+    try:
+        if not container.streams.video:
+            raise SessionError(f"{p}: holds no video stream")
+        stream = container.streams.video[0]
+        frames = 0
+        try:
+            for pkt in container.demux(stream):
+                if pkt.size:
+                    frames += 1
+        except (OSError, ValueError):  # a cut-off tail (kill -9): the frames before count
+            pass
+        tags = dict(container.metadata)
+        return VideoInfo(
+            path=p,
+            size_bytes=p.stat().st_size,
+            codec=str(stream.codec_context.name),
+            frames=frames,
+            width=int(stream.codec_context.width),
+            height=int(stream.codec_context.height),
+            image=str(tags.get(TAG_IMAGE, "bgr")),
+            crop=_crop_tag(tags.get(TAG_CROP)),
+        )
+    finally:
+        container.close()
+
+
+def iter_video_images(path: Path | str) -> Iterator[Image]:
+    """The stored frames in file order, as the daemon counted them.
+
+    A JPEG packet is decoded with ``cv2.imdecode`` (gray or colour, as the camera did), an
+    FFV1 frame to ``gray`` or ``bgr24``; a cropped recording yields the stored rectangle.
+    A packet that does not decode (the cut-off tail of a killed recording) ends the
+    iteration.
+    """
+    import cv2
+
+    p = Path(path)
+    container = _open_input(p)
+    try:
+        stream = container.streams.video[0]
+        gray = dict(container.metadata).get(TAG_IMAGE, "bgr") == "gray"
+        jpeg = stream.codec_context.name == "mjpeg"
+        flag = cv2.IMREAD_GRAYSCALE if gray else cv2.IMREAD_COLOR
+        try:
+            for pkt in container.demux(stream):
+                if not pkt.size:
+                    continue
+                if jpeg:
+                    img = cv2.imdecode(np.frombuffer(bytes(pkt), np.uint8), flag)
+                    if img is None:
+                        return
+                    yield np.asarray(img, dtype=np.uint8)
+                    continue
+                for frame in stream.codec_context.decode(pkt):
+                    yield np.asarray(frame.to_ndarray(format="gray" if gray else "bgr24"))
+        except (OSError, ValueError):
+            return
+    finally:
+        container.close()
+
+
+def read_video_image(path: Path | str, frame_index: int) -> Image:
+    """The stored frame at ``frame_index`` (from 0; see :func:`iter_video_images`).
+
+    Raises
+    ------
+    SessionError
+        The file is unreadable or holds fewer frames.
+    """
+    for i, img in enumerate(iter_video_images(path)):
+        if i == frame_index:
+            return img
+    raise SessionError(f"{path}: holds no frame {frame_index}")

@@ -1,0 +1,201 @@
+"""The session video: passthrough and lossless recording, rows, reading back, integrity."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from stipi_daemon.errors import SessionError
+from stipi_daemon.storage import SessionReader, SessionWriter, StorageOptions
+from stipi_daemon.storage.video import (
+    VideoRecorder,
+    iter_video_images,
+    probe_video,
+    read_video_image,
+)
+
+OPTS = StorageOptions(min_free_bytes=0, background_commit=False)
+
+
+def _images(n: int, shape: tuple[int, ...], seed: int = 1) -> list[np.ndarray]:
+    rng = np.random.default_rng(seed)
+    base = cv2.GaussianBlur(rng.integers(0, 256, shape, dtype=np.uint8), (9, 9), 3)
+    return [np.roll(base, 3 * k, axis=1) for k in range(n)]
+
+
+def _writer(tmp_path: Path) -> SessionWriter:
+    return SessionWriter.create(tmp_path, {}, {}, session_id="s", video=True, options=OPTS)
+
+
+def test_passthrough_stores_the_jpeg_packets_unchanged(tmp_path: Path) -> None:
+    images = _images(12, (48, 64))
+    quality = [cv2.IMWRITE_JPEG_QUALITY, 80]
+    packets = [cv2.imencode(".jpg", im, quality)[1].tobytes() for im in images]
+    with _writer(tmp_path) as w:
+        assert w.video_path is not None and w.video_path.name == "video.mkv"
+        rec = VideoRecorder(w.video_path, w, "passthrough")
+        for k, pk in enumerate(packets):
+            gray = cv2.imdecode(np.frombuffer(pk, np.uint8), cv2.IMREAD_GRAYSCALE)
+            assert rec.record(10 + k, 5.0 + k / 30, gray, pk)
+        rec.close()
+        w.finish("complete")
+    import av
+
+    with av.open(str(tmp_path / "s" / "video.mkv")) as c:
+        stored = [bytes(p) for p in c.demux(video=0) if p.size]
+    assert stored == packets
+    info = probe_video(tmp_path / "s" / "video.mkv")
+    assert (info.codec, info.frames, info.width, info.height) == ("mjpeg", 12, 64, 48)
+    decoded = list(iter_video_images(info.path))
+    for pk, img in zip(packets, decoded, strict=True):
+        assert np.array_equal(img, cv2.imdecode(np.frombuffer(pk, np.uint8), cv2.IMREAD_GRAYSCALE))
+    with SessionReader(tmp_path / "s") as r:
+        vf = r.video_frames()
+        assert vf["seq"].tolist() == list(range(10, 22))
+        assert vf["frame_index"].tolist() == list(range(12))
+        assert np.all(np.diff(vf["pts_ms"]) > 0)
+        assert r.integrity_check().ok
+        assert any(e.kind == "video_started" for e in r.events())
+
+
+@pytest.mark.parametrize("shape", [(40, 50), (40, 50, 3)])
+def test_lossless_reproduces_every_pixel(tmp_path: Path, shape: tuple[int, ...]) -> None:
+    images = _images(6, shape)
+    with _writer(tmp_path) as w:
+        assert w.video_path is not None
+        rec = VideoRecorder(w.video_path, w, "passthrough")  # no packets: lossless
+        for k, im in enumerate(images):
+            assert rec.record(k, k / 60, im, None)
+        rec.close()
+        w.finish("complete")
+    path = tmp_path / "s" / "video.mkv"
+    assert probe_video(path).codec == "ffv1"
+    back = list(iter_video_images(path))
+    assert len(back) == len(images)
+    for a, b in zip(images, back, strict=True):
+        assert np.array_equal(a, b)
+    assert np.array_equal(read_video_image(path, 4), images[4])
+    with pytest.raises(SessionError):
+        read_video_image(path, 6)
+
+
+def test_lossless_crop_stores_the_rectangle(tmp_path: Path) -> None:
+    images = _images(3, (40, 50))
+    with _writer(tmp_path) as w:
+        assert w.video_path is not None
+        rec = VideoRecorder(w.video_path, w, "lossless", crop=(5, 6, 25, 30))
+        for k, im in enumerate(images):
+            assert rec.record(k, k / 60, im, b"ignored")
+        rec.close()
+        w.finish("complete")
+    info = probe_video(tmp_path / "s" / "video.mkv")
+    assert (info.width, info.height, info.crop) == (20, 24, (5, 6, 25, 30))
+    for a, b in zip(images, iter_video_images(info.path), strict=True):
+        assert np.array_equal(a[6:30, 5:25], b)
+
+
+def test_integrity_check_counts_video_frames(tmp_path: Path) -> None:
+    images = _images(4, (16, 16))
+    with _writer(tmp_path) as w:
+        assert w.video_path is not None
+        rec = VideoRecorder(w.video_path, w, "lossless")
+        for k, im in enumerate(images):
+            rec.record(k, k / 60, im, None)
+        rec.close()
+        w.add_video_frames([(99, 4, 999, 9.0)])  # a row without its frame
+        w.finish("complete")
+    with SessionReader(tmp_path / "s") as r:
+        report = r.integrity_check()
+    assert not report.ok
+    assert "video" in " ".join(report.problems)
+
+
+def test_write_failure_stops_rows_too(tmp_path: Path) -> None:
+    images = _images(3, (16, 16))
+    with _writer(tmp_path) as w:
+        assert w.video_path is not None
+        rec = VideoRecorder(w.video_path / "nodir" / "v.mkv", w, "lossless")
+        assert not rec.record(0, 0.0, images[0], None)
+        assert rec.failed is not None
+        with pytest.raises(SessionError, match="video"):
+            w.add_frames([(0, 0.0, 0.0, 1, "")])
+        assert not rec.record(1, 0.1, images[1], None)
+
+
+_KILLED_WRITER = textwrap.dedent(
+    """
+    import sys, time
+    import cv2, numpy as np
+    from stipi_daemon.storage import SessionWriter, StorageOptions
+    from stipi_daemon.storage.video import VideoRecorder
+    w = SessionWriter.create(sys.argv[1], {}, {}, session_id="k", video=True,
+                             options=StorageOptions(min_free_bytes=0))
+    rec = VideoRecorder(w.video_path, w, sys.argv[2])
+    rng = np.random.default_rng(0)
+    img = cv2.GaussianBlur(rng.integers(0, 256, (120, 160), dtype=np.uint8), (9, 9), 3)
+    pk = cv2.imencode(".jpg", img)[1].tobytes()
+    k = 0
+    while True:
+        rec.record(k, k / 60, img, pk)
+        w.add_frames([(k, k / 60, k / 60, 1, "")])
+        w.commit()
+        if k == 20:
+            print("ready", flush=True)
+        k += 1
+        time.sleep(0.001)
+    """
+)
+
+
+@pytest.mark.parametrize("mode", ["passthrough", "lossless"])
+def test_kill_9_leaves_a_playable_video_covering_the_rows(tmp_path: Path, mode: str) -> None:
+    proc = subprocess.Popen(
+        [sys.executable, "-c", _KILLED_WRITER, str(tmp_path), mode],
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+    assert proc.stdout is not None
+    with proc.stdout:
+        assert proc.stdout.readline().strip() == "ready"
+        os.kill(proc.pid, signal.SIGKILL)
+        proc.wait()
+    with SessionReader(tmp_path / "k") as r:
+        frames = r.frames()
+        assert r.status.value == "interrupted"
+        report = r.integrity_check()
+    info = probe_video(tmp_path / "k" / "video.mkv")
+    n_decoded = sum(1 for _ in iter_video_images(info.path))
+    assert frames.size > 20 and n_decoded > 0
+    # Frame k was captured at k/60 s; the video plays up to within one commit interval of
+    # the newest stored frame row.
+    t_newest_row_s = float(frames["t_capture_host_s"][-1])
+    t_last_video_s = (n_decoded - 1) / 60
+    assert t_last_video_s >= t_newest_row_s - OPTS.commit_interval_s
+    assert report.ok, report.problems
+
+
+def test_schema_version_1_sessions_still_read(tmp_path: Path) -> None:
+    import sqlite3
+
+    with _writer(tmp_path) as w:
+        w.add_frames([(0, 1.0, 1.0, 5, "")])
+        w.finish("complete")
+    db = tmp_path / "s" / "session.sqlite"
+    with sqlite3.connect(db) as conn:  # as a stipi-daemon before video wrote it
+        conn.execute("DROP TABLE video_frames")
+        conn.execute("UPDATE meta SET value = '1' WHERE key = 'schema_version'")
+        conn.execute("PRAGMA user_version = 1")
+    with SessionReader(tmp_path / "s") as r:
+        assert r.schema_version == 1
+        assert r.count("video_frames") == 0
+        assert len(r.video_frames()) == 0
+        assert r.counts()["frames"] == 1
+        assert r.integrity_check().ok
