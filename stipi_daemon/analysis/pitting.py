@@ -13,7 +13,7 @@ All functions are pure; inputs outside a stated domain raise
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -332,23 +332,16 @@ def recovery_time(
 
     Definitions on a sampled series (frames at ``times_s``):
 
-    * Outlier frames (isolated dark or bright frames, the Hampel filter of
-      :func:`~stipi_daemon.analysis.observation.find_outlier_frames`) from T_0 to the end of
-      the window are left out of everything below, counted and flagged ``OUTLIER_FRAMES``.
-    * S_0 is S_k of the first usable frame at or after T_0 (the frame at T_0 when there is
-      one). Frames before T_0 show the pitting phase, so S_0 is never interpolated across
-      the release. When the usable frames around T_0 are more than
-      :data:`~stipi_daemon.analysis.observation.RELEASE_BOUND_PERIODS` frame periods apart,
-      the release was not observed: ``RELEASE_NOT_OBSERVED``, and S_0 (hence D_p) is unknown.
-    * The recovery window holds the frames with T_0 < t <= T_0 + ``window_s``.
+    * Outlier frames are left out of everything below, and S_0 is S_k of the first usable
+      frame at or after T_0, never interpolated across the release; frame gaps are found
+      (``RELEASE_NOT_OBSERVED``, ``OUTLIER_FRAMES``; see :class:`_RecoveryFrames`). The
+      recovery window holds the frames with T_0 < t <= T_0 + ``window_s``.
     * S_max is the maximum over the window of the running median of
       2 * :data:`S_MAX_MEDIAN_HALF_WIDTH` + 1 consecutive frames
       (:func:`~stipi_daemon.analysis.observation.running_median`): on a clean monotone
-      recovery it is the plain maximum of the paper within a fraction of a pixel (a
-      monotone series is its own running median but for the last frames, where the
-      windows are cut), and a single outlier frame cannot raise it by more than the spread
-      of its neighbours. With ``s_max_top_frames = n > 1`` it is the median of the n largest
-      values of that running median.
+      recovery the paper's plain maximum less at most the last frame's rise; a single
+      outlier frame cannot raise it by more than the spread of its neighbours.
+      ``s_max_top_frames = n > 1``: the median of the n largest values of that median.
     * T_s is the first time S_k reaches ``settle_fraction * S_max`` (98 %, the paper's
       reading "S_k reaches 98.0 % of S_max"; the level is a fraction of S_max itself, not
       of the rise S_max - S_0), linearly interpolated between the last frame below the level
@@ -370,19 +363,15 @@ def recovery_time(
     * ``RISE_WITHIN_SETTLING_BAND``: S_max - S_0 is within the settling band
       (1 - settle_fraction) * S_max, so the first frame already "settles" whether or not
       anything recovered: T_r is not a measurement.
-    * Frame gaps (:func:`~stipi_daemon.analysis.observation.find_frame_gaps`) in the window
-      are listed in ``observed``; ``FRAME_GAP_AT_SETTLING`` when the crossing lies in one
-      (T_r is uncertain by its length), ``FRAME_GAP_AT_MAXIMUM`` when one is next to the
-      frame that sets S_max (the maximum may lie in it).
-    * ``NOT_SETTLED`` also when S_k is still rising at the end of the window. With S_max
-      taken from the window itself, the 98 % level is always reached once S_k keeps rising
-      (a recovery far slower than the window "settles" just before the window ends), so the
-      paper's rule alone cannot tell a plateau from a truncated rise. The slope of S_k over
-      the last ``end_slope_fraction`` of the window (least-squares line) is therefore
-      checked: if continuing at that slope for another T_r would raise S_k by more than the
-      settling band (1 - settle_fraction) * S_max, S_max is not a settled value and the
-      crossing found is reported as a lower bound. ``end_slope_fraction = 0`` disables the
-      check.
+    * ``FRAME_GAP_AT_SETTLING``: the crossing lies in a gap longer than
+      MATERIAL_GAP_PERIODS frames and :data:`SETTLING_GAP_FRACTION` of T_r (T_r is
+      uncertain by its length); ``FRAME_GAP_AT_MAXIMUM``: such a gap is next to the frame
+      that sets S_max (the maximum may lie in it). All gaps are listed in ``observed``.
+    * ``NOT_SETTLED`` also when S_k is still rising at the end of the window (the 98 % level
+      of the window's own S_max is always reached by a rise that never stops): if the
+      least-squares slope over the last ``end_slope_fraction`` of the window, continued for
+      another T_r, would leave the settling band (1 - settle_fraction) * S_max, the crossing
+      is a lower bound. ``end_slope_fraction = 0`` disables the check.
 
     Parameters
     ----------
@@ -418,64 +407,78 @@ def recovery_time(
     t0, fraction, window = _check_recovery_args(
         t, t0_s, settle_fraction, window_s, persist_frames, s_max_top_frames, end_slope_fraction
     )
-    flags: set[Flag] = set()
-    if series.dropped:
-        flags.add(Flag.NON_FINITE_INPUT)
+    flags = {Flag.NON_FINITE_INPUT} if series.dropped else set()
     win = _RecoveryFrames.of(t, s, t0, window)
-    flags |= win.flags
     smooth = running_median(win.sw, S_MAX_MEDIAN_HALF_WIDTH)
     s_max = _s_max(smooth, s_max_top_frames)
-    level = fraction * s_max
+    band = (1.0 - fraction) * s_max
+    k_max = int(np.argmax(smooth))
+    if s_max <= win.s0_px:
+        return _timed(win, t0, None, (s_max, fraction), flags | {Flag.NO_RECOVERY}, k_max)
+    if s_max - win.s0_px <= band:
+        flags.add(Flag.RISE_WITHIN_SETTLING_BAND)
+    ts, search_flags = _settling_crossing(
+        win.tw, win.sw, t0, win.s0_px, fraction * s_max, persist_frames, band, end_slope_fraction
+    )
+    return _timed(win, t0, ts, (s_max, fraction), flags | search_flags, k_max)
+
+
+def _timed(
+    win: _RecoveryFrames,
+    t0: float,
+    ts: float | None,
+    s_max_fraction: tuple[float, float],
+    flags: set[Flag],
+    k_max: int,
+) -> RecoveryTime:
+    """:func:`recovery_time`'s result: T_0 and T_s [s] (None without recovery), S_max [px]
+    and the settling fraction, the flags so far and the index of the window frame that
+    sets S_max; adds what the gaps at the crossing and beside the maximum mean."""
+    s_max, fraction = s_max_fraction
+    flags = set(flags) | win.flags
+    settling_gap = None
+    if ts is not None and Flag.NOT_SETTLED not in flags:
+        settling_gap = _crossing_gap(win, t0, ts)
     observed = Observed(
         frame_period_s=win.period_s,
         gaps=win.gaps,
         release_gap=win.release_gap,
-        maximum_gap=_gap_beside(win, int(np.argmax(smooth))),
+        settling_gap=settling_gap,
+        maximum_gap=_gap_beside(win, k_max),
         outlier_times_s=win.outlier_times_s,
     )
-
-    def result(ts: float | None, settling_gap: FrameGap | None = None) -> RecoveryTime:
-        obs = replace(observed, settling_gap=settling_gap)
-        for gap, flag in (
-            (obs.settling_gap, Flag.FRAME_GAP_AT_SETTLING),
-            (obs.maximum_gap, Flag.FRAME_GAP_AT_MAXIMUM),
-        ):
-            if gap is not None:
-                flags.add(flag)
-        return RecoveryTime(
-            t0_s=t0,
-            ts_s=ts,
-            recovery_time_s=None if ts is None else ts - t0,
-            s0_px=win.s0_px,
-            s_max_px=s_max,
-            level_px=level,
-            n_frames=win.n_frames,
-            flags=frozenset(flags),
-            observed=obs,
-        )
-
-    if s_max <= win.s0_px:
-        flags.add(Flag.NO_RECOVERY)
-        return result(None)
-    if s_max - win.s0_px <= (1.0 - fraction) * s_max:
-        flags.add(Flag.RISE_WITHIN_SETTLING_BAND)
-    ts, search_flags = _settling_crossing(
-        win.tw,
-        win.sw,
-        t0,
-        win.s0_px,
-        level,
-        persist_frames,
-        (1.0 - fraction) * s_max,
-        end_slope_fraction,
+    if observed.settling_gap is not None:
+        flags.add(Flag.FRAME_GAP_AT_SETTLING)
+    if observed.maximum_gap is not None:
+        flags.add(Flag.FRAME_GAP_AT_MAXIMUM)
+    return RecoveryTime(
+        t0_s=t0,
+        ts_s=ts,
+        recovery_time_s=None if ts is None else ts - t0,
+        s0_px=win.s0_px,
+        s_max_px=s_max,
+        level_px=fraction * s_max,
+        n_frames=win.n_frames,
+        flags=frozenset(flags),
+        observed=observed,
     )
-    flags |= search_flags
-    return result(ts, None if Flag.NOT_SETTLED in flags else _crossing_gap(win, t0, ts))
 
 
 @dataclass(frozen=True)
 class _RecoveryFrames:
-    """The usable frames of one recovery: S_0, the window without outliers, gaps."""
+    """The usable frames of one recovery: S_0, the window without outliers, gaps.
+
+    * Outlier frames (isolated dark or bright frames, the Hampel filter of
+      :func:`~stipi_daemon.analysis.observation.find_outlier_frames`) from T_0 to the end
+      of the window are left out, counted and flagged ``OUTLIER_FRAMES``.
+    * S_0 is S_k of the first usable frame at or after T_0 (the frame at T_0 when there is
+      one). Frames before T_0 show the pitting phase, so S_0 is never interpolated across
+      the release. When the usable frames around T_0 are more than
+      :data:`~stipi_daemon.analysis.observation.RELEASE_BOUND_PERIODS` frame periods apart
+      the release was not observed: ``RELEASE_NOT_OBSERVED``, S_0 (hence D_p) is unknown.
+    * Gaps (:func:`~stipi_daemon.analysis.observation.find_frame_gaps`) that overlap the
+      window are kept; S_0 [px], the window's times [s] and S_k [px] without outliers.
+    """
 
     s0_px: float
     tw: NDArray[np.float64]
