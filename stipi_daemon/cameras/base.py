@@ -67,12 +67,17 @@ class CameraFrame:
         ``uint8`` image, gray ``(H, W)`` or BGR ``(H, W, 3)``; owned by the receiver.
     dropped_before : int
         Frames lost between the previous delivered frame and this one [-], >= 0.
+    packet : bytes or None
+        The frame as the source encoded it (an MJPG camera's or file's complete JPEG),
+        which ``image`` was decoded from; None for raw sources. The session video stores
+        it as it is (:mod:`stipi_daemon.storage.video`, passthrough).
     """
 
     seq: int
     t_capture_s: float
     image: npt.NDArray[np.uint8]
     dropped_before: int
+    packet: bytes | None = None
 
 
 @dataclass(frozen=True, slots=True)

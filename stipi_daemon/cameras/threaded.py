@@ -41,11 +41,13 @@ JOIN_TIMEOUT_S = 2.0
 
 @dataclass(frozen=True, slots=True)
 class RawFrame:
-    """A frame as the capture thread produces it (before drop accounting)."""
+    """A frame as the capture thread produces it (before drop accounting); ``packet`` is
+    the encoded frame ``image`` was decoded from, when the source has one."""
 
     seq: int
     t_capture_s: float
     image: npt.NDArray[np.uint8]
+    packet: bytes | None = None
 
 
 @dataclass(frozen=True, slots=True)
@@ -303,6 +305,7 @@ class ThreadedCamera(ABC, Generic[H]):
                 t_capture_s=item.t_capture_s,
                 image=item.image,
                 dropped_before=max(0, item.seq - last - 1),
+                packet=item.packet,
             )
             self._last_seq = item.seq
             self._stats.record(frame, now)

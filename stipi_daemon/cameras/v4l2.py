@@ -25,7 +25,9 @@ frame periods reveal frames the driver lost; they are added to ``seq`` (so they 
 
 Gray. With ``gray`` and ``MJPG`` the driver's JPEG is taken raw (``CAP_PROP_CONVERT_RGB``
 off) and decoded straight to gray by ``cv2.imdecode(IMREAD_GRAYSCALE)``; with ``YUYV`` the
-luma plane is taken; otherwise BGR is converted with ``cv2.cvtColor``.
+luma plane is taken; otherwise BGR is converted with ``cv2.cvtColor``. The raw JPEG
+travels with its decoded frame (``CameraFrame.packet``), so the session video stores it
+without re-encoding.
 
 A stuck driver: ``grab`` returns after OpenCV's 10 s select timeout at the latest (then the
 thread ends with a :class:`~stipi_daemon.errors.CameraError`); :meth:`close` waits at most
@@ -208,7 +210,8 @@ class V4L2Camera(ThreadedCamera[_Handle]):
         driver_ts = ts_ms > 0.0 and 0.0 <= age_s <= MAX_DRIVER_TIMESTAMP_AGE_S
         self._driver_timestamps = driver_ts
         t_s = now_s - age_s * self._clock.speed if driver_ts else now_s
-        image = self._decode(h.mode, np.asarray(data, dtype=np.uint8))
+        raw = np.asarray(data, dtype=np.uint8)
+        image = self._decode(h.mode, raw)
         missing = 0
         if driver_ts and self._prev_t_s is not None and h.fps > 0.0:
             period_s = self._clock.speed / h.fps  # one frame period in session time
@@ -219,7 +222,8 @@ class V4L2Camera(ThreadedCamera[_Handle]):
         if image is None:
             self._note(f"camera {self.path}: corrupt frames from the driver were skipped")
             return None
-        return RawFrame(seq, t_s, image)
+        packet = raw.tobytes() if h.mode == "jpeg_gray" else None  # the JPEG as received
+        return RawFrame(seq, t_s, image, packet)
 
     def _decode(self, mode: _Mode, data: npt.NDArray[np.uint8]) -> npt.NDArray[np.uint8] | None:
         if mode == "jpeg_gray":

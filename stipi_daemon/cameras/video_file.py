@@ -9,8 +9,10 @@ Decoding. For Motion-JPEG files (``MJPG``: every frame an independent JPEG) the 
 switched to raw packets (``CAP_PROP_FORMAT = -1``) and each JPEG is decoded with
 ``cv2.imdecode``: straight to gray with ``IMREAD_GRAYSCALE`` when ``gray`` is set (the
 JPEG's luma plane, no colour conversion: the fastest route, docs/bench_camera_decode.md),
-else to BGR. Raw packets also tell a complete JPEG (ending in the EOI marker ``FF D9``)
-from the cut-off last frame of a truncated file, which FFmpeg's own decoder would return
+else to BGR; the JPEG itself travels with the decoded frame (``CameraFrame.packet``), so
+the session video stores it without re-encoding. Raw packets also tell a complete JPEG
+(ending in the EOI marker ``FF D9``) from the cut-off last frame of a truncated file,
+which FFmpeg's own decoder would return
 half grey. Other codecs are decoded by FFmpeg and converted with ``cv2.cvtColor`` when
 ``gray`` is set.
 
@@ -243,7 +245,8 @@ class VideoFileCamera(ThreadedCamera[_Handle]):
             seq = self._seq_next
             self._seq_next += 1
             t0 = self._t0_s if self._t0_s is not None else 0.0
-            return RawFrame(seq, t0 + (seq - self._k0) / self._fps, image)
+            img, packet = image
+            return RawFrame(seq, t0 + (seq - self._k0) / self._fps, img, packet)
 
     def _reopen_for_loop(self) -> _Handle:
         cap = cv2.VideoCapture(str(self.path), cv2.CAP_FFMPEG)
@@ -254,9 +257,12 @@ class VideoFileCamera(ThreadedCamera[_Handle]):
         self._skip_to(h, self._k0)
         return h
 
-    def _read_image(self, h: _Handle) -> npt.NDArray[np.uint8] | int | None:
-        """The next frame's image; an int (its file index) for a damaged frame that is
-        followed by more; None at the end (after noting a truncated last frame)."""
+    def _read_image(
+        self, h: _Handle
+    ) -> tuple[npt.NDArray[np.uint8], bytes | None] | int | None:
+        """The next frame's image and its JPEG packet (raw MJPG reading, else None); an int
+        (its file index) for a damaged frame that is followed by more; None at the end
+        (after noting a truncated last frame)."""
         ok, data = h.cap.read()
         if not ok or data is None:
             self._note_short_end(h)
@@ -270,14 +276,14 @@ class VideoFileCamera(ThreadedCamera[_Handle]):
             img = np.asarray(data, dtype=np.uint8)
             if self.gray and img.ndim == 3:
                 img = np.asarray(cv2.cvtColor(img, cv2.COLOR_BGR2GRAY), dtype=np.uint8)
-            return img
+            return img, None
         packet = np.asarray(data, dtype=np.uint8)
         decoded = None
         if packet.size > 0 and _complete_jpeg(packet):
             flag = cv2.IMREAD_GRAYSCALE if self.gray else cv2.IMREAD_COLOR
             decoded = cv2.imdecode(packet.reshape(-1), flag)
         if decoded is not None and self._size is not None and decoded.shape[1::-1] == self._size:
-            return np.asarray(decoded, dtype=np.uint8)
+            return np.asarray(decoded, dtype=np.uint8), packet.tobytes()
         h.bad_frames.append(index)
         return index
 

@@ -73,6 +73,16 @@ async def test_unpaced_color_delivers_every_frame(avi: Path) -> None:
     assert meta["fourcc"] == "MJPG" and meta["declared_frames"] == 24 and meta["fps"] == FPS
 
 
+async def test_mjpg_frames_carry_their_jpeg_packet(avi: Path) -> None:
+    frames = await collect(VideoFileCamera(avi, ScaledClock(), pace=False, gray=True))
+    packets = _packets(avi)
+    assert [f.packet for f in frames] == [p.tobytes() for p in packets]
+    for f in frames:
+        assert f.packet is not None
+        decoded = cv2.imdecode(np.frombuffer(f.packet, np.uint8), cv2.IMREAD_GRAYSCALE)
+        np.testing.assert_array_equal(f.image, decoded)
+
+
 async def test_gray_matches_cvtcolor_of_color_frames(avi: Path) -> None:
     # Gray frames are the JPEG's luma plane; cvtColor of the BGR decode recomputes it from
     # upsampled chroma, so the two agree to a few levels at sharp colour edges only.
