@@ -12,9 +12,8 @@ JPEG's luma plane, no colour conversion: the fastest route, docs/bench_camera_de
 else to BGR; the JPEG itself travels with the decoded frame (``CameraFrame.packet``), so
 the session video stores it without re-encoding. Raw packets also tell a complete JPEG
 (ending in the EOI marker ``FF D9``) from the cut-off last frame of a truncated file,
-which FFmpeg's own decoder would return
-half grey. Other codecs are decoded by FFmpeg and converted with ``cv2.cvtColor`` when
-``gray`` is set.
+which FFmpeg's own decoder would return half grey. Other codecs are decoded by FFmpeg and
+converted with ``cv2.cvtColor`` when ``gray`` is set.
 
 Truncated and damaged files. The replay ends cleanly after the last complete frame and
 records a note (:meth:`VideoFileCamera.notes`); a damaged frame inside the file is skipped
