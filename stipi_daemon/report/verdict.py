@@ -9,7 +9,8 @@ page: :func:`read_validity` (each quantity, :class:`QuantityStatus`), :func:`com
 (:class:`VerdictView`: the status shown at the top of the page, its line and the
 quantities to name under it). The report never shows "complete" unless every primary
 quantity is valid, even if a summary claims it. Sessions recorded before validity was kept
-read as ``unknown``; nothing here raises on a malformed summary. Pure.
+read as ``unknown``; nothing here raises on a malformed summary. The primary and secondary
+quantities are those of :mod:`stipi_daemon.analysis.validity` (re-exported). Pure.
 """
 
 from __future__ import annotations
@@ -18,6 +19,7 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, Final, Literal
 
+from stipi_daemon.analysis.validity import PRIMARY_QUANTITIES, SECONDARY_QUANTITIES
 from stipi_daemon.report.inputs import value_at
 
 __all__ = [
@@ -35,17 +37,6 @@ __all__ = [
 Status = Literal["valid", "flagged", "invalid", "unknown"]
 VerdictStatus = Literal["complete", "flagged", "invalid", "incomplete", "unknown"]
 
-#: The primary quantities (``summary["validity"]`` keys), in the order the page names them.
-PRIMARY_QUANTITIES: Final = (
-    "depth_mm",
-    "rebound_force_n",
-    "recovery_time_s",
-    "elasticity_kpa",
-    "viscosity_n_s_per_mm2",
-    "severity",
-)
-#: The secondary quantities (shown, never decisive for the verdict).
-SECONDARY_QUANTITIES: Final = ("tau_s", "applied_force_n")
 #: Quantity -> (symbol, words) for the page.
 QUANTITY_NAMES: Final[Mapping[str, tuple[str, str]]] = {
     "depth_mm": ("D_p", "pitting depth"),

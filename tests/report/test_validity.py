@@ -369,3 +369,11 @@ def test_force_gaps_break_the_force_line_and_nan_frames_are_marked(inp: ReportIn
     assert sk.nan_frame_t_s.tolist() == [inp.frame_times_s[k]]
     ticks = _line(r.draw_s_k(sk), "nan_frames")
     assert list(ticks.get_xdata()) == [inp.frame_times_s[k]]
+
+
+def test_every_assessed_quantity_has_a_name_on_the_page() -> None:
+    from stipi_daemon.analysis import validity
+    from stipi_daemon.report.verdict import QUANTITY_NAMES
+
+    assessed = (*validity.PRIMARY_QUANTITIES, *validity.SECONDARY_QUANTITIES)
+    assert set(assessed) == set(QUANTITY_NAMES) == set(QUANTITIES)
