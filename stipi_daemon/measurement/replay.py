@@ -282,7 +282,7 @@ class ReplayOutcome:
         ``status`` is ``complete`` when the machine finished (DONE), ``partial`` for a
         partial-recovery analysis, ``fault`` otherwise.
         """
-        start = self.start
+        start, rel = self.start, self.release
         if self.partial:
             status = "partial"
         else:
@@ -302,6 +302,9 @@ class ReplayOutcome:
                 ended_done=self.phase == Phase.DONE and not self.partial,
                 end_reason="partial recovery" if self.partial else self.end_reason,
                 analysis_error=self.analysis_error,
+                invalid_reasons=None if rel is None else rel.invalid_reasons(),
+                caveats=None if rel is None else rel.caveats(),
+                extra_flags=() if rel is None else rel.flags,
             ),
         }
 

@@ -199,6 +199,20 @@ def test_nan_frame_at_the_release_takes_s0_from_the_next_valid_frame(occlusion: 
     _check(mp, sy)
 
 
+@pytest.mark.parametrize("occlusion", ["applied_force", "none"])
+def test_a_lost_frame_at_a_fast_release_leaves_s0_not_observed(occlusion: str) -> None:
+    # tau 0.3 s: S_k rises ~5 % of its rise per frame; the next frame is no S_0
+    sy = Synth(occlusion=occlusion, tau_s=0.3, nan_frames_rel=(0,), seed=5)
+    mp = sy.run()
+    assert mp.release is not None and not mp.release.s0_observed
+    assert "were lost" in (mp.release.reason or "")
+    assert "depth_mm" in mp.release.invalid_reasons()
+    # the same release with every frame: S_0 observed, D_p right
+    sy = Synth(occlusion=occlusion, tau_s=0.3, seed=5)
+    mp = sy.run()
+    assert mp.release is not None and mp.release.s0_observed
+
+
 def test_replay_of_a_recording_with_a_nan_frame_at_the_release() -> None:
     sy = Synth(occlusion="none", nan_frames_rel=(0,), seed=2)
     tv, sv, tf, fv = sy.arrays()
