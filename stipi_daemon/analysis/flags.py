@@ -41,6 +41,7 @@ class Flag(StrEnum):
     FRAME_GAP_AT_SETTLING = "frame_gap_at_settling"
     FRAME_GAP_AT_MAXIMUM = "frame_gap_at_maximum"
     OUTLIER_FRAMES = "outlier_frames"
+    S0_FRAME_OUTLIER = "s0_frame_outlier"
     # VPR model and recovery fit (Eqs. 7-10)
     FIT_NOT_CONVERGED = "fit_not_converged"
     TIME_CONSTANT_OUTSIDE_WINDOW = "time_constant_outside_window"
@@ -105,6 +106,10 @@ FLAG_DESCRIPTIONS: Final[Mapping[Flag, str]] = MappingProxyType(
             "Isolated outlier frames (a dark or bright frame) were left out of S_max, T_s and "
             "the fit."
         ),
+        Flag.S0_FRAME_OUTLIER: (
+            "The first frame at or after T_0 was an outlier; S_0 is extrapolated back to T_0 "
+            "from the next usable frames."
+        ),
         # VPR model and recovery fit (Eqs. 7-10)
         Flag.FIT_NOT_CONVERGED: (
             "The Kelvin-Voigt recovery fit did not converge; its parameters are not reported."
@@ -115,8 +120,8 @@ FLAG_DESCRIPTIONS: Final[Mapping[Flag, str]] = MappingProxyType(
         Flag.CONSTANT_SERIES: "The series has no variation to fit.",
         Flag.NON_FINITE_INPUT: "NaN or inf samples were present and were dropped.",
         Flag.FRAME_GAPS_IN_FIT: (
-            "Frame gaps cover more than 10 % of the fitted span: the fit rests on fewer "
-            "observations than the window holds."
+            "Frame gaps cover more than 10 % of the fitted span or of its first 3 tau: the fit "
+            "rests on fewer observations than the window holds."
         ),
         Flag.POOR_FIT: (
             "The Kelvin-Voigt model explains the recovery poorly (R^2 below 0.99 and residuals "

@@ -10,7 +10,8 @@ itself (pure, no I/O):
 * an **outlier frame** is an isolated frame whose S_k departs from the running median of
   its neighbours (:data:`OUTLIER_HALF_WIDTH` frames each side) by more than
   :data:`OUTLIER_THRESHOLD` robust standard deviations of the series' residuals, and by more
-  than :data:`OUTLIER_FLOOR_FRACTION` of the series' level (a Hampel filter). A dark frame
+  than :data:`OUTLIER_FLOOR_FRACTION` of the series' level, plus
+  :data:`OUTLIER_STEP_ALLOWANCE` local frame-to-frame steps (a Hampel filter). A dark frame
   (the whole ROI counted) or a bright one (nothing counted) is one. The running median of a
   monotone series is the series itself, so a clean recovery has no outlier.
 
@@ -33,6 +34,7 @@ __all__ = [
     "MATERIAL_GAP_PERIODS",
     "OUTLIER_FLOOR_FRACTION",
     "OUTLIER_HALF_WIDTH",
+    "OUTLIER_STEP_ALLOWANCE",
     "OUTLIER_THRESHOLD",
     "RELEASE_BOUND_PERIODS",
     "FrameGap",
@@ -62,6 +64,8 @@ RELEASE_BOUND_PERIODS: Final = 3.0
 #: A gap beside the settling crossing or the maximum matters when it is longer than this
 #: many frame periods (at least two frames missing in a row) [-].
 MATERIAL_GAP_PERIODS: Final = 2.5
+#: ... plus this many local frame-to-frame steps (a fast rise moves a window's median) [-].
+OUTLIER_STEP_ALLOWANCE: Final = 2.0
 #: Robust standard deviation per median absolute deviation (normal distribution) [-].
 _MAD_TO_SIGMA: Final = 1.4826
 
@@ -107,7 +111,9 @@ class Observed:
     maximum_gap : FrameGap or None
         A gap next to the frame that sets S_max (the maximum may lie in it).
     outlier_times_s : tuple[float, ...]
-        Times of the outlier frames left out of S_max, T_s and the fit [s].
+        Times of the outlier frames left out of S_0, S_max, T_s and the fit [s].
+    s0_frame_s : float or None
+        Time of the frame S_0 was taken from [s].
     """
 
     frame_period_s: float
@@ -116,6 +122,7 @@ class Observed:
     settling_gap: FrameGap | None = None
     maximum_gap: FrameGap | None = None
     outlier_times_s: tuple[float, ...] = ()
+    s0_frame_s: float | None = None
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready: gaps as ``[start_s, end_s]`` pairs, outlier frame times [s]."""
@@ -130,6 +137,7 @@ class Observed:
             "settling_gap_s": pair(self.settling_gap),
             "maximum_gap_s": pair(self.maximum_gap),
             "outlier_frame_times_s": list(self.outlier_times_s),
+            "s0_frame_s": self.s0_frame_s,
         }
 
 
@@ -236,18 +244,29 @@ def find_outlier_frames(values: NDArray[np.float64]) -> NDArray[np.bool_]:
     h = OUTLIER_HALF_WIDTH
     if values.size < 2 * h + 1:
         return np.zeros(values.size, dtype=bool)
-    reference = running_median(values, h)
-    # The last h windows are cut: their median lags a rising series by the local slope
-    # times the distance to the window's centre; add it back (slope: median step of the
-    # last 2h + 1 frames, which one outlier cannot set).
     n = values.size
-    slope = float(np.median(np.diff(values[n - 2 * h - 1 :])))
+    reference = running_median(values, h)
+    # At each end the windows are cut to the frames that exist; a cut window's median lags
+    # a rising series by the local slope times the distance to the window's centre: add it
+    # back (slope: the median step of the 2h + 1 end frames, which one outlier cannot set).
+    # So the first frame (S_0, right after the release) is judged against the trend of the
+    # frames that follow it, and the last against those before it.
+    head = float(np.median(np.diff(values[: 2 * h + 1])))
+    tail = float(np.median(np.diff(values[n - 2 * h - 1 :])))
+    for i in range(h):
+        reference[i] = float(np.median(values[: i + h + 1])) + head * (i - (i + h) / 2.0)
     for i in range(n - h, n):
-        reference[i] += slope * (i - (i - h + n - 1) / 2.0)
+        reference[i] = float(np.median(values[i - h :])) + tail * (i - (i - h + n - 1) / 2.0)
     residual = values - reference
     sigma = _MAD_TO_SIGMA * float(np.median(np.abs(residual - np.median(residual))))
     floor = OUTLIER_FLOOR_FRACTION * float(np.median(np.abs(values)))
-    bound = max(OUTLIER_THRESHOLD * sigma, floor, 1.0)
+    # One outlier in a window shifts its median by one order statistic, i.e. by about one
+    # frame-to-frame step where S_k rises fast: allow OUTLIER_STEP_ALLOWANCE local steps
+    # (the median of the 2h + 1 steps around each frame, mirrored at the ends: one outlier
+    # sets two steps, at most three of the seven even at an end, so it cannot set it).
+    steps = median_filter(np.abs(np.diff(values)), size=2 * h + 1, mode="mirror")
+    local_step = steps[np.minimum(np.arange(n), n - 2)]
+    bound = max(OUTLIER_THRESHOLD * sigma, floor, 1.0) + OUTLIER_STEP_ALLOWANCE * local_step
     out: NDArray[np.bool_] = np.abs(residual) > bound
     return out
 

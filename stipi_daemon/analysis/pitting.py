@@ -23,6 +23,7 @@ from scipy.ndimage import median_filter
 from stipi_daemon.analysis.flags import Flag
 from stipi_daemon.analysis.observation import (
     MATERIAL_GAP_PERIODS,
+    RELEASE_BOUND_PERIODS,
     FrameGap,
     Observed,
     find_frame_gaps,
@@ -408,7 +409,7 @@ def recovery_time(
         t, t0_s, settle_fraction, window_s, persist_frames, s_max_top_frames, end_slope_fraction
     )
     flags = {Flag.NON_FINITE_INPUT} if series.dropped else set()
-    win = _RecoveryFrames.of(t, s, t0, window)
+    win = _RecoveryFrames.of(t, s, t0, window, fraction)
     smooth = running_median(win.sw, S_MAX_MEDIAN_HALF_WIDTH)
     s_max = _s_max(smooth, s_max_top_frames)
     band = (1.0 - fraction) * s_max
@@ -446,6 +447,7 @@ def _timed(
         settling_gap=settling_gap,
         maximum_gap=_gap_beside(win, k_max),
         outlier_times_s=win.outlier_times_s,
+        s0_frame_s=win.s0_frame_s,
     )
     if observed.settling_gap is not None:
         flags.add(Flag.FRAME_GAP_AT_SETTLING)
@@ -476,11 +478,19 @@ class _RecoveryFrames:
       the release. When the usable frames around T_0 are more than
       :data:`~stipi_daemon.analysis.observation.RELEASE_BOUND_PERIODS` frame periods apart
       the release was not observed: ``RELEASE_NOT_OBSERVED``, S_0 (hence D_p) is unknown.
+    * When the first frame at or after T_0 is itself an outlier (a bright or dark frame
+      just after the release), S_0 is extrapolated back to T_0 along the line through the
+      next two usable frames (when they lie within RELEASE_BOUND_PERIODS periods of T_0;
+      else it is the next frame's S_k): ``S0_FRAME_OUTLIER``.
+      Unless the frames after it are already settled: a release step within one frame
+      looks the same, and S_0 then rests on that single frame (``SETTLED_WITHIN_ONE_FRAME``
+      flags D_p as well as T_r).
     * Gaps (:func:`~stipi_daemon.analysis.observation.find_frame_gaps`) that overlap the
       window are kept; S_0 [px], the window's times [s] and S_k [px] without outliers.
     """
 
     s0_px: float
+    s0_frame_s: float
     tw: NDArray[np.float64]
     sw: NDArray[np.float64]
     n_frames: int
@@ -492,9 +502,15 @@ class _RecoveryFrames:
 
     @classmethod
     def of(
-        cls, t: NDArray[np.float64], s: NDArray[np.float64], t0: float, window: float
+        cls,
+        t: NDArray[np.float64],
+        s: NDArray[np.float64],
+        t0: float,
+        window: float,
+        fraction: float,
     ) -> _RecoveryFrames:
-        """Frames ``t`` [s], ``s`` [px] (finite) split at T_0 ``t0`` [s], window [s] long.
+        """Frames ``t`` [s], ``s`` [px] (finite) split at T_0 ``t0`` [s], window [s] long;
+        ``fraction`` is the settling fraction [-].
 
         Raises
         ------
@@ -515,8 +531,15 @@ class _RecoveryFrames:
                 "the series ends at T_0"
             )
         outlier = find_outlier_frames(ss_)
+        rest = ss_[1:][~outlier[1:]]
+        if outlier[0] and rest.size and rest[0] >= fraction * float(np.max(rest)):
+            # The frames after it are already settled: a release step within one frame
+            # (SETTLED_WITHIN_ONE_FRAME) cannot be told from an outlier; keep it as S_0.
+            outlier[0] = False
         if outlier.any():
             flags.add(Flag.OUTLIER_FRAMES)
+        if outlier[0]:
+            flags.add(Flag.S0_FRAME_OUTLIER)
         keep_t, keep_s = ts_[~outlier], ss_[~outlier]
         in_window = keep_t > t0
         if not in_window.any():
@@ -524,8 +547,15 @@ class _RecoveryFrames:
         gaps = tuple(
             g for g in find_frame_gaps(t, period) if g.end_s > t0 and g.start_s < t0 + window
         )
+        s0 = float(keep_s[0])
+        if outlier[0] and keep_t.size > 1 and keep_t[1] - t0 <= RELEASE_BOUND_PERIODS * period:
+            # Back to T_0 along the line through the next two frames (one frame of rise
+            # is not negligible for a fast recovery).
+            dt = float(keep_t[1] - keep_t[0])
+            s0 = max(0.0, s0 - float(keep_s[1] - keep_s[0]) * float(keep_t[0] - t0) / dt)
         return cls(
-            s0_px=float(keep_s[0]),
+            s0_px=s0,
+            s0_frame_s=float(keep_t[0]),
             tw=keep_t[in_window],
             sw=keep_s[in_window],
             n_frames=n_window,

@@ -355,12 +355,12 @@ def _checked_fit(
 
     The fit uses the usable frames only: outlier frames (``pitting.observed``) are left out,
     lost frames are simply absent. It is flagged ``FRAME_GAPS_IN_FIT`` when gaps cover more
-    than :data:`FIT_GAP_FRACTION` of its span, ``POOR_FIT`` when R^2 is below
-    :data:`POOR_FIT_R_SQUARED` and the RMS residual exceeds :data:`POOR_FIT_NOISE_RATIO`
-    times the frame-to-frame noise. A good fit whose tau [s] is longer than its span means the
-    recovery is slower than the window: the paper's T_r (Eq. 6) is then flagged
-    ``NOT_SETTLED`` whatever the 98 % rule found (a tissue that barely recovers
-    "settles" within a frame by that rule alone).
+    than :data:`FIT_GAP_FRACTION` of its span or of its first 3 tau (where the rise is seen),
+    ``POOR_FIT`` when R^2 is below :data:`POOR_FIT_R_SQUARED` and the RMS residual exceeds
+    :data:`POOR_FIT_NOISE_RATIO` times the frame-to-frame noise. A good fit whose tau [s]
+    is longer than its span means the recovery is slower than the window: the paper's T_r
+    (Eq. 6) is then flagged ``NOT_SETTLED`` whatever the 98 % rule found (a tissue that
+    barely recovers "settles" within a frame by that rule alone).
 
     Returns
     -------
@@ -377,8 +377,16 @@ def _checked_fit(
     flags = set(fit.flags)
     notes: list[str] = []
     span = fit.t_end_s - fit.t0_s
-    covered = sum(max(0.0, min(g.end_s, fit.t_end_s) - max(g.start_s, fit.t0_s)) for g in obs.gaps)
-    if span > 0.0 and covered > FIT_GAP_FRACTION * span:
+
+    def gapped(end_s: float) -> bool:
+        """Gaps cover more than FIT_GAP_FRACTION of (T_0, end_s]."""
+        length = end_s - fit.t0_s
+        covered = sum(max(0.0, min(g.end_s, end_s) - max(g.start_s, fit.t0_s)) for g in obs.gaps)
+        return length > 0.0 and covered > FIT_GAP_FRACTION * length
+
+    # Over the whole span, and over the first 3 tau, where the rise (and tau) is seen.
+    rise_end = fit.t_end_s if fit.tau_s is None else min(fit.t_end_s, fit.t0_s + 3 * fit.tau_s)
+    if gapped(fit.t_end_s) or gapped(rise_end):
         flags.add(Flag.FRAME_GAPS_IN_FIT)
     window = (t >= fit.t0_s) & (t <= fit.t_end_s) & np.isfinite(s)
     noise = noise_sigma(s[window])

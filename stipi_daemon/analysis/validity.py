@@ -123,7 +123,10 @@ FLAG_RULES: Final[Mapping[Flag, FlagRule]] = MappingProxyType(
             "recovery did not settle within the window (T_r is only a lower bound)",
         ),
         Flag.SETTLED_WITHIN_ONE_FRAME: FlagRule(
-            ("recovery_time_s",), (), "T_r is at most one frame period (an upper bound)"
+            ("depth_mm", "recovery_time_s"),
+            (),
+            "the recovery finished within one frame: T_r is an upper bound and S_0 rests on "
+            "a single frame",
         ),
         Flag.NO_RECOVERY: FlagRule(
             ("recovery_time_s",), ("recovery_time_s",), "S_k did not rise after T_0"
@@ -166,6 +169,11 @@ FLAG_RULES: Final[Mapping[Flag, FlagRule]] = MappingProxyType(
             ("depth_mm", "recovery_time_s", "elasticity_kpa"),
             ("depth_mm",),
             "no usable frame near the release: S_0 is unknown",
+        ),
+        Flag.S0_FRAME_OUTLIER: FlagRule(
+            ("depth_mm", "elasticity_kpa"),
+            (),
+            "the frame at T_0 was an outlier: S_0 extrapolated from the next usable frames",
         ),
         Flag.FRAME_GAP_AT_SETTLING: FlagRule(
             ("recovery_time_s",), (), "the 98 % crossing lies in a frame gap"
@@ -244,6 +252,12 @@ def _specific_reason(flag: Flag, result: MeasurementResult) -> str | None:
         )
     if flag is Flag.FRAME_GAP_AT_MAXIMUM and obs.maximum_gap is not None:
         return f"S_max may lie in a gap ({obs.maximum_gap.describe()})"
+    if flag is Flag.S0_FRAME_OUTLIER and obs.outlier_times_s and obs.s0_frame_s is not None:
+        return (
+            f"the frame at {obs.outlier_times_s[0]:.3f} s (T_0 = {p.t0_s:.3f} s) was an "
+            f"outlier: S_0 extrapolated back to T_0 from the frames at and after "
+            f"{obs.s0_frame_s:.3f} s"
+        )
     if flag is Flag.OUTLIER_FRAMES and obs.outlier_times_s:
         n = len(obs.outlier_times_s)
         return f"{n} outlier frame{'s' if n > 1 else ''} left out of S_max, T_s and the fit"

@@ -272,3 +272,37 @@ def test_facts_from_outside_the_result_invalidate_or_flag_and_propagate() -> Non
     assert "image and force disagree" in v["viscosity_n_s_per_mm2"]["reason"]
     assert v["depth_mm"]["status"] == "valid"
     assert out["verdict"]["status"] == "flagged"
+
+
+def test_a_gap_over_the_early_rise_flags_the_fit_even_when_short_against_the_window() -> None:
+    t, s = gap(*noisy_kv(1.0), 19.6, 21.0)  # 1.4 s of a 105 s window, most of the rise
+    v = assess_validity(analyse(t, s, 19.5), ended_done=True)["validity"]
+    assert "frame_gaps_in_fit" in v["tau_s"]["flags"]
+
+
+@pytest.mark.parametrize("value", [0.0, 70000.0])
+@pytest.mark.parametrize("tau_s", [0.6, 7.5])
+def test_an_outlier_on_the_s0_frame_is_not_taken_as_s0(value: float, tau_s: float) -> None:
+    t, s = noisy_kv(tau_s)
+    clean = analyse(t, s, 19.5)
+    s = s.copy()
+    s[int(np.searchsorted(t, 19.5))] = value  # the frame at T_0 itself
+    res = analyse(t, s, 19.5)
+    assert Flag.S0_FRAME_OUTLIER in res.flags
+    # S_0 from the next frame: one frame period into the recovery.
+    assert res.pitting.depth_mm == pytest.approx(clean.pitting.depth_mm, rel=0.05)
+    v = assess_validity(res, ended_done=True)["validity"]
+    assert v["depth_mm"]["status"] == "flagged"
+    assert "was an outlier" in v["depth_mm"]["reason"]
+
+
+def test_a_release_step_within_one_frame_keeps_its_s0_and_flags_depth() -> None:
+    t = np.arange(0.0, 125.0, 1 / 60)
+    s = np.where(t < 19.5, 40000.0, 17000.0)
+    s[int(np.searchsorted(t, 19.5))] = 5000.0  # S_0 on one frame, settled on the next
+    res = analyse(t, s, 19.5)
+    assert res.pitting.s0_px == 5000.0
+    assert Flag.SETTLED_WITHIN_ONE_FRAME in res.flags
+    assert Flag.S0_FRAME_OUTLIER not in res.flags
+    v = assess_validity(res, ended_done=True)["validity"]
+    assert v["depth_mm"]["status"] == "flagged"
