@@ -159,7 +159,7 @@ class MeasurementPipeline:
         self._frames = _Series()
         #: The state machine's request to analyse, once it came.
         self.start: StartAnalysis | None = None
-        #: T_0 used by the analysis [s] (after refinement), once known.
+        #: T_0 used by the analysis [s] (the frame that shows the release), once known.
         self.t0_s: float | None = None
         #: The final result, once analysed (None also when the analysis failed).
         self.result: MeasurementResult | None = None

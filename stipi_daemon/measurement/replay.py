@@ -161,11 +161,10 @@ class ReplaySetup:
     reference : SeverityReference
         Severity reference curves (Section IV.C).
     t0_refine_s : float
-        T_0 refinement span passed to the pipeline [s].
+        How far around the release the pipeline looks for the image jump [s].
     live_interval_s : float or None
         Interval of the live-parameter updates after the release [s of recording time], as
-        the live shell asks for them (they add the pipeline's notes of the live T_0
-        refinement); None asks for none.
+        the live shell asks for them; None asks for none.
     """
 
     measurement: MeasurementConfig
@@ -236,13 +235,13 @@ class ReplayOutcome:
     start : StartAnalysis or None
         The analysis request (None when the machine never asked for one).
     t0_s : float or None
-        T_0 used by the analysis [s] (after refinement).
+        T_0 used by the analysis [s] (the frame that shows the release).
     result : MeasurementResult or None
         The results (None when the analysis failed or never ran).
     analysis_error : str or None
         Why the analysis failed.
     pipeline_notes : tuple of str
-        The pipeline's notes (T_0 refinement...).
+        The pipeline's notes (how T_0 and S_0 were observed...).
     measurement_flags : tuple of str
         The state machine's flags, sorted.
     transitions : tuple of PhaseChanged

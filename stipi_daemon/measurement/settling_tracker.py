@@ -11,9 +11,9 @@ about 20 levels, no history of frames).
 What it tracks (times on the host's monotonic clock [s], S_k in pixels):
 
 * The *rise*: it starts at the first recovery frame and starts again at any frame below
-  both every S_k since and the settling band (the end of the release transient, as the
-  analysis' T_0 refinement takes the lowest S_k; a drop). S_0 of the truncation bound is
-  S_k at the rise start, the *peak* the largest S_k since: the S_max the analysis sees.
+  both every S_k since and the settling band (the end of the release transient, where the
+  analysis reads S_0; a drop). S_0 of the truncation bound is S_k at the rise start, the
+  *peak* the largest S_k since: the S_max the analysis sees.
 * The *plateau*: the trailing run of frames at or above ``settle_fraction`` x peak, the
   98 % level of Eq. (6). Because the level rises with the peak, the run's start is read
   on a geometric grid of S_k levels 1/:data:`LEVELS_PER_BAND` of the band apart (0.1 %

@@ -67,7 +67,7 @@ Policies (all thresholds are fields of :class:`MeasurementConfig`):
      times the peak, the largest S_k since the rise started, which is the S_max the
      analysis will see. The rise starts at the first frame at or after T_0 and starts
      again at any frame below both every S_k since and the band (the end of the release
-     transient: the analysis' T_0 refinement also takes the lowest S_k). p is the start
+     transient: the analysis also reads S_0 at its bottom). p is the start
      of the trailing run of frames inside the band, read on a grid of S_k levels a
      twentieth of the band apart (0.1 %;
      :class:`~stipi_daemon.measurement.settling_tracker.SettlingTracker`): at most one grid step
