@@ -41,7 +41,7 @@ class Flag(StrEnum):
     FRAME_GAP_AT_SETTLING = "frame_gap_at_settling"
     FRAME_GAP_AT_MAXIMUM = "frame_gap_at_maximum"
     OUTLIER_FRAMES = "outlier_frames"
-    S0_FRAME_OUTLIER = "s0_frame_outlier"
+    S0_EXTRAPOLATED = "s0_extrapolated"
     # VPR model and recovery fit (Eqs. 7-10)
     FIT_NOT_CONVERGED = "fit_not_converged"
     TIME_CONSTANT_OUTSIDE_WINDOW = "time_constant_outside_window"
@@ -106,9 +106,9 @@ FLAG_DESCRIPTIONS: Final[Mapping[Flag, str]] = MappingProxyType(
             "Isolated outlier frames (a dark or bright frame) were left out of S_max, T_s and "
             "the fit."
         ),
-        Flag.S0_FRAME_OUTLIER: (
-            "The first frame at or after T_0 was an outlier; S_0 is extrapolated back to T_0 "
-            "from the next usable frames."
+        Flag.S0_EXTRAPOLATED: (
+            "The frame just after the release was lost, NaN or an outlier: S_0 is extrapolated "
+            "back to T_0 from the next usable frames."
         ),
         # VPR model and recovery fit (Eqs. 7-10)
         Flag.FIT_NOT_CONVERGED: (

@@ -22,6 +22,7 @@ from scipy.ndimage import median_filter
 
 from stipi_daemon.analysis.flags import Flag
 from stipi_daemon.analysis.observation import (
+    GAP_FACTOR,
     MATERIAL_GAP_PERIODS,
     RELEASE_BOUND_PERIODS,
     FrameGap,
@@ -478,13 +479,11 @@ class _RecoveryFrames:
       the release. When the usable frames around T_0 are more than
       :data:`~stipi_daemon.analysis.observation.RELEASE_BOUND_PERIODS` frame periods apart
       the release was not observed: ``RELEASE_NOT_OBSERVED``, S_0 (hence D_p) is unknown.
-    * When the first frame at or after T_0 is itself an outlier (a bright or dark frame
-      just after the release), S_0 is extrapolated back to T_0 along the line through the
-      next two usable frames (when they lie within RELEASE_BOUND_PERIODS periods of T_0;
-      else it is the next frame's S_k): ``S0_FRAME_OUTLIER``.
-      Unless the frames after it are already settled: a release step within one frame
-      looks the same, and S_0 then rests on that single frame (``SETTLED_WITHIN_ONE_FRAME``
-      flags D_p as well as T_r).
+    * When the frame just after the release is missing (lost, NaN, or an outlier: a
+      bright or dark frame), S_0 is extrapolated back to T_0 (:func:`_s0_at_release`):
+      ``S0_EXTRAPOLATED``. An outlier on the first frame is kept as S_0 when the frames
+      after it are already settled: a release step within one frame looks the same, and
+      S_0 then rests on that single frame (``SETTLED_WITHIN_ONE_FRAME`` flags D_p too).
     * Gaps (:func:`~stipi_daemon.analysis.observation.find_frame_gaps`) that overlap the
       window are kept; S_0 [px], the window's times [s] and S_k [px] without outliers.
     """
@@ -538,8 +537,6 @@ class _RecoveryFrames:
             outlier[0] = False
         if outlier.any():
             flags.add(Flag.OUTLIER_FRAMES)
-        if outlier[0]:
-            flags.add(Flag.S0_FRAME_OUTLIER)
         keep_t, keep_s = ts_[~outlier], ss_[~outlier]
         in_window = keep_t > t0
         if not in_window.any():
@@ -547,12 +544,12 @@ class _RecoveryFrames:
         gaps = tuple(
             g for g in find_frame_gaps(t, period) if g.end_s > t0 and g.start_s < t0 + window
         )
-        s0 = float(keep_s[0])
-        if outlier[0] and keep_t.size > 1 and keep_t[1] - t0 <= RELEASE_BOUND_PERIODS * period:
-            # Back to T_0 along the line through the next two frames (one frame of rise
-            # is not negligible for a fast recovery).
-            dt = float(keep_t[1] - keep_t[0])
-            s0 = max(0.0, s0 - float(keep_s[1] - keep_s[0]) * float(keep_t[0] - t0) / dt)
+        before = t[t < t0]
+        s0, late = _s0_at_release(
+            t0, float(before[-1]) if before.size else t0, keep_t, keep_s, period
+        )
+        if late and at_release is None:
+            flags.add(Flag.S0_EXTRAPOLATED)
         return cls(
             s0_px=s0,
             s0_frame_s=float(keep_t[0]),
@@ -573,6 +570,32 @@ class _RecoveryFrames:
         if self.period_s > 0.0 and length > max(MATERIAL_GAP_PERIODS * self.period_s, min_s):
             return gap_covering(self.gaps, lo_s, hi_s) or FrameGap(lo_s, hi_s)
         return None
+
+
+def _s0_at_release(
+    t0: float,
+    t_before: float,
+    keep_t: NDArray[np.float64],
+    keep_s: NDArray[np.float64],
+    period: float,
+) -> tuple[float, bool]:
+    """S_0 [px] at T_0 ``t0`` [s], and whether it had to be extrapolated.
+
+    ``t_before`` is the last usable frame before T_0 [s] (T_0 itself when there is none),
+    ``keep_t``, ``keep_s`` the usable, non-outlier frames from T_0 on [s, px], ``period``
+    the frame period [s]. S_0 is the first of those frames' S_k, unless that frame is
+    late: T_0 lies in an interval without frames longer than GAP_FACTOR periods (the
+    frame just after the release was lost, NaN or an outlier). A fast recovery rises by a
+    good part of its amplitude in a frame or two, so S_0 is then extrapolated back to T_0
+    along the line through the next two frames (when the second is within
+    RELEASE_BOUND_PERIODS + 1 periods of T_0), clipped at 0.
+    """
+    s0 = float(keep_s[0])
+    late = bool(keep_t[0] > t0 and keep_t[0] - t_before > GAP_FACTOR * period)
+    if late and keep_t.size > 1 and keep_t[1] - t0 <= (RELEASE_BOUND_PERIODS + 1) * period:
+        dt = float(keep_t[1] - keep_t[0])
+        s0 = max(0.0, s0 - float(keep_s[1] - keep_s[0]) * float(keep_t[0] - t0) / dt)
+    return s0, late
 
 
 def _gap_beside(win: _RecoveryFrames, k: int) -> FrameGap | None:

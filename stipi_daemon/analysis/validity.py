@@ -170,10 +170,10 @@ FLAG_RULES: Final[Mapping[Flag, FlagRule]] = MappingProxyType(
             ("depth_mm",),
             "no usable frame near the release: S_0 is unknown",
         ),
-        Flag.S0_FRAME_OUTLIER: FlagRule(
+        Flag.S0_EXTRAPOLATED: FlagRule(
             ("depth_mm", "elasticity_kpa"),
             (),
-            "the frame at T_0 was an outlier: S_0 extrapolated from the next usable frames",
+            "the frame after the release is missing or an outlier: S_0 extrapolated",
         ),
         Flag.FRAME_GAP_AT_SETTLING: FlagRule(
             ("recovery_time_s",), (), "the 98 % crossing lies in a frame gap"
@@ -252,11 +252,10 @@ def _specific_reason(flag: Flag, result: MeasurementResult) -> str | None:
         )
     if flag is Flag.FRAME_GAP_AT_MAXIMUM and obs.maximum_gap is not None:
         return f"S_max may lie in a gap ({obs.maximum_gap.describe()})"
-    if flag is Flag.S0_FRAME_OUTLIER and obs.outlier_times_s and obs.s0_frame_s is not None:
+    if flag is Flag.S0_EXTRAPOLATED and obs.s0_frame_s is not None:
         return (
-            f"the frame at {obs.outlier_times_s[0]:.3f} s (T_0 = {p.t0_s:.3f} s) was an "
-            f"outlier: S_0 extrapolated back to T_0 from the frames at and after "
-            f"{obs.s0_frame_s:.3f} s"
+            f"the frame after the release at {p.t0_s:.3f} s is missing or an outlier: S_0 "
+            f"extrapolated back to T_0 from the frames at and after {obs.s0_frame_s:.3f} s"
         )
     if flag is Flag.OUTLIER_FRAMES and obs.outlier_times_s:
         n = len(obs.outlier_times_s)
