@@ -55,6 +55,7 @@ from stipi_daemon.measurement.state_machine import (
     Tick,
 )
 from stipi_daemon.probe.link import ClockProbe, ForceRows, Gap, LinkDown, LinkUp
+from stipi_daemon.storage.video import VideoRecorder
 
 __all__ = [
     "LIVE_INTERVAL_S",
@@ -129,6 +130,9 @@ class FrameMeasurer:
         The live measurement, whose phase and times the keeper's choice depends on.
     """
 
+    #: Stores each measured frame in the session video (set by the daemon; None: no video).
+    recorder: VideoRecorder | None = None
+
     def __init__(
         self,
         clock: ScaledClock,
@@ -158,6 +162,8 @@ class FrameMeasurer:
                 saturation_limit_fraction=self._saturation_limit_fraction,
             )
         m = self._processor.measure(ev.image)
+        if self.recorder is not None:  # the session video: the frame S_k was counted on
+            self.recorder.record(ev.seq, ev.t_capture_s, ev.image, ev.packet)
         result = FrameResult(
             ev.seq,
             ev.t_capture_s,

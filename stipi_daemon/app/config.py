@@ -119,11 +119,20 @@ class StorageSettings(_Model):
         most this much.
     min_free_mb : float
         Free space required on ``root``'s file system before a session starts [MB].
+    video : {"passthrough", "lossless", "off"}
+        The session video (``video.mkv``, docs/storage.md): ``passthrough`` stores an MJPG
+        camera's JPEGs as received and records sources without encoded frames losslessly;
+        ``lossless`` stores the decoded frames S_k is counted on (FFV1); ``off`` none.
+    video_roi_only : bool
+        Lossless video: store only the bounding box of the ROI, in gray (the rectangle S_k
+        is counted in), not the whole frame.
     """
 
     root: Path = Path("sessions")
     commit_interval_s: float = Field(0.2, gt=0.0, le=0.25)
     min_free_mb: float = Field(100.0, ge=0.0)
+    video: Literal["passthrough", "lossless", "off"] = "passthrough"
+    video_roi_only: bool = False
 
 
 class DaemonConfig(_Model):

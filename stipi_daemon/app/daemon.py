@@ -167,6 +167,7 @@ async def run_daemon(
     keeper = RepresentativeFrames(config.measurement.pitting_duration_s)
     saturation = config.imaging.saturation_limit_fraction
     measurer = FrameMeasurer(clock, threshold, roi, saturation, keeper, pipeline)
+    measurer.recorder = devices.recorder  # the session video (storage.video)
     acquisition = Acquisition(config, devices, pipeline, console, measurer)
     status = "aborted"
     summary: dict[str, Any] = {"status": "aborted"}

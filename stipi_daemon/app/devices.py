@@ -24,7 +24,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from stipi_daemon.analysis.calibration import Calibration
-from stipi_daemon.analysis.imaging import CircleROI, RectROI, sk_kernel
+from stipi_daemon.analysis.imaging import CircleROI, FrameProcessor, RectROI, sk_kernel, to_gray
 from stipi_daemon.app.config import DaemonConfig
 from stipi_daemon.app.imaging import calibration_record, check_roi_fits
 from stipi_daemon.cameras import CameraStream, open_camera
@@ -32,6 +32,7 @@ from stipi_daemon.clock import ScaledClock
 from stipi_daemon.measurement.pipeline import MeasurementPipeline
 from stipi_daemon.probe.link import ProbeLink
 from stipi_daemon.probe.transports import TransportConfig, open_transport
+from stipi_daemon.storage.video import VideoRecorder
 from stipi_daemon.storage.writer import SessionWriter, StorageOptions
 
 __all__ = [
@@ -61,12 +62,16 @@ class Devices:
         The opened camera stream.
     writer : SessionWriter
         The new session.
+    recorder : VideoRecorder or None
+        Stores the measured frames in the session's ``video.mkv`` (None: ``storage.video``
+        is ``off``).
     """
 
     clock: ScaledClock
     probe: ProbeLink
     camera: CameraStream
     writer: SessionWriter
+    recorder: VideoRecorder | None = None
 
 
 @dataclass(frozen=True)
@@ -171,7 +176,46 @@ def _create_session(
             min_free_bytes=int(storage.min_free_mb * 1e6),
         ),
         software={"sk_kernel": sk_kernel()},
+        video=storage.video != "off",
     )
+
+
+def _video_recorder(
+    config: DaemonConfig,
+    writer: SessionWriter,
+    threshold_p: int,
+    roi: CircleROI | RectROI | None,
+    clock: ScaledClock,
+) -> VideoRecorder | None:
+    """The session video's recorder as ``storage.video`` says (None: none).
+
+    ``video_roi_only`` stores the gray bounding box of the ROI (lossless frames). The
+    default ``passthrough`` records a source without encoded frames losslessly only in
+    real time (clock speed 1): an accelerated simulation delivers its frames faster than
+    FFV1 encodes them on the CPU the measurement needs; ``lossless`` records it anyway (the
+    encoder leaves out frames it cannot keep up with, docs/storage.md).
+    """
+    storage, path = config.storage, writer.video_path
+    if storage.video == "off" or path is None:
+        return None
+    speed = clock.speed
+    if storage.video == "passthrough" and config.camera.kind == "simulator" and speed != 1.0:
+        writer.add_event(
+            clock.now(),
+            "video_not_recorded",
+            {"reason": f"raw simulated frames at clock speed {speed:g}; set storage.video"},
+        )
+        return None
+
+    def roi_box(shape: tuple[int, ...]) -> tuple[int, int, int, int] | None:
+        if roi is None:
+            return None
+        y0, y1, x0, x1 = FrameProcessor(shape, threshold_p, roi).bounding_box
+        return x0, y0, x1, y1
+
+    if storage.video_roi_only:
+        return VideoRecorder(path, writer, storage.video, crop=roi_box, to_gray=to_gray)
+    return VideoRecorder(path, writer, storage.video)
 
 
 def frame_size(metadata: dict[str, Any]) -> tuple[int, int] | None:
@@ -246,12 +290,15 @@ async def open_devices(
         await camera.close()
         await probe.close()
         raise
-    return Devices(clock, probe, camera, writer)
+    recorder = _video_recorder(config, writer, threshold_p, roi, clock)
+    return Devices(clock, probe, camera, writer, recorder)
 
 
 async def close_devices(devices: Devices) -> None:
-    """Stop the probe's stream (best effort), close the camera, then the probe."""
+    """Stop the probe's stream (best effort), close the camera and the video, then the probe."""
     with contextlib.suppress(Exception):
         await devices.probe.stop_stream()
     await devices.camera.close()
+    if devices.recorder is not None:
+        devices.recorder.close()
     await devices.probe.close()

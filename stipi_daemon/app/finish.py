@@ -131,6 +131,7 @@ def run_stats(
         "probe": devices.probe.stats_dict(),
         "camera": camera.stats.as_dict() | {"source": camera.camera.metadata()},
         "representative_frames": store_frames(keeper, devices.writer.directory),
+        "video": None if devices.recorder is None else devices.recorder.stats(),
     }
 
 
