@@ -267,15 +267,8 @@ class MeasurementPipeline:
         source: Literal["force", "operator"] = (
             "operator" if self.state.release_by == "operator" else "force"
         )
-        cal = self.calibration
         obs = observe_release(
-            t,
-            s,
-            ft,
-            t_release_s,
-            source=source,
-            search_s=max(self.t0_refine_s, 1e-9),
-            depth_mm=lambda s0: cal.indenter_length_mm - float(cal.depth_change_mm(s0)),
+            t, s, ft, t_release_s, source=source, search_s=max(self.t0_refine_s, 1e-9)
         )
         if note and obs.t0_s != t_release_s:
             self.notes.append(

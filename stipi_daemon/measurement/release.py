@@ -28,11 +28,12 @@ The rule (docs/analysis.md, "Where the recovery starts"):
   the image jump lies outside the bound, T_0 stays at the force drop and is flagged
   ``t0_image_force_disagree``. T_0 is then that frame's time (at most the bound after the
   drop), so that S_k at T_0 is a measured value.
-* When frames were lost just before the S_0 frame, S_k is extrapolated back to the
-  release at the slope of the next frames; if D_p of the two differs by more than
-  :data:`LATE_DEPTH_FRACTION` (a fast recovery), the frame does not stand for S_0.
+* When the frame that shows the release was lost (the S_0 frame comes after lost frames
+  and the release lies between it and the usable frame before), T_0 stays at the release:
+  the analysis then reads S_0 there from the frames after it, extrapolated and flagged
+  (:mod:`~stipi_daemon.analysis.pitting`, ``s0_extrapolated``).
 * When no valid frame lies within the bound after the release (a camera gap, unmeasurable
-  frames), or the frame after lost ones does not stand for it, S_0 was not observed: T_0
+  frames), S_0 was not observed: T_0
   stays at the release, the flag is ``s0_not_observed`` and D_p (with E, eta and the class
   that follow from it) is invalid.
 """
@@ -40,7 +41,6 @@ The rule (docs/analysis.md, "Where the recovery starts"):
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from typing import Any, Final, Literal
 
@@ -50,7 +50,6 @@ from numpy.typing import NDArray
 __all__ = [
     "CLOCK_SLACK_S",
     "JUMP_NOISE_FACTOR",
-    "LATE_DEPTH_FRACTION",
     "S0_NOT_OBSERVED",
     "T0_IMAGE_FORCE_DISAGREE",
     "ReleaseObservation",
@@ -62,11 +61,6 @@ CLOCK_SLACK_S: Final = 0.005
 #: A step of S_k counts as the image jump when larger than this many robust standard
 #: deviations of the frame-to-frame steps near the release [-].
 JUMP_NOISE_FACTOR: Final = 6.0
-#: When frames were lost just before the S_0 frame, D_p from it may differ by at most this
-#: fraction from D_p of S_k extrapolated back to the release at the local slope [-].
-LATE_DEPTH_FRACTION: Final = 0.02
-#: Frames after the S_0 frame whose least-squares slope estimates S_k's rate there [-].
-SLOPE_FRAMES: Final = 5
 #: Flag: no valid frame within the bound after the release; S_0 not observed.
 S0_NOT_OBSERVED: Final = "s0_not_observed"
 #: Flag: the image jump lies outside the bound of the force drop; T_0 kept at the force.
@@ -179,43 +173,11 @@ def _transient_bottom(
     return i
 
 
-def _late_s0_reason(
-    frame_t: FloatArray,
-    tv: FloatArray,
-    sv: FloatArray,
-    i: int,
-    t_release_s: float,
-    depth_mm: Callable[[float], float],
-) -> str | None:
-    """Why the S_0 frame ``i`` (into ``tv``) cannot stand for S_k at the release, or None.
-
-    Only when frames were lost just before it (the usable frame before it more than 1.5
-    frame periods earlier): S_k is extrapolated back to the release at the least-squares
-    slope of the next :data:`SLOPE_FRAMES` frames, and D_p of the two (``depth_mm``, Eqs.
-    (3)-(4)) may differ by at most :data:`LATE_DEPTH_FRACTION`.
-    """
+def _after_lost_frames(frame_t: FloatArray, tv: FloatArray, i: int) -> bool:
+    """Whether frames were lost just before usable frame ``i`` (into ``tv``): the usable
+    frame before it lies more than 1.5 frame periods earlier."""
     period = _median_step(frame_t)
-    j = min(i + SLOPE_FRAMES, tv.size)
-    if i == 0 or period <= 0.0 or tv[i] - tv[i - 1] <= 1.5 * period or j - i < 2:
-        return None
-    delay = float(tv[i] - t_release_s)
-    if delay <= 0.0:
-        return None
-    slope = float(np.polyfit(tv[i:j] - tv[i], sv[i:j], 1)[0])
-    s_frame = float(sv[i])
-    s_release = max(s_frame - slope * delay, 0.0)
-    d_frame, d_release = depth_mm(s_frame), depth_mm(s_release)
-    scale = max(abs(d_release), abs(d_frame))
-    if not (math.isfinite(d_frame) and math.isfinite(d_release)) or scale <= 0.0:
-        return None
-    change = abs(d_frame - d_release) / scale
-    if change <= LATE_DEPTH_FRACTION:
-        return None
-    return (
-        f"the frames at the release ({t_release_s:.3f} s) were lost: the first usable one, "
-        f"{delay * 1e3:.0f} ms after it, is read while S_k changes {slope:.0f} px/s, which "
-        f"moves D_p by about {change:.0%} (limit {LATE_DEPTH_FRACTION:.0%}): S_0 not observed"
-    )
+    return period > 0.0 and bool(tv[i] - tv[i - 1] > 1.5 * period)
 
 
 def observe_release(
@@ -226,7 +188,6 @@ def observe_release(
     *,
     source: Literal["force", "operator"],
     search_s: float,
-    depth_mm: Callable[[float], float] | None = None,
 ) -> ReleaseObservation:
     """T_0 and the S_0 frame from the reported release and the recorded series.
 
@@ -242,10 +203,6 @@ def observe_release(
         What the release came from.
     search_s : float
         How far around the release the image jump is looked for [s] (> 0).
-    depth_mm : callable, optional
-        D_p [mm] of an S_0 [px] (Eqs. (3)-(4)); with it, an S_0 frame read after lost
-        frames must give D_p within :data:`LATE_DEPTH_FRACTION` of S_k extrapolated back to
-        the release, else S_0 is not observed.
 
     Returns
     -------
@@ -290,15 +247,15 @@ def observe_release(
             f"no valid frame between {before:.3f} and {end} s around the release at "
             f"{t_release_s:.3f} s (bound {bound * 1e3:.0f} ms): S_0 not observed"
         )
-    if s0_index is not None and depth_mm is not None:
-        late = _late_s0_reason(frame_t, tv, sv, s0_index, t_release_s, depth_mm)
-        if late is not None:
-            flags.append(S0_NOT_OBSERVED)
-            reasons.append(late)
-            s0_index = None
     s0_t = None if s0_index is None else float(tv[s0_index])
+    t0 = t_release_s if s0_t is None else s0_t
+    if s0_index is not None and s0_index > 0 and _after_lost_frames(frame_t, tv, s0_index):
+        if tv[s0_index - 1] < t_release_s < tv[s0_index]:
+            # the frame showing the release was lost: T_0 stays at the release, where the
+            # analysis extrapolates S_0 from the frames after it (and flags it)
+            t0 = t_release_s
     return ReleaseObservation(
-        t0_s=t_release_s if s0_t is None else s0_t,
+        t0_s=t0,
         source=source,
         t_release_s=t_release_s,
         s0_frame_t_s=s0_t,

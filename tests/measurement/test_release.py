@@ -107,7 +107,10 @@ def test_a_release_transient_is_followed_to_its_bottom() -> None:
 def test_one_lost_frame_at_the_release_is_within_the_bound() -> None:
     tv, sv, tf = _series(1.5, before=0.0, nan_at=(0,))
     obs = observe_release(tv, sv, tf, 1.5, source="force", search_s=0.5)
-    assert obs.s0_observed and obs.t0_s == float(tv[np.searchsorted(tv, 1.5) + 1])
+    # the frame that shows the release was lost: T_0 stays at the release (the analysis
+    # extrapolates S_0 there from the frames after it)
+    assert obs.s0_observed and obs.t0_s == 1.5
+    assert obs.s0_frame_t_s == float(tv[np.searchsorted(tv, 1.5) + 1])
 
 
 def test_frames_lost_over_the_release_leave_s0_not_observed() -> None:
