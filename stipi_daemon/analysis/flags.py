@@ -42,6 +42,7 @@ class Flag(StrEnum):
     FRAME_GAP_AT_MAXIMUM = "frame_gap_at_maximum"
     OUTLIER_FRAMES = "outlier_frames"
     S0_EXTRAPOLATED = "s0_extrapolated"
+    RELEASE_FRAME_OUTLIER = "release_frame_outlier"
     # VPR model and recovery fit (Eqs. 7-10)
     FIT_NOT_CONVERGED = "fit_not_converged"
     TIME_CONSTANT_OUTSIDE_WINDOW = "time_constant_outside_window"
@@ -109,6 +110,10 @@ FLAG_DESCRIPTIONS: Final[Mapping[Flag, str]] = MappingProxyType(
         Flag.S0_EXTRAPOLATED: (
             "The frame just after the release was lost, NaN or an outlier: S_0 is extrapolated "
             "back to T_0 from the next usable frames."
+        ),
+        Flag.RELEASE_FRAME_OUTLIER: (
+            "The last frame before T_0 is an outlier (a dark or bright frame): the release may "
+            "have come a frame earlier, and S_0 may be read a frame late."
         ),
         # VPR model and recovery fit (Eqs. 7-10)
         Flag.FIT_NOT_CONVERGED: (

@@ -24,6 +24,7 @@ from stipi_daemon.analysis.flags import Flag
 from stipi_daemon.analysis.observation import (
     GAP_FACTOR,
     MATERIAL_GAP_PERIODS,
+    OUTLIER_HALF_WIDTH,
     RELEASE_BOUND_PERIODS,
     FrameGap,
     Observed,
@@ -484,6 +485,9 @@ class _RecoveryFrames:
       ``S0_EXTRAPOLATED``. An outlier on the first frame is kept as S_0 when the frames
       after it are already settled: a release step within one frame looks the same, and
       S_0 then rests on that single frame (``SETTLED_WITHIN_ONE_FRAME`` flags D_p too).
+    * When the last frame before T_0 is an outlier of the pitting frames before it, the
+      release may have come a frame before T_0 (a dark frame looks like the pitting phase):
+      ``RELEASE_FRAME_OUTLIER``.
     * Gaps (:func:`~stipi_daemon.analysis.observation.find_frame_gaps`) that overlap the
       window are kept; S_0 [px], the window's times [s] and S_k [px] without outliers.
     """
@@ -550,6 +554,8 @@ class _RecoveryFrames:
         )
         if late and at_release is None:
             flags.add(Flag.S0_EXTRAPOLATED)
+        if _last_frame_before_is_outlier(s[t < t0]):
+            flags.add(Flag.RELEASE_FRAME_OUTLIER)
         return cls(
             s0_px=s0,
             s0_frame_s=float(keep_t[0]),
@@ -570,6 +576,18 @@ class _RecoveryFrames:
         if self.period_s > 0.0 and length > max(MATERIAL_GAP_PERIODS * self.period_s, min_s):
             return gap_covering(self.gaps, lo_s, hi_s) or FrameGap(lo_s, hi_s)
         return None
+
+
+def _last_frame_before_is_outlier(s_before: NDArray[np.float64]) -> bool:
+    """Whether the last frame before T_0 is an outlier of the frames before it (S_k [px]).
+
+    A dark or bright frame just before the image's release step looks like one more frame
+    of the pitting phase, so T_0 placed at the step may be a frame late, and S_0 with it.
+    The test is :func:`~stipi_daemon.analysis.observation.find_outlier_frames` on the last
+    4 * OUTLIER_HALF_WIDTH + 1 frames before T_0.
+    """
+    tail = s_before[-(4 * OUTLIER_HALF_WIDTH + 1) :]
+    return bool(tail.size > 2 * OUTLIER_HALF_WIDTH and find_outlier_frames(tail)[-1])
 
 
 def _s0_at_release(

@@ -175,6 +175,12 @@ FLAG_RULES: Final[Mapping[Flag, FlagRule]] = MappingProxyType(
             (),
             "the frame after the release is missing or an outlier: S_0 extrapolated",
         ),
+        Flag.RELEASE_FRAME_OUTLIER: FlagRule(
+            ("depth_mm", "recovery_time_s", "elasticity_kpa"),
+            (),
+            "the frame before T_0 is an outlier: the release may be a frame earlier and S_0 "
+            "a frame late",
+        ),
         Flag.FRAME_GAP_AT_SETTLING: FlagRule(
             ("recovery_time_s",), (), "the 98 % crossing lies in a frame gap"
         ),

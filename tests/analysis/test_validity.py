@@ -324,3 +324,19 @@ def test_a_release_step_within_one_frame_keeps_its_s0_and_flags_depth() -> None:
     assert Flag.S0_EXTRAPOLATED not in res.flags
     v = assess_validity(res, ended_done=True)["validity"]
     assert v["depth_mm"]["status"] == "flagged"
+
+
+def test_a_dark_frame_just_before_t0_flags_depth_and_tr() -> None:
+    # The dark frame at the release looks like one more pitting frame: T_0 placed at the
+    # image's step (the next frame) may be a frame late.
+    t, s = noisy_kv(0.56)
+    i = int(np.searchsorted(t, 19.5))
+    s = s.copy()
+    s[i] = 70000.0
+    res = analyse(t, s, float(t[i + 1]))
+    assert Flag.RELEASE_FRAME_OUTLIER in res.flags
+    v = assess_validity(res, ended_done=True)["validity"]
+    assert v["depth_mm"]["status"] == "flagged"
+    assert v["recovery_time_s"]["status"] == "flagged"
+    clean = assess_validity(analyse(*noisy_kv(0.56), 19.5), ended_done=True)
+    assert "release_frame_outlier" not in clean["validity"]["depth_mm"]["flags"]
