@@ -17,6 +17,13 @@ comparisons with the stored summary and with a simulator's ground truth
 file reading :mod:`stipi_daemon.app.offline_io`. This module builds the output document
 (format ``stipi-offline-analysis``), writes it (never over a recorded file) and the lines
 the command prints.
+
+Sessions that ended early (aborted, fault, interrupted, still recording) are analysed
+for what their recording allows (:func:`rescue`): the recovery that was kept, and when
+the replay re-enacts the fault that ended the session (a lost link, a session closed in
+the recovery), the recording up to that fault. Such an analysis is written beside the
+session like any other (``analysis-<UTC time>.json``, never over ``summary.json``); its
+verdict is ``incomplete`` and its line says how the session ended.
 """
 
 from __future__ import annotations
@@ -51,6 +58,7 @@ from stipi_daemon.app.imaging import (
 )
 from stipi_daemon.app.offline_io import (
     SessionData,
+    count_session_video,
     count_video,
     load_ground_truth,
     match_frame_times,
@@ -60,7 +68,7 @@ from stipi_daemon.app.offline_io import (
 )
 from stipi_daemon.errors import ConfigError, DataFileError, SessionError
 from stipi_daemon.measurement.replay import Recording, ReplayOutcome, ReplaySetup, replay
-from stipi_daemon.measurement.state_machine import MeasurementConfig
+from stipi_daemon.measurement.state_machine import FAULT_PHASES, MeasurementConfig, Phase
 from stipi_daemon.storage import SessionState, layout
 
 __all__ = [
@@ -312,12 +320,13 @@ def _recount(
         notes.append("ROI: none recorded, the whole frame is counted")
     elif imaging.roi.source == "simulator ground truth":
         notes.append("ROI: the simulator's waveguide disc (ground truth)")
+    if data.video_seq is not None and data.video_seq.size and data.frame_seq is not None:
+        return _recount_stored(data, data.video_path, threshold, roi, settings, notes)
     video = count_video(
         data.video_path,
         threshold.value,
         roi,
         saturation_limit_fraction=settings.saturation_limit_fraction,
-        roi_field=None if imaging.roi is None else _roi_field(imaging.roi.source),
     )
     n_rows, n_video = data.frame_times_s.size, video.s_k_px.size
     if n_video < n_rows:
@@ -342,6 +351,56 @@ def _recount(
     return data, video.s_k_px[:n], record
 
 
+def _recount_stored(
+    data: SessionData,
+    video_path: Path,
+    threshold: Any,
+    roi: CircleROI | RectROI | None,
+    settings: ImagingSettings,
+    notes: list[str],
+) -> tuple[SessionData, np.ndarray[Any, np.dtype[np.float64]], dict[str, Any]]:
+    """Recount on a session's own ``video.mkv``: each stored frame is paired with its
+    ``frames`` row by ``seq`` (``video_frames``); rows without a stored frame are left out
+    (noted). The record says how many recounted S_k differ from the stored ones."""
+    assert data.video_seq is not None and data.frame_seq is not None
+    video = count_session_video(
+        video_path,
+        threshold.value,
+        roi,
+        saturation_limit_fraction=settings.saturation_limit_fraction,
+    )
+    n_video = min(video.s_k_px.size, data.video_seq.size)
+    by_seq = dict(zip(data.video_seq[:n_video].tolist(), video.s_k_px[:n_video], strict=True))
+    keep = np.array([int(s) in by_seq for s in data.frame_seq], dtype=bool)
+    if not keep.all():
+        notes.append(
+            f"{int((~keep).sum())} of the {keep.size} stored frames are not in the video: "
+            "they are left out"
+        )
+    s_k = np.array([by_seq[int(s)] for s in data.frame_seq[keep]], dtype=np.float64)
+    stored = data.s_k_px[keep]
+    differ = int(np.count_nonzero(s_k != stored))
+    data = dataclasses.replace(
+        data,
+        frame_times_s=data.frame_times_s[keep],
+        s_k_px=stored,
+        frame_seq=data.frame_seq[keep],
+    )
+    record = {
+        "s_k_source": f"video {video_path}",
+        "threshold_p": threshold.value,
+        "threshold_source": threshold.source,
+        "roi": _roi_dict(roi),
+        "saturated_frames": video.saturated_frames,
+        "s_k_vs_stored": {
+            "frames": int(s_k.size),
+            "differing": differ,
+            "max_abs_difference_px": float(np.max(np.abs(s_k - stored))) if s_k.size else 0.0,
+        },
+    }
+    return data, s_k, record
+
+
 def _json_roundtrip(value: Any) -> Any:
     from stipi_daemon.storage.schema import to_jsonable
 
@@ -361,6 +420,69 @@ def _stored_comparison(
         "summary",
     )
     return {"identical": not diffs, "differences": diffs}
+
+
+#: Session states of a session that did not end DONE (analysed for what the data allow).
+ENDED_EARLY = (
+    SessionState.ABORTED,
+    SessionState.FAULT,
+    SessionState.INTERRUPTED,
+    SessionState.RECORDING,
+)
+
+
+def _cut(rec: Recording, t_end_s: float) -> Recording | None:
+    """The recording strictly before ``t_end_s`` [s] (None when no frame is left)."""
+    frames = rec.frame_times_s < t_end_s
+    if not frames.any():
+        return None
+    force = rec.force_times_s < t_end_s
+    return dataclasses.replace(
+        rec,
+        frame_times_s=rec.frame_times_s[frames],
+        s_k_px=rec.s_k_px[frames],
+        force_times_s=rec.force_times_s[force],
+        force_n=rec.force_n[force],
+        link_events=tuple(e for e in rec.link_events if e.t_s < t_end_s),
+    )
+
+
+def rescue(
+    rec: Recording, setup: ReplaySetup, outcome: ReplayOutcome
+) -> tuple[ReplayOutcome, float | None]:
+    """What the recording of a session that ended early allows.
+
+    When the replay ends in a fault or an abort without results (it re-enacted what ended
+    the session), the recording before that end is replayed again and its recovery, if
+    any, analysed (``partial_recovery``). Returns the outcome to report and the time the
+    recording was cut at [s] (None when ``outcome`` is kept).
+    """
+    terminal = FAULT_PHASES | {Phase.ABORTED}
+    if outcome.result is not None or outcome.phase not in terminal:
+        return outcome, None
+    ends = [t.t_s for t in outcome.transitions if t.new in terminal]
+    cut = _cut(rec, ends[-1]) if ends else None
+    if cut is None:
+        return outcome, None
+    rescued = replay(cut, setup, partial_recovery=True)
+    if rescued.result is None:
+        return outcome, None
+    return rescued, ends[-1]
+
+
+def _incomplete_verdict(
+    data: SessionData, outcome: ReplayOutcome, cut_at_s: float | None
+) -> dict[str, str]:
+    """The verdict of an analysis of a session that ended early: incomplete, and why."""
+    stored = data.summary or {}
+    why = stored.get("end_reason") or stored.get("storage_error") or f"session {data.status}"
+    if outcome.result is None:
+        shown = "no results: the recording holds no recovery to analyse"
+    elif cut_at_s is not None:
+        shown = f"results rescued from the recording before {cut_at_s:.2f} s"
+    else:
+        shown = "results computed from the recovery that was recorded"
+    return {"status": "incomplete", "line": f"Session {data.status} ({why}): {shown}."}
 
 
 def analyze_session(request: AnalyzeRequest) -> AnalysisRun:
@@ -390,8 +512,17 @@ def analyze_session(request: AnalyzeRequest) -> AnalysisRun:
     # A complete session whose recorder ended the recovery before these settings would
     # (an older, shorter settling rule - docs/settling.md - or a shorter hold) is analysed
     # on the recovery it kept, as an interrupted one is.
-    kept = (SessionState.INTERRUPTED, SessionState.RECORDING, SessionState.COMPLETE)
-    outcome = replay(data.recording(s_k), setup, partial_recovery=status in kept)
+    rec = data.recording(s_k)
+    outcome = replay(rec, setup, partial_recovery=True)
+    cut_at_s: float | None = None
+    if status in ENDED_EARLY:
+        ended_in = outcome.phase
+        outcome, cut_at_s = rescue(rec, setup, outcome)
+        if cut_at_s is not None:
+            notes.append(
+                f"the replay ends as the session did (phase {ended_in}); analysed the "
+                f"recording before {cut_at_s:.2f} s, where the session ended"
+            )
     if status is SessionState.COMPLETE and outcome.partial:
         notes.append(
             "the recorder ended the recovery before these settings would have (an older "
@@ -399,6 +530,8 @@ def analyze_session(request: AnalyzeRequest) -> AnalysisRun:
             "may read low"
         )
     recomputed = outcome.summary()
+    if status in ENDED_EARLY:
+        recomputed["verdict"] = _incomplete_verdict(data, outcome, cut_at_s)
     truth_rows = compare_ground_truth(recomputed, truth) if truth is not None else None
     inputs = {
         "kind": "session",
@@ -417,6 +550,7 @@ def analyze_session(request: AnalyzeRequest) -> AnalysisRun:
         _stored_comparison(data.summary, recomputed),
         truth_rows,
     )
+    doc["summary"] = recomputed
     out = request.out if request.out is not None else _default_out(data.directory)
     _check_out(out, [data.directory / name for name in _PROTECTED])
     header = [f"session {data.session_id} ({status}), {data.directory}"]

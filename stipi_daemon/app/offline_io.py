@@ -47,6 +47,7 @@ __all__ = [
     "CsvTable",
     "SessionData",
     "VideoCount",
+    "count_session_video",
     "count_video",
     "load_ground_truth",
     "match_frame_times",
@@ -367,6 +368,75 @@ def count_video(
     )
 
 
+def _shifted_roi(
+    roi: CircleROI | RectROI | None, crop: tuple[int, int, int, int] | None
+) -> CircleROI | RectROI | None:
+    """The ROI in the coordinates of a video that stores only ``crop`` = ``(x0, y0, x1, y1)``
+    of the camera frame (the shift is exact: integer offsets)."""
+    if roi is None or crop is None:
+        return roi
+    x0, y0 = crop[0], crop[1]
+    if isinstance(roi, RectROI):
+        return roi.model_copy(update={"x_px": roi.x_px - x0, "y_px": roi.y_px - y0})
+    return roi.model_copy(update={"cx_px": roi.cx_px - x0, "cy_px": roi.cy_px - y0})
+
+
+def count_session_video(
+    path: str | Path,
+    threshold_p: int,
+    roi: CircleROI | RectROI | None,
+    *,
+    saturation_limit_fraction: float = 0.01,
+) -> VideoCount:
+    """Count S_k (Eqs. 1-2) on a session's ``video.mkv``, on the images as the daemon counted
+    them (:func:`stipi_daemon.storage.video.iter_video_images`: the JPEGs decoded as the
+    camera decoded them, FFV1 bit-exact; a video of the ROI's bounding box is counted with
+    the ROI moved into it). ``roi`` is in camera-frame coordinates.
+
+    Raises
+    ------
+    SessionError
+        The video is missing or unreadable.
+    DataFileError
+        It holds no decodable frame, or frames of different sizes.
+    """
+    from stipi_daemon.storage.video import iter_video_images, probe_video
+
+    p = Path(path)
+    info = probe_video(p)
+    local_roi = _shifted_roi(roi, info.crop)
+    processor: FrameProcessor | None = None
+    counts: list[int] = []
+    flags: list[frozenset[Flag]] = []
+    for frame in iter_video_images(p):
+        if processor is None:
+            processor = FrameProcessor(
+                frame.shape,
+                threshold_p,
+                local_roi,
+                saturation_limit_fraction=saturation_limit_fraction,
+            )
+        elif frame.shape != processor.frame_shape:
+            raise DataFileError(
+                f"{p}: frame {len(counts)} has shape {frame.shape}, the first frame "
+                f"{processor.frame_shape}"
+            )
+        m = processor.measure(frame)
+        counts.append(m.s_k_px)
+        flags.append(m.flags)
+    if processor is None:
+        raise DataFileError(f"{p}: the video holds no decodable frame")
+    return VideoCount(
+        path=p,
+        s_k_px=np.asarray(counts, dtype=np.float64),
+        flags=tuple(flags),
+        fps=0.0,
+        frame_shape=tuple(processor.frame_shape),
+        threshold_p=processor.p,
+        roi=roi,
+    )
+
+
 def match_frame_times(
     video: VideoCount, times_s: FloatArray | None, source: str
 ) -> tuple[FloatArray, FloatArray, list[str]]:
@@ -430,6 +500,11 @@ class SessionData:
         ``camera_stalled``, ``camera_recovered``) as state-machine events.
     video_path : Path or None
         The session's video if the file exists.
+    frame_seq : numpy.ndarray or None
+        Each frame row's camera ``seq``.
+    video_seq : numpy.ndarray or None
+        ``seq`` of each frame stored in the video, in file order (``video_frames``; empty
+        for a session recorded without video or before schema version 2).
     """
 
     directory: Path
@@ -444,6 +519,8 @@ class SessionData:
     t_arm_s: float | None
     video_path: Path | None
     link_events: tuple[Event, ...] = ()
+    frame_seq: npt.NDArray[np.int64] | None = None
+    video_seq: npt.NDArray[np.int64] | None = None
 
     def recording(self, s_k_px: FloatArray | None = None) -> Recording:
         """The session's samples as a :class:`Recording` (optionally with new S_k)."""
@@ -472,6 +549,7 @@ def read_session(directory: str | Path) -> SessionData:
         status = reader.status
         with reader.snapshot():
             frames = reader.frames()
+            video_frames = reader.video_frames()
             force = reader.force_samples()
             transitions = reader.transitions()
             events = reader.events()
@@ -504,6 +582,8 @@ def read_session(directory: str | Path) -> SessionData:
         t_arm_s=t_arm,
         video_path=video if video is not None and video.is_file() else None,
         link_events=link_events,
+        frame_seq=np.asarray(frames["seq"], dtype=np.int64),
+        video_seq=np.asarray(video_frames["seq"], dtype=np.int64),
     )
 
 

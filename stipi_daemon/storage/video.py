@@ -12,12 +12,15 @@ one video stream in one of two ways:
   every frame intra, CRC per slice), gray as ``gray``, BGR as ``bgr0`` (the same bytes padded
   to 32 bits); optionally only a rectangle of it (the gray bounding box of the ROI).
 
-Every stored frame is tied to its ``frames`` row by a ``video_frames`` row
-(``seq, frame_index, pts_ms, t_capture_host_s``) added to the session as the frame is
-muxed. The muxer flushes its I/O after every packet (``flush_packets=1``), so a process
-killed at any moment leaves a file that FFmpeg opens and plays up to the last frame or
-two written, which is never behind the newest committed ``frames`` row by more than
-that (the frame is muxed before its row is stored). When writing fails (disk full), the
+FFV1 frames are encoded in a thread of their own (PyAV releases the GIL while FFmpeg
+encodes) at the lowest CPU priority, at most :data:`ENCODER_QUEUE_FRAMES` behind; a frame
+arriving when the encoder lags further is left out of the video and counted, so recording
+never slows the measurement. Every stored frame is tied to its ``frames`` row by a
+``video_frames`` row (``seq, frame_index, pts_ms, t_capture_host_s``) added to the session
+as the frame is muxed. The muxer flushes its I/O after every packet (``flush_packets=1``),
+so a process killed at any moment leaves a file that FFmpeg opens and plays up to the
+newest frame but one (the muxer holds the newest block until the next arrives), within one
+commit interval of the newest committed ``frames`` row. When writing fails (disk full), the
 recorder stops, closes the file as far as it can and hands the error to the session
 writer (:meth:`~.writer.SessionWriter.fail`), so rows and video stop together.
 
@@ -29,8 +32,12 @@ It computes nothing about the images.
 
 from __future__ import annotations
 
+import contextlib
 import logging
-from collections.abc import Iterator
+import os
+import queue
+import threading
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from fractions import Fraction
 from pathlib import Path
@@ -64,12 +71,19 @@ VIDEO_MODES: Final[tuple[VideoMode, ...]] = ("passthrough", "lossless", "off")
 PTS_TIME_BASE: Final = Fraction(1, 1000)
 #: Muxer options: flush the file after every packet (the crash-survival argument).
 MUXER_OPTIONS: Final = {"flush_packets": "1"}
+#: Frames waiting for the FFV1 encoder thread at most [-]. At 60 fps they span 133 ms, less
+#: than the default commit interval. When it is full the frame is left out of the video
+#: (counted): recording never slows the measurement down.
+ENCODER_QUEUE_FRAMES: Final = 8
+#: Nice value of the encoder thread (the lowest priority).
+ENCODER_NICE: Final = 19
 #: Matroska tag naming the pixel layout the daemon counted on (``gray`` or ``bgr``).
 TAG_IMAGE: Final = "STIPI_IMAGE"
 #: Matroska tag holding the stored rectangle ``x0,y0,x1,y1`` of the camera frame [px].
 TAG_CROP: Final = "STIPI_CROP"
 
 Image = npt.NDArray[np.uint8]
+Crop = tuple[int, int, int, int]
 
 
 @dataclass(frozen=True)
@@ -118,9 +132,14 @@ class VideoRecorder:
         and the error when writing fails.
     mode : {"passthrough", "lossless"}
         See the module docstring.
-    crop : tuple of int, optional
+    crop : tuple of int or callable, optional
         ``(x0, y0, x1, y1)`` [px]: store only this rectangle (lossless frames only; a
-        passthrough packet is always the whole frame).
+        passthrough packet is always the whole frame); or a function of the first frame's
+        shape giving it (or None).
+    to_gray : callable, optional
+        With ``crop``: store the rectangle of ``to_gray(image)`` (the gray image S_k is
+        counted on, e.g. :func:`stipi_daemon.analysis.imaging.to_gray`) rather than of the
+        image as delivered.
     """
 
     def __init__(
@@ -129,14 +148,17 @@ class VideoRecorder:
         writer: SessionWriter,
         mode: VideoMode,
         *,
-        crop: tuple[int, int, int, int] | None = None,
+        crop: Crop | Callable[[tuple[int, ...]], Crop | None] | None = None,
+        to_gray: Callable[[Image], Image] | None = None,
     ) -> None:
         if mode not in ("passthrough", "lossless"):
             raise ValueError(f"video mode {mode!r}: a recorder records passthrough or lossless")
         self.path = Path(path)
         self.mode = mode
         self._writer = writer
-        self._crop = crop
+        self._crop_for = crop
+        self._to_gray = to_gray
+        self._crop: Crop | None = None
         self._container: Any = None
         self._stream: Any = None
         self._codec = ""
@@ -144,8 +166,12 @@ class VideoRecorder:
         self._last_pts = -1
         self._failed: str | None = None
         self._closed = False
+        self._queue: queue.Queue[tuple[int, float, Image] | None] | None = None
+        self._thread: threading.Thread | None = None
         #: Frames stored [-].
         self.frames = 0
+        #: Frames left out because the encoder could not keep up [-] (no row either).
+        self.left_out = 0
 
     @property
     def failed(self) -> str | None:
@@ -160,13 +186,19 @@ class VideoRecorder:
             "mode": self.mode,
             "codec": self._codec or None,
             "frames": self.frames,
+            "left_out": self.left_out,
             "size_bytes": size,
-            "crop": list(self._crop) if self._crop and self._codec == "ffv1" else None,
+            "crop": None if self._crop is None else list(self._crop),
             "error": self._failed,
         }
 
     def record(self, seq: int, t_capture_s: float, image: Image, packet: bytes | None) -> bool:
-        """Store one frame and its ``video_frames`` row; False once recording has stopped.
+        """Store one frame and its ``video_frames`` row.
+
+        Returns False when the frame is not stored: recording has stopped, or the FFV1
+        encoder thread lags :data:`ENCODER_QUEUE_FRAMES` behind and the frame is left out
+        (counted in :attr:`left_out`). FFV1 frames are encoded in that thread; a failure
+        there stops recording and shows at the session writer's next call.
 
         Parameters
         ----------
@@ -184,35 +216,64 @@ class VideoRecorder:
         try:
             if self._container is None:
                 self._open(t_capture_s, image, packet)
-            pts = max(self._last_pts + 1, round((t_capture_s - self._t0_s) * 1000.0))
-            self._mux(pts, image, packet)
-            self._last_pts = pts
-            self._writer.add_video_frames([(seq, self.frames, pts, t_capture_s)])
+            if self._queue is not None:  # FFV1: encoded in the encoder thread
+                try:
+                    self._queue.put_nowait((seq, t_capture_s, image))
+                except queue.Full:  # the encoder cannot keep up: leave this frame out
+                    self.left_out += 1
+                    return False
+                return self._failed is None
+            self._store(seq, t_capture_s, image, packet)
         except SessionError as exc:  # the database failed: stop the video with the rows
             self._stop(str(exc), exc)
             return False
         except (OSError, ValueError) as exc:  # av.FFmpegError is an OSError or ValueError
             self._stop(f"{self.path}: video recording stopped: {exc}")
             return False
-        self.frames += 1
         return True
+
+    def _store(self, seq: int, t_capture_s: float, image: Image, packet: bytes | None) -> None:
+        """Mux one frame and add its ``video_frames`` row (raises on failure)."""
+        pts = max(self._last_pts + 1, round((t_capture_s - self._t0_s) * 1000.0))
+        self._mux(pts, image, packet)
+        self._last_pts = pts
+        self._writer.add_video_frames([(seq, self.frames, pts, t_capture_s)])
+        self.frames += 1
+
+    def _encode_loop(self, q: queue.Queue[tuple[int, float, Image] | None]) -> None:
+        """The FFV1 encoder thread (PyAV releases the GIL while FFmpeg encodes), at the lowest
+        CPU priority (Linux: nice 19 for this thread), so it takes only CPU the measurement
+        leaves idle."""
+        with contextlib.suppress(OSError, AttributeError):
+            os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), ENCODER_NICE)
+        while (item := q.get()) is not None:
+            if self._failed is not None:
+                continue  # drain, so that record() never blocks on a dead encoder
+            try:
+                self._store(*item, None)
+            except SessionError as exc:
+                self._stop(str(exc), exc, join=False)
+            except (OSError, ValueError) as exc:
+                self._stop(f"{self.path}: video recording stopped: {exc}", join=False)
 
     def _open(self, t_capture_s: float, image: Image, packet: bytes | None) -> None:
         import av
 
         passthrough = self.mode == "passthrough" and packet is not None
+        crop = self._crop_for(image.shape) if callable(self._crop_for) else self._crop_for
+        crop = None if passthrough else crop
+        if crop is not None and self._to_gray is not None:
+            image = self._to_gray(image)
         layout = "gray" if image.ndim == 2 else "bgr"
         container = av.open(str(self.path), "w", format="matroska", options=MUXER_OPTIONS)
         try:
             h, w = image.shape[:2]
-            crop = None if passthrough else self._crop
             if crop is not None:
                 x0, y0, x1, y1 = crop
                 if not (0 <= x0 < x1 <= w and 0 <= y0 < y1 <= h):
                     raise ValueError(f"video crop {crop} lies outside the {w}x{h} frame")
                 w, h = x1 - x0, y1 - y0
-            else:
-                self._crop = None
+            self._crop = crop
             if passthrough:
                 stream = container.add_stream("mjpeg")
                 stream.pix_fmt = "yuvj420p"
@@ -231,6 +292,13 @@ class VideoRecorder:
         self._container, self._stream = container, stream
         self._codec = "mjpeg" if passthrough else "ffv1"
         self._t0_s = t_capture_s
+        if not passthrough:
+            q: queue.Queue[tuple[int, float, Image] | None] = queue.Queue(ENCODER_QUEUE_FRAMES)
+            self._queue = q
+            self._thread = threading.Thread(
+                target=self._encode_loop, args=(q,), name=f"video encoder {self.path}", daemon=True
+            )
+            self._thread.start()
         self._writer.add_event(
             t_capture_s,
             "video_started",
@@ -261,7 +329,7 @@ class VideoRecorder:
             return
         if self._crop is not None:
             x0, y0, x1, y1 = self._crop
-            image = image[y0:y1, x0:x1]
+            image = (image if self._to_gray is None else self._to_gray(image))[y0:y1, x0:x1]
         fmt = "gray" if image.ndim == 2 else "bgr24"
         frame = av.VideoFrame.from_ndarray(np.ascontiguousarray(image), format=fmt)
         frame.pts = pts
@@ -269,13 +337,21 @@ class VideoRecorder:
         for out in stream.encode(frame):
             container.mux_one(out)
 
-    def _stop(self, reason: str, error: SessionError | None = None) -> None:
+    def _stop(self, reason: str, error: SessionError | None = None, *, join: bool = True) -> None:
         self._failed = reason
         _log.error("%s", reason)
-        self._close_container()
         self._writer.fail(error if error is not None else SessionError(reason))
+        if join:
+            self._close_container()
+
+    def _join_encoder(self) -> None:
+        q, thread, self._queue, self._thread = self._queue, self._thread, None, None
+        if q is not None and thread is not None:
+            q.put(None)
+            thread.join()
 
     def _close_container(self) -> None:
+        self._join_encoder()
         container, self._container = self._container, None
         if container is None:
             return
@@ -294,6 +370,12 @@ class VideoRecorder:
             return
         self._closed = True
         self._close_container()
+        if self.left_out:
+            _log.warning(
+                "%s: %d frames left out of the video (the encoder could not keep up)",
+                self.path,
+                self.left_out,
+            )
 
 
 # ------------------------------------------------------------------------------ reading

@@ -224,7 +224,7 @@ def _session_with_video(sim_dir: Path, root: Path) -> Path:
         writer.add_force_samples(force)
         writer.add_frames([(i, t, t, 0, "") for i, t in frames])
         writer.add_transition(0.0, "idle", "armed", "armed by the operator")
-        (root / "with-video" / "video.avi").write_bytes((sim_dir / "video.avi").read_bytes())
+        (root / "with-video" / "video.mkv").write_bytes((sim_dir / "video.avi").read_bytes())
         writer.finish("complete", {"ground_truth": truth})
     return root / "with-video"
 
@@ -321,3 +321,81 @@ def test_session_keeps_the_calibration_extrapolated_flag_the_live_run_set(
     assert "calibration_extrapolated" in doc["summary"]["results"]["pitting"]["flags"]
     assert doc["settings"]["calibration"]["s0_valid_range_px"] == [0.0, 1.0]
     assert doc["comparison"]["stored_summary"] == {"identical": True, "differences": []}
+
+
+def _ended_early(
+    source: Path, root: Path, until_s: float, status: str, why: str, link_down_s: float | None
+) -> Path:
+    """A copy of ``source``'s rows up to ``until_s``, finished as ``status`` without results,
+    as the daemon leaves a session that ended early (optionally a ``link_down`` event)."""
+    from stipi_daemon.storage import SessionWriter, StorageOptions
+
+    with SessionReader(source) as reader:
+        manifest = reader.manifest
+        force, frames, transitions = reader.force_samples(), reader.frames(), reader.transitions()
+    writer = SessionWriter.create(
+        root,
+        manifest["config"],
+        manifest["calibration"],
+        manifest["firmware"],
+        session_id=status,
+        options=StorageOptions(min_free_bytes=0),
+    )
+    writer.add_force_samples([r for r in force.tolist() if r[4] <= until_s])
+    writer.add_frames(
+        [
+            (seq, tc, th, sk, [f for f in flags.split(",") if f])
+            for seq, tc, th, sk, flags in frames.tolist()
+            if tc <= until_s
+        ]
+    )
+    for t in transitions:
+        if t.t_host_s <= until_s:
+            writer.add_transition(t.t_host_s, t.old_state, t.new_state, t.reason)
+    if link_down_s is not None:
+        writer.add_event(link_down_s, "camera_stalled", {"detail": "test"})
+    writer.finish(status, {"status": status, "end_reason": why, "results": None})
+    writer.close()
+    return root / status
+
+
+@pytest.mark.parametrize(
+    ("status", "why", "link_down_after_s"),
+    [
+        ("aborted", "aborted by the operator in recovery", None),
+        ("fault", "camera stalled in recovery", 6.0),
+    ],
+)
+def test_a_session_that_ended_early_is_rescued_beside_it(
+    session_dir: Path,
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+    status: str,
+    why: str,
+    link_down_after_s: float | None,
+) -> None:
+    """Issue 14 case 9: what the recording allows, computed; why it is incomplete, said."""
+    stored = json.loads((session_dir / "summary.json").read_text())
+    t0 = stored["measurement"]["t0_refined_s"]
+    root = tmp_path / "sessions"
+    # With a link_down that never recovers, the replay re-enacts the fault (the watchdog's
+    # timeout): the recording before it is analysed.
+    link_down_s = None if link_down_after_s is None else t0 + link_down_after_s
+    cut = _ended_early(session_dir, root, t0 + 10.0, status, why, link_down_s)
+    before = {p.name: p.read_bytes() for p in cut.iterdir() if p.is_file()}
+    assert main(["analyze", str(cut)]) == 0
+    text = capsys.readouterr().out
+    written = sorted(cut.glob("analysis-*.json"))
+    assert len(written) == 1  # beside the session, never over what was recorded
+    assert {p.name: p.read_bytes() for p in cut.iterdir() if p.name in before} == before
+    doc = json.loads(written[0].read_text())
+    summary = doc["summary"]
+    assert summary["results"] is not None
+    assert summary["verdict"]["status"] == "incomplete"
+    assert summary["verdict"]["line"].startswith(f"Session {status} ({why}): ")
+    assert f"verdict: INCOMPLETE: Session {status} ({why})" in text
+    got = summary["results"]["pitting"]["depth_mm"]
+    assert got == pytest.approx(stored["results"]["pitting"]["depth_mm"], rel=0.02)
+    if link_down_after_s is not None:  # the replay faulted as the session did: cut before it
+        assert "the replay ends as the session did" in text
+        assert "results rescued from the recording before" in summary["verdict"]["line"]
