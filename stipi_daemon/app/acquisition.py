@@ -8,7 +8,8 @@ with four asyncio tasks until the state machine finishes:
 * the camera pump: every frame's S_k (Eqs. 1-2) measured as it arrives
   (:class:`FrameMeasurer`, which also offers the raw image to the representative-frame
   keeper, :mod:`stipi_daemon.measurement.representative_frames`, so images go no further),
-  and camera stalls; the queue carries a :class:`FrameResult` per frame;
+  and camera stalls; the queue carries a :class:`FrameResult` per frame (a
+  :class:`LateFrame` for a frame too late to measure);
 * a ticker, so timeouts fire when nothing else arrives;
 * the loop itself, which takes each event to its handler (one per event type, in a table),
   streams every row into the session (:mod:`stipi_daemon.storage`) as it arrives (each
@@ -16,6 +17,17 @@ with four asyncio tasks until the state machine finishes:
   in time order (:class:`~stipi_daemon.measurement.merge.TimeOrderedMerger`, as an offline
   replay does) into the pure :class:`~stipi_daemon.measurement.pipeline.MeasurementPipeline`,
   stores live parameters and keeps the operator console current.
+
+Falling behind. The queue is bounded (:data:`QUEUE_MAX_EVENTS`; images never enter it),
+so memory stays bounded at any ``run.speed``: a full queue holds the pumps back, and the
+camera's own bounded hand-off then drops (a live camera, counted) or waits (a simulated
+one). The lag - session time when a frame is handled minus its capture time - is measured
+on every frame and stored (``summary.json`` ``run.lag_s``). Samples and ticks reach the
+measurement no further ahead than the camera (the merger's clock and the ticks run the
+lag behind), so the session never ends while frames of its window are still queued.
+Frames measured more than half of ``run.max_lag_s`` late are not measured but stored as
+gaps (reason ``processing_behind``, missing frames to the analysis, never silent); a lag
+above ``run.max_lag_s`` ends the run with a fault and one line (:attr:`Acquisition.fault_line`).
 
 All times are on the session clock [s]. Opening devices, the summary, the stored frames
 and the report are not done here (:mod:`stipi_daemon.app.devices`,
@@ -60,10 +72,12 @@ from stipi_daemon.storage.video import VideoRecorder
 __all__ = [
     "LIVE_INTERVAL_S",
     "MERGE_HOLD_S",
+    "QUEUE_MAX_EVENTS",
     "TICK_S",
     "Acquisition",
     "FrameMeasurer",
     "FrameResult",
+    "LateFrame",
 ]
 
 #: Interval between stored live-parameter rows and console updates [s of session time].
@@ -72,6 +86,10 @@ LIVE_INTERVAL_S = 1.0
 TICK_S = 0.05
 #: Longest a sample or frame waits for the other stream before it is fed anyway [s].
 MERGE_HOLD_S = 0.5
+#: Events the acquisition queue holds at most (frames' results, sample batches, ticks).
+QUEUE_MAX_EVENTS = 2048
+#: Gap reason of frames that arrived too late to be measured.
+LATE_GAP_REASON = "processing_behind"
 
 OnRunning = Callable[[DaemonHandles], Coroutine[Any, Any, None]]
 """An async callback run as a task while the daemon records (see :class:`DaemonHandles`)."""
@@ -103,6 +121,28 @@ class FrameResult:
     dropped_before: int
 
 
+@dataclass(frozen=True, slots=True)
+class LateFrame:
+    """A frame that arrived too late to be measured: stored as a gap, never fed.
+
+    Attributes
+    ----------
+    seq : int
+        The camera's frame number.
+    t_capture_s : float
+        Capture time on the session clock [s].
+    lag_s : float
+        Session time when it was handled minus its capture time [s].
+    dropped_before : int
+        Frames the camera dropped just before this one.
+    """
+
+    seq: int
+    t_capture_s: float
+    lag_s: float
+    dropped_before: int
+
+
 class _Stop:
     """Sentinel: a pump ended (its source is exhausted or failed)."""
 
@@ -128,6 +168,9 @@ class FrameMeasurer:
         Chooses the raw frames the session keeps.
     pipeline : MeasurementPipeline
         The live measurement, whose phase and times the keeper's choice depends on.
+    skip_late_s : float or None
+        A frame handled more than this after its capture [s of session time] is not
+        measured: a :class:`LateFrame` instead (None: every frame is measured).
     """
 
     #: Stores each measured frame in the session video (set by the daemon; None: no video).
@@ -141,6 +184,7 @@ class FrameMeasurer:
         saturation_limit_fraction: float,
         keeper: RepresentativeFrames,
         pipeline: MeasurementPipeline,
+        skip_late_s: float | None = None,
     ) -> None:
         self._clock = clock
         self._threshold_p = threshold_p
@@ -148,12 +192,17 @@ class FrameMeasurer:
         self._saturation_limit_fraction = saturation_limit_fraction
         self._keeper = keeper
         self._pipeline = pipeline
+        self._skip_late_s = skip_late_s
         self._processor: FrameProcessor | None = None
 
     def __call__(self, ev: object) -> object:
-        """A :class:`FrameResult` for a camera frame; other camera events as they are."""
+        """A :class:`FrameResult` for a camera frame (a :class:`LateFrame` when it is too
+        late to measure); other camera events as they are."""
         if not isinstance(ev, CameraFrame):
             return ev
+        lag_s = self._clock.now() - ev.t_capture_s
+        if self._skip_late_s is not None and lag_s > self._skip_late_s:
+            return LateFrame(ev.seq, ev.t_capture_s, lag_s, ev.dropped_before)
         if self._processor is None:
             self._processor = FrameProcessor(
                 ev.image.shape,
@@ -210,6 +259,11 @@ class Acquisition:
         Puts samples and frames in time order for the pipeline.
     stop_error : BaseException or None
         Why a source ended, if it failed.
+    lag_s : list of float
+        Per frame (measured or late): session time when handled minus capture time [s].
+    fault_line : str or None
+        Why the acquisition ended the run itself (it fell behind by more than
+        ``run.max_lag_s``), in one line; None otherwise.
     """
 
     def __init__(
@@ -227,11 +281,20 @@ class Acquisition:
         self._pipeline = pipeline
         self._console = console
         self._measurer = measurer
-        self._queue: asyncio.Queue[object] = asyncio.Queue()
+        self._queue: asyncio.Queue[object] = asyncio.Queue(maxsize=QUEUE_MAX_EVENTS)
         self._tasks: list[asyncio.Task[None]] = []
         self._next_live_s = 0.0
-        self.counts = {"frames": 0, "samples": 0, "gaps": 0, "dropped_frames": 0}
+        self.counts = {
+            "frames": 0,
+            "samples": 0,
+            "gaps": 0,
+            "dropped_frames": 0,
+            "late_frames": 0,
+        }
         self.latencies_s: list[float] = []
+        self.lag_s: list[float] = []
+        self._lag_now_s = 0.0
+        self.fault_line: str | None = None
         # Samples and frames reach the pipeline in time order (as on replay), each held at
         # most MERGE_HOLD_S for the other stream.
         self.merger: TimeOrderedMerger[tuple[float, float]] = TimeOrderedMerger(
@@ -241,6 +304,7 @@ class Acquisition:
         self._handlers: dict[type[Any], Callable[[Any], list[Output]]] = {
             ForceRows: self._on_force,
             FrameResult: self._on_frame,
+            LateFrame: self._on_late_frame,
             Gap: self._on_gap,
             ClockProbe: self._on_clock_probe,
             LinkDown: self._on_link_down,
@@ -287,7 +351,9 @@ class Acquisition:
             outputs: list[Output] = []
             if handler is not None:
                 outputs += handler(ev)
-            for kind, value in self.merger.pop_ready(clock.now()):
+            # The merger's clock runs the camera's lag behind: nothing is fed ahead of frames
+            # that are still on their way.
+            for kind, value in self.merger.pop_ready(clock.now() - self._lag_now_s):
                 if pipeline.finished:
                     break
                 outputs += _feed(pipeline, kind, value)
@@ -315,8 +381,16 @@ class Acquisition:
     async def stop(self) -> None:
         """Cancel the pumps, the ticker and the ``on_running`` task, and wait for them."""
         tasks, self._tasks = self._tasks, []
-        for t in tasks:
-            t.cancel()
+        pending = set(tasks)
+        while pending:
+            # A cancellation can be swallowed (asyncio.wait_for in a camera's read racing
+            # its result): cancel again until each task is done, and empty the bounded
+            # queue so that no pump waits on it meanwhile.
+            for t in pending:
+                t.cancel()
+            while not self._queue.empty():
+                self._queue.get_nowait()
+            _, pending = await asyncio.wait(pending, timeout=0.05)
         for t in tasks:
             with contextlib.suppress(asyncio.CancelledError, Exception):
                 await t
@@ -386,16 +460,46 @@ class Acquisition:
             self._console.update(self._pipeline.state.now_s, force_n=rows[-1].force_n)
         return []
 
+    def _lag(self, t_capture_s: float) -> list[Output]:
+        """Measure the lag behind the camera; past ``run.max_lag_s``, end the run (fault)."""
+        now = self._clock.now()
+        lag = max(0.0, now - t_capture_s)
+        self._lag_now_s = lag
+        self.lag_s.append(lag)
+        bound = self._config.run.max_lag_s
+        if lag <= bound or self.fault_line is not None:
+            return []
+        self.fault_line = (
+            f"falling behind: a frame was handled {lag:.1f} s after its capture (more than "
+            f"run.max_lag_s {bound:g} s); this machine does not sustain run.speed "
+            f"{self._clock.speed:g}: lower it"
+        )
+        self._writer.add_event(now, "fault:falling_behind", {"lag_s": lag, "max_lag_s": bound})
+        self._console.line(f"FAULT {self.fault_line}")
+        outputs: list[Output] = []
+        for kind, value in self.merger.drain():
+            outputs += _feed(self._pipeline, kind, value)
+        return outputs + self._pipeline.close(now)
+
+    def _on_late_frame(self, ev: LateFrame) -> list[Output]:
+        self.counts["late_frames"] += 1
+        self._camera_gaps(ev.seq, ev.t_capture_s, ev.dropped_before)
+        self._writer.add_gap("frames", ev.seq, 1, ev.t_capture_s, LATE_GAP_REASON)
+        return self._lag(ev.t_capture_s)
+
+    def _camera_gaps(self, seq: int, t_capture_s: float, dropped_before: int) -> None:
+        if dropped_before:
+            self.counts["dropped_frames"] += dropped_before
+            self._writer.add_gap(
+                "frames", seq - dropped_before, dropped_before, t_capture_s, "camera"
+            )
+
     def _on_frame(self, ev: FrameResult) -> list[Output]:
         writer = self._writer
         writer.add_frames([(ev.seq, ev.t_capture_s, ev.t_processed_s, ev.s_k, ev.flags)])
         self.latencies_s.append(self._clock.now() - ev.t_capture_s)
         self.counts["frames"] += 1
-        if ev.dropped_before:
-            self.counts["dropped_frames"] += ev.dropped_before
-            writer.add_gap(
-                "frames", ev.seq - ev.dropped_before, ev.dropped_before, ev.t_capture_s, "camera"
-            )
+        self._camera_gaps(ev.seq, ev.t_capture_s, ev.dropped_before)
         # Each frame is on disk before the next is due (with it, whatever else is buffered):
         # a WAL commit at synchronous=NORMAL costs ~15 us, against up to 3/4 of
         # storage.commit_interval_s of waiting for the commit thread (docs/performance.md,
@@ -406,7 +510,7 @@ class Acquisition:
         )
         fps = self._devices.camera.stats.fps()
         self._console.update(self._pipeline.state.now_s, s_k=ev.s_k, fps=fps)
-        return []
+        return self._lag(ev.t_capture_s)
 
     def _on_gap(self, ev: Gap) -> list[Output]:
         self.counts["gaps"] += 1
@@ -437,7 +541,9 @@ class Acquisition:
         # Ticks only let timeouts fire when data stops: they lag the data by the merge hold
         # and never pass a held sample, so while data flows they change nothing (and an
         # offline replay, which has no ticks, agrees).
-        t_tick = ev.t_s - MERGE_HOLD_S
+        # They run the camera's lag behind too, so no timeout ends the session while frames
+        # of its window are still on their way.
+        t_tick = ev.t_s - MERGE_HOLD_S - self._lag_now_s
         pending = self.merger.oldest_pending_s()
         if pending is not None:
             t_tick = min(t_tick, pending)

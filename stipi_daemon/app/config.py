@@ -82,9 +82,17 @@ class RunSettings(_Model):
     speed : float
         Session seconds per wall second. 1 for real devices; simulated devices (emulated
         probe, simulator camera) may run faster (the demo uses 4). ``--realtime`` forces 1.
+    max_lag_s : float
+        Longest the daemon may fall behind the camera [s of session time]: the lag is the
+        session time when a frame is measured minus its capture time. Frames measured more
+        than half of it late are not measured but recorded as gaps (reason
+        ``processing_behind``); a lag above it ends the run with a fault (one line: lower
+        ``run.speed``). Samples and frames are fed to the measurement no further ahead
+        than the camera, so the session never ends while frames of its window are queued.
     """
 
     speed: float = Field(1.0, gt=0.0, le=1000.0, allow_inf_nan=False)
+    max_lag_s: float = Field(5.0, gt=0.0, le=60.0, allow_inf_nan=False)
 
 
 class ImagingSettings(_Model):

@@ -26,6 +26,7 @@ from pathlib import Path
 from typing import Any, TextIO
 
 from stipi_daemon.analysis.severity import load_reference
+from stipi_daemon.analysis.validity import assess_validity
 from stipi_daemon.app.acquisition import Acquisition, FrameMeasurer, OnRunning
 from stipi_daemon.app.config import DaemonConfig
 from stipi_daemon.app.console import OperatorConsole
@@ -38,6 +39,7 @@ from stipi_daemon.app.devices import (
 )
 from stipi_daemon.app.finish import (
     finish_session,
+    percentiles,
     print_results,
     run_stats,
     session_summary,
@@ -79,6 +81,20 @@ class RunOutcome:
     def exit_code(self) -> int:
         """0 for a completed measurement with results, 1 otherwise."""
         return 0 if self.phase == Phase.DONE and self.summary.get("results") else 1
+
+
+def _fell_behind(pipeline: MeasurementPipeline, line: str) -> dict[str, Any]:
+    """The summary entries of a run the acquisition ended because it fell behind."""
+    return {
+        "status": "fault",
+        "end_reason": line,
+        **assess_validity(
+            pipeline.result,
+            ended_done=False,
+            end_reason=line,
+            analysis_error=pipeline.analysis_error,
+        ),
+    }
 
 
 def run_measurement(
@@ -166,7 +182,9 @@ async def run_daemon(
     # A few raw frames kept for the report (the session stores S_k, not video).
     keeper = RepresentativeFrames(config.measurement.pitting_duration_s)
     saturation = config.imaging.saturation_limit_fraction
-    measurer = FrameMeasurer(clock, threshold, roi, saturation, keeper, pipeline)
+    # Frames later than half the lag bound are not measured (gaps) so the run can catch up.
+    skip_late_s = config.run.max_lag_s / 2.0
+    measurer = FrameMeasurer(clock, threshold, roi, saturation, keeper, pipeline, skip_late_s)
     measurer.recorder = devices.recorder  # the session video (storage.video)
     acquisition = Acquisition(config, devices, pipeline, console, measurer)
     status = "aborted"
@@ -177,6 +195,9 @@ async def run_daemon(
             await acquisition.run(on_running)
             summary = session_summary(pipeline, truth)
             status = "complete" if pipeline.phase == Phase.DONE else "fault"
+            if acquisition.fault_line is not None:
+                status = "fault"
+                summary |= _fell_behind(pipeline, acquisition.fault_line)
     except SessionError as exc:
         # Storage failed (disk full, I/O error): stop recording now, keep what is stored.
         storage_error = exc
@@ -191,7 +212,7 @@ async def run_daemon(
             latencies_s=acquisition.latencies_s,
             merge_released_by_timeout=acquisition.merger.released_by_timeout,
             keeper=keeper,
-        )
+        ) | {"lag_s": percentiles(acquisition.lag_s), "max_lag_s": config.run.max_lag_s}
         finish_session(writer, status, summary, storage_error)
         if status == "aborted":  # interrupted (Ctrl-C) or an unexpected error
             console.line(f"measurement aborted; what was recorded is in {writer.directory}")

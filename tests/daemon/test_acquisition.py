@@ -40,3 +40,136 @@ def test_other_camera_events_pass_unchanged() -> None:
     stalled = CameraStalled(3.0, 6, 1.0, "timeout")
     assert measurer(stalled) is stalled
     assert keeper.selected() == ()
+
+
+# ---------------------------------------------------------------- falling behind (issue 14 case 7)
+
+
+class _Clock:
+    """A session clock the test sets by hand."""
+
+    def __init__(self, now_s: float, speed: float = 50.0) -> None:
+        self.t = now_s
+        self.speed = speed
+
+    def now(self) -> float:
+        return self.t
+
+
+class _Writer:
+    def __init__(self) -> None:
+        self.gaps: list[tuple[Any, ...]] = []
+        self.events: list[tuple[Any, ...]] = []
+        self.frames: list[Any] = []
+
+    def add_gap(self, *row: Any) -> None:
+        self.gaps.append(row)
+
+    def add_event(self, *row: Any) -> None:
+        self.events.append(row)
+
+    def add_frames(self, rows: Any) -> None:
+        self.frames.extend(rows)
+
+    def commit(self) -> None:
+        pass
+
+    def add_transition(self, *row: Any) -> None:
+        pass
+
+
+class _Pipeline:
+    """Records what the loop feeds; ``close`` ends it."""
+
+    def __init__(self) -> None:
+        self.fed: list[Any] = []
+        self.closed_at: float | None = None
+        self.state = SimpleNamespace(
+            now_s=0.0, phase=Phase.RECOVERY, t_pit_start_s=0.0, t_release_s=1.0
+        )
+
+    def feed(self, event: Any) -> list[Any]:
+        self.fed.append(event)
+        return []
+
+    def force(self, t_s: float, v: float) -> list[Any]:
+        self.fed.append(("force", t_s))
+        return []
+
+    def frame(self, t_s: float, v: float) -> list[Any]:
+        self.fed.append(("frame", t_s))
+        return []
+
+    def close(self, t_s: float) -> list[Any]:
+        self.closed_at = t_s
+        return []
+
+
+def _acquisition(clock: _Clock, max_lag_s: float = 5.0) -> tuple[Any, _Writer, _Pipeline]:
+    from stipi_daemon.app.acquisition import Acquisition
+
+    config = SimpleNamespace(run=SimpleNamespace(speed=clock.speed, max_lag_s=max_lag_s))
+    writer, pipeline = _Writer(), _Pipeline()
+    camera = SimpleNamespace(stats=SimpleNamespace(fps=lambda: 60.0))
+    devices = SimpleNamespace(clock=clock, writer=writer, camera=camera, probe=None)
+    console = SimpleNamespace(line=lambda text: None, update=lambda *a, **k: None)
+    acq = Acquisition(config, devices, pipeline, console, None)  # type: ignore[arg-type]
+    return acq, writer, pipeline
+
+
+def test_a_late_frame_is_a_counted_gap_never_measured() -> None:
+    from stipi_daemon.app.acquisition import LATE_GAP_REASON, LateFrame
+
+    clock = _Clock(10.0)
+    keeper = RepresentativeFrames(pitting_duration_s=2.0)
+    pipe = _pipeline(Phase.RECOVERY)
+    measurer = FrameMeasurer(clock, 128, None, 0.5, keeper, pipe, skip_late_s=2.5)  # type: ignore[arg-type]
+    image = np.zeros((4, 5), dtype=np.uint8)
+    assert isinstance(measurer(CameraFrame(1, 8.0, image, 0)), FrameResult)  # 2 s late
+    late = measurer(CameraFrame(2, 7.0, image, 3))  # 3 s late
+    assert late == LateFrame(2, 7.0, 3.0, 3)
+    acq, writer, _ = _acquisition(clock)
+    assert acq._on_late_frame(late) == []
+    # The frame and the three the camera dropped before it are gaps with their reasons.
+    assert writer.gaps == [("frames", -1, 3, 7.0, "camera"), ("frames", 2, 1, 7.0, LATE_GAP_REASON)]
+    assert acq.counts["late_frames"] == 1 and acq.counts["dropped_frames"] == 3
+    assert acq.lag_s == [3.0] and writer.frames == []
+
+
+def test_nothing_is_fed_ahead_of_the_camera_and_ticks_lag_behind() -> None:
+    """The session cannot end while frames of its window are still on their way."""
+    from stipi_daemon.app.acquisition import MERGE_HOLD_S
+    from stipi_daemon.measurement.state_machine import Tick
+
+    clock = _Clock(100.0)
+    acq, _, pipeline = _acquisition(clock)
+    acq._on_frame(FrameResult(1, 96.0, 96.0, 10, (), 0))  # the camera is 4 s behind
+    assert acq._lag_now_s == 4.0
+    acq.merger.push("force", 97.0, (97.0, 1.0), clock.now())
+    clock.t = 101.0  # held 1 s > MERGE_HOLD_S, but only 1 - 4 s on the camera's clock
+    released = acq.merger.pop_ready(clock.now() - acq._lag_now_s)
+    assert released == [("frame", (96.0, 10.0))]  # the sample at 97 s waits for the camera
+    assert len(acq.merger) == 1
+    acq._on_tick(Tick(clock.now()))
+    ticks = [e for e in pipeline.fed if isinstance(e, Tick)]
+    assert all(t.t_s <= 101.0 - MERGE_HOLD_S - 4.0 for t in ticks)
+
+
+def test_a_lag_beyond_the_bound_ends_the_run_with_one_line() -> None:
+    clock = _Clock(50.0)
+    acq, writer, pipeline = _acquisition(clock, max_lag_s=5.0)
+    acq._on_frame(FrameResult(1, 46.0, 46.0, 10, (), 0))
+    assert acq.fault_line is None and pipeline.closed_at is None
+    acq._on_frame(FrameResult(2, 44.0, 44.0, 10, (), 0))  # 6 s behind
+    assert acq.fault_line is not None
+    assert acq.fault_line.startswith("falling behind: a frame was handled 6.0 s after its capture")
+    assert "run.max_lag_s 5" in acq.fault_line and "run.speed 50" in acq.fault_line
+    assert pipeline.closed_at == 50.0
+    assert writer.events[-1][1] == "fault:falling_behind"
+
+
+def test_the_queue_is_bounded() -> None:
+    from stipi_daemon.app.acquisition import QUEUE_MAX_EVENTS
+
+    acq, _, _ = _acquisition(_Clock(0.0))
+    assert acq._queue.maxsize == QUEUE_MAX_EVENTS > 0
