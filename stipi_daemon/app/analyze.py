@@ -327,6 +327,7 @@ def _recount(
         threshold.value,
         roi,
         saturation_limit_fraction=settings.saturation_limit_fraction,
+        roi_field=None if imaging.roi is None else _roi_field(imaging.roi.source),
     )
     n_rows, n_video = data.frame_times_s.size, video.s_k_px.size
     if n_video < n_rows:
