@@ -6,8 +6,10 @@ of the pitting hold, the deepest pit near S_0, the recovered tissue near S_max).
 module owns their storage in the session directory and reading them back:
 ``frames/representative_<kind>.png`` (lossless, the camera's pixels exactly) and
 ``frames/representative.json`` (frame number, capture time [s] and S_k [px] each), and the
-kinds' captions (:data:`KINDS`). It does not choose frames, threshold or count pixels
-(:mod:`stipi_daemon.analysis.imaging`) nor draw them (:mod:`stipi_daemon.report.render`).
+kinds' captions (:data:`KINDS`). Reading takes each frame from the session's ``video.mkv``
+by its ``seq`` when the video holds it whole (the PNG otherwise). It does not choose
+frames, threshold or count pixels (:mod:`stipi_daemon.analysis.imaging`) nor draw them
+(:mod:`stipi_daemon.report.render`).
 """
 
 from __future__ import annotations
@@ -18,6 +20,7 @@ from typing import Any, Final
 
 import cv2
 import numpy as np
+import numpy.typing as npt
 
 from stipi_daemon.errors import SessionError
 from stipi_daemon.measurement.representative_frames import RepresentativeFrame
@@ -92,6 +95,27 @@ def write_representative_frames(
     return written
 
 
+def _video_image(session_dir: Path, seq: int, shape: Any) -> npt.NDArray[np.uint8] | None:
+    """Frame ``seq`` from the session's ``video.mkv`` (the primary data) when it holds the
+    whole frame with the recorded shape; None otherwise (the PNG is used then)."""
+    from stipi_daemon.storage import VIDEO_NAME, SessionReader
+    from stipi_daemon.storage.video import probe_video, read_video_image
+
+    video = session_dir / VIDEO_NAME
+    if not video.is_file():
+        return None
+    try:
+        with SessionReader(session_dir) as reader:
+            rows = reader.video_frames()
+        index = rows["frame_index"][rows["seq"] == seq]
+        if not index.size or probe_video(video).crop is not None:
+            return None
+        image = read_video_image(video, int(index[0]))
+    except SessionError:
+        return None
+    return image if list(image.shape) == list(shape) else None
+
+
 def read_representative_frames(session_dir: Path) -> tuple[RepresentativeFrame, ...]:
     """Read the frames :func:`write_representative_frames` stored (none: empty tuple).
 
@@ -121,8 +145,9 @@ def read_representative_frames(session_dir: Path) -> tuple[RepresentativeFrame, 
         except (KeyError, TypeError, ValueError) as exc:
             raise SessionError(f"{index_path}: entry {kind!r} is malformed ({exc})") from exc
         path = index_path.parent / name
-        flag = cv2.IMREAD_UNCHANGED
-        image = cv2.imread(str(path), flag) if path.is_file() else None
+        image: Any = _video_image(Path(session_dir), seq, shape)
+        if image is None:
+            image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED) if path.is_file() else None
         if image is None:
             raise SessionError(f"{path}: representative frame missing or not a readable PNG")
         if list(image.shape) != list(shape) or image.dtype != np.uint8:

@@ -471,14 +471,41 @@ def iter_video_images(path: Path | str) -> Iterator[Image]:
 
 
 def read_video_image(path: Path | str, frame_index: int) -> Image:
-    """The stored frame at ``frame_index`` (from 0; see :func:`iter_video_images`).
+    """The stored frame at ``frame_index`` (from 0), as :func:`iter_video_images` gives it.
+
+    Only that frame is decoded (every stored frame is intra): the packets before it are
+    demuxed and skipped.
 
     Raises
     ------
     SessionError
         The file is unreadable or holds fewer frames.
     """
-    for i, img in enumerate(iter_video_images(path)):
-        if i == frame_index:
-            return img
-    raise SessionError(f"{path}: holds no frame {frame_index}")
+    import cv2
+
+    p = Path(path)
+    container = _open_input(p)
+    try:
+        stream = container.streams.video[0]
+        gray = dict(container.metadata).get(TAG_IMAGE, "bgr") == "gray"
+        k = 0
+        try:
+            for pkt in container.demux(stream):
+                if not pkt.size:
+                    continue
+                if k < frame_index:
+                    k += 1
+                    continue
+                if stream.codec_context.name == "mjpeg":
+                    flag = cv2.IMREAD_GRAYSCALE if gray else cv2.IMREAD_COLOR
+                    img = cv2.imdecode(np.frombuffer(bytes(pkt), np.uint8), flag)
+                    if img is not None:
+                        return np.asarray(img, dtype=np.uint8)
+                for frame in stream.codec_context.decode(pkt):
+                    return np.asarray(frame.to_ndarray(format="gray" if gray else "bgr24"))
+                break
+        except (OSError, ValueError):
+            pass
+    finally:
+        container.close()
+    raise SessionError(f"{p}: holds no frame {frame_index}")

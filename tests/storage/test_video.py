@@ -204,3 +204,27 @@ def test_schema_version_1_sessions_still_read(tmp_path: Path) -> None:
         assert len(r.video_frames()) == 0
         assert r.counts()["frames"] == 1
         assert r.integrity_check().ok
+
+
+def test_report_reads_representative_frames_from_the_video(tmp_path: Path) -> None:
+    from stipi_daemon.measurement.representative_frames import RepresentativeFrame
+    from stipi_daemon.report.frames import read_representative_frames, write_representative_frames
+
+    images = _images(5, (24, 32))
+    with _writer(tmp_path) as w:
+        assert w.video_path is not None
+        rec = VideoRecorder(w.video_path, w, "lossless")
+        for k, im in enumerate(images):
+            rec.record(100 + k, k / 60, im, None)
+        rec.close()
+        w.finish("complete")
+    session = tmp_path / "s"
+    kept = [RepresentativeFrame("pitting", 103, 3 / 60, 7, images[3])]
+    write_representative_frames(session, kept)
+    png = next((session / "frames").glob("*.png"))
+    import cv2 as _cv2
+
+    _cv2.imwrite(str(png), np.zeros_like(images[3]))  # the PNG differs: the video is read
+    (frame,) = read_representative_frames(session)
+    assert frame.seq == 103 and np.array_equal(frame.image, images[3])
+    assert np.array_equal(read_video_image(session / "video.mkv", 3), images[3])
