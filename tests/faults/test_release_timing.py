@@ -294,16 +294,25 @@ def test_every_shipped_scene_measures_with_the_demo_settings(path: Path) -> None
 @pytest.mark.xdist_group("realtime")
 @pytest.mark.parametrize("grade", ["grade1", "grade2", "grade4"])
 async def test_grade_scene_through_the_daemon_reaches_done(grade: str, tmp_path: Path) -> None:
+    """configs/demo.yaml with only the scene changed. The run is accelerated as the demo
+    is; when this machine cannot keep up (the daemon faults "falling behind"), the run is
+    repeated at half the speed: the test measures the measurement, not spare CPU."""
     cfg = yaml.safe_load((REPO_ROOT / "configs" / "demo.yaml").read_text())
     scene = str(SCENES / f"{grade}.yaml")
     cfg["probe"]["transport"]["scene"] = scene
     cfg["camera"]["scene"] = scene
-    cfg["storage"]["root"] = str(tmp_path / "sessions")
-    cfg["run"]["speed"] = 8.0
-    path = tmp_path / "config.yaml"
-    path.write_text(yaml.safe_dump(cfg))
-    outcome = await run_daemon(load_config(path), quiet=True)
-    assert outcome.phase is Phase.DONE, outcome.summary.get("end_reason")
+    speed = float(cfg["run"]["speed"])
+    while True:
+        cfg["storage"]["root"] = str(tmp_path / f"x{speed:g}" / "sessions")
+        cfg["run"]["speed"] = speed
+        path = tmp_path / f"config-x{speed:g}.yaml"
+        path.write_text(yaml.safe_dump(cfg))
+        outcome = await run_daemon(load_config(path), quiet=True)
+        reason = str(outcome.summary.get("end_reason"))
+        if outcome.phase is Phase.DONE or "falling behind" not in reason or speed <= 1.0:
+            break
+        speed /= 2.0
+    assert outcome.phase is Phase.DONE, reason
     summary = outcome.summary
     res, gt = summary["results"], summary["ground_truth"]
     assert res is not None
