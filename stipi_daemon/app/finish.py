@@ -57,7 +57,7 @@ def session_summary(pipeline: MeasurementPipeline, truth: dict[str, Any] | None)
     truth : dict or None
         A simulated scene's ground truth (stored as ``ground_truth``).
     """
-    start = pipeline.start
+    start, rel = pipeline.start, pipeline.release
     out: dict[str, Any] = {
         "status": "complete" if pipeline.phase == Phase.DONE else "fault",
         "phase": str(pipeline.phase),
@@ -67,11 +67,15 @@ def session_summary(pipeline: MeasurementPipeline, truth: dict[str, Any] | None)
         "results": None if pipeline.result is None else pipeline.result.to_dict(),
         "analysis_error": pipeline.analysis_error,
         "notes": list(pipeline.notes),
+        "release": None if pipeline.release is None else pipeline.release.to_dict(),
         **assess_validity(
             pipeline.result,
             ended_done=pipeline.phase == Phase.DONE,
             end_reason=pipeline.state.end_reason,
             analysis_error=pipeline.analysis_error,
+            invalid_reasons=None if rel is None else rel.invalid_reasons(),
+            caveats=None if rel is None else rel.caveats(),
+            extra_flags=() if rel is None else rel.flags,
         ),
     }
     if truth is not None:
