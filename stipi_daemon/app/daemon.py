@@ -83,6 +83,13 @@ class RunOutcome:
         return 0 if self.phase == Phase.DONE and self.summary.get("results") else 1
 
 
+#: Said when a session ended early: its recording may still hold a usable recovery.
+_RESCUE_HINT = (
+    "the session is incomplete; `stipi-daemon analyze {}` computes what its recording "
+    "allows (written beside it, never over it)"
+)
+
+
 def _fell_behind(pipeline: MeasurementPipeline, line: str) -> dict[str, Any]:
     """The summary entries of a run the acquisition ended because it fell behind."""
     return {
@@ -216,7 +223,10 @@ async def run_daemon(
         finish_session(writer, status, summary, storage_error)
         if status == "aborted":  # interrupted (Ctrl-C) or an unexpected error
             console.line(f"measurement aborted; what was recorded is in {writer.directory}")
+            console.line(_RESCUE_HINT.format(writer.directory))
     if storage_error is not None:
         raise storage_failure(writer, storage_error) from storage_error
     print_results(console, summary, writer.db_path.parent, acquisition.stop_error)
+    if status != "complete":
+        console.line(_RESCUE_HINT.format(writer.directory))
     return RunOutcome(writer.db_path.parent, pipeline.phase, summary, summary["run"])

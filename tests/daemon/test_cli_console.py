@@ -110,6 +110,7 @@ def test_ctrl_c_leaves_an_aborted_session(tmp_path: Path) -> None:
     assert proc.returncode == 130, (out, err)
     assert err == "stipi-daemon: interrupted\n", err
     assert "measurement aborted" in out and "Traceback" not in out + err
+    assert f"`stipi-daemon analyze {sessions}" in out  # what the recording allows: said how
     (session,) = sessions.iterdir()
     with SessionReader(session) as reader:
         assert str(reader.status) == "aborted"
