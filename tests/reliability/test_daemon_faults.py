@@ -24,10 +24,16 @@ from stipi_daemon.app.daemon import DaemonHandles, RunOutcome, run_daemon
 from stipi_daemon.measurement.state_machine import MeasurementFlag, Phase
 from stipi_daemon.storage import SessionReader, SessionState
 
-from .conftest import fast_scene, report, write_config
+from .conftest import FAST_FPS, fast_scene, report, write_config
 from .test_kill import _contiguous
 
 Injector = Callable[[DaemonHandles], Coroutine[Any, Any, None]]
+
+#: Speed of the camera-stall runs (a whole measurement with a 10 s stall: ~15 s of wall
+#: time), one the test can afford on a loaded machine.
+SPEED = 4.0
+#: Wall time the host may take to notice an event on a loaded 2-CPU machine [s].
+HOST_SLACK_WALL_S = 0.25
 
 
 async def _wait_phase(h: DaemonHandles, phase: Phase, after_s: float = 0.0) -> float:
@@ -82,7 +88,7 @@ def _config(tmp_path: Path, speed: float) -> Path:
 )
 async def test_camera_stall_of_10_s(tmp_path: Path, phase: Phase, expect: Phase) -> None:
     stall_s = 10.0
-    cfg = _config(tmp_path, speed=8.0)
+    cfg = _config(tmp_path, speed=SPEED)
     marks: dict[str, float] = {}
 
     async def inject(h: DaemonHandles) -> None:
@@ -101,7 +107,9 @@ async def test_camera_stall_of_10_s(tmp_path: Path, phase: Phase, expect: Phase)
     stalls = [e for e in events if e.kind == "camera_stalled"]
     assert stalls, "the stall was not recorded"
     detected_after_s = stalls[0].t_host_s - marks["t_stall"]
-    assert 0.0 < detected_after_s < 1.0
+    # Detected after the stall timeout (session time) plus what the host took to notice it
+    # (wall time, magnified by the speed on the session clock).
+    assert 0.0 < detected_after_s < 0.5 + HOST_SLACK_WALL_S * SPEED
     frame_gaps = gaps[gaps["stream"] == "frames"]
     _contiguous(frames["seq"], frame_gaps)  # every missing frame is a recorded gap
     camera = outcome.summary["run"]["camera"]
@@ -114,7 +122,7 @@ async def test_camera_stall_of_10_s(tmp_path: Path, phase: Phase, expect: Phase)
         assert MeasurementFlag.CAMERA_STALLED_IN_PITTING in outcome.summary["measurement_flags"]
         assert any(e.kind == "advisory:camera_stall_flagged" for e in events)
         assert outcome.summary["results"] is not None
-        assert int(frame_gaps["count"].sum()) >= 0.9 * stall_s * 60
+        assert int(frame_gaps["count"].sum()) >= 0.9 * stall_s * FAST_FPS
     else:
         # The recovery needs the camera: a named fault, the session closed as such.
         assert status is SessionState.FAULT

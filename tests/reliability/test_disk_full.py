@@ -61,7 +61,7 @@ def _watch_growth(root: Path, stop: threading.Event, last: list[float]) -> None:
 
 
 def _record_until_full(tmp_path: Path, root: Path, *, fsize: bool) -> None:
-    cfg = write_config(tmp_path / "c.yaml", fast_scene(tmp_path), root, speed=4.0)
+    cfg = write_config(tmp_path / "c.yaml", fast_scene(tmp_path, cheap=False), root, speed=4.0)
 
     def limit() -> None:
         if fsize:

@@ -37,10 +37,15 @@ COMMIT_INTERVAL_S = 0.2
 #: What a kill may lose on top of the commit interval: event-loop and thread wake-up
 #: delays on a loaded 2-CPU machine [s]. The promise is 0.25 s in all.
 LOSS_SLACK_S = 0.05
-#: Capture-to-storage latency of the camera pipeline allowed on top (capture thread,
-#: hand-off, S_k, merge queue) on a loaded 2-CPU machine running 3 daemons [s].
-PIPELINE_SLACK_S = 0.15
 SPEED = 2.0
+#: The daemon's lag bound in this test [s of session time] (``run.max_lag_s``): it handles
+#: every frame within this of its capture (later ones are recorded gaps; beyond it the
+#: run faults). The end-to-end loss is the storage promise plus this, in wall time: how
+#: far the camera pipeline runs behind depends on the CPU the machine has to spare, and
+#: the daemon bounds and measures it itself (docs/reliability.md, "Falling behind").
+MAX_LAG_S = 1.0
+#: Capture-to-storage latency allowed on top of the storage promise [s of wall time].
+PIPELINE_SLACK_S = MAX_LAG_S / SPEED
 #: The probe sends batches of 10 samples at 100 Hz: the newest sample arrives up to one
 #: batch after it was taken [s of session time].
 BATCH_S = 0.1
@@ -76,7 +81,9 @@ def _first_frame_committed(root: Path) -> Path | None:
 def _kill_one(workdir: Path, scene: Path, seed: int) -> Kill:
     rng = random.Random(seed)
     root = workdir / "sessions"
-    cfg = write_config(workdir / "config.yaml", scene, root, speed=SPEED)
+    cfg = write_config(
+        workdir / "config.yaml", scene, root, speed=SPEED, run={"max_lag_s": MAX_LAG_S}
+    )
     proc = subprocess.Popen(
         [PYTHON, "-m", "stipi_daemon", "--config", str(cfg), "--quiet"],
         cwd=REPO_ROOT,
@@ -132,7 +139,10 @@ def _check_session(directory: Path, delay_s: float, t_kill: float) -> Kill:
     # What the daemon had handed to storage: at most one commit interval is missing.
     stored_lost_s = (t_kill_s - float(frames["t_host_s"].max())) / SPEED
     assert stored_lost_s <= COMMIT_INTERVAL_S + LOSS_SLACK_S, stored_lost_s
-    # What the simulated devices had produced: the same plus the pipeline latency.
+    # The daemon handled every stored frame within its lag bound of the capture ...
+    lag_s = np.asarray(frames["t_host_s"]) - np.asarray(frames["t_capture_host_s"])
+    assert float(lag_s.max()) <= MAX_LAG_S, float(lag_s.max())
+    # ... so what the simulated devices had produced is the same plus that bound.
     frames_lost_s = (t_kill_s - float(frames["t_capture_host_s"].max())) / SPEED
     bound_s = COMMIT_INTERVAL_S + LOSS_SLACK_S + PIPELINE_SLACK_S
     assert frames_lost_s <= bound_s, frames_lost_s
@@ -188,8 +198,9 @@ def _run_kills(tmp_path: Path, n: int, workers: int, name: str) -> None:
     )
 
 
+@pytest.mark.timeout(300)
 def test_kill_9_twenty_times(tmp_path: Path) -> None:
-    _run_kills(tmp_path, 20, workers=4, name="kill_9_x20")
+    _run_kills(tmp_path, 20, workers=3, name="kill_9_x20")
 
 
 @pytest.mark.slow
