@@ -195,7 +195,14 @@ async def run_daemon(
     measurer.recorder = devices.recorder  # the session video (storage.video)
     acquisition = Acquisition(config, devices, pipeline, console, measurer)
     status = "aborted"
-    summary: dict[str, Any] = {"status": "aborted"}
+    # Until the measurement ends: an interruption (Ctrl-C) or an unexpected error leaves
+    # this summary, whose verdict is incomplete.
+    stopped = "stopped before the measurement ended (interrupted or an error)"
+    summary: dict[str, Any] = {
+        "status": "aborted",
+        "end_reason": stopped,
+        **assess_validity(None, ended_done=False, end_reason=stopped),
+    }
     storage_error: SessionError | None = None
     try:
         with console:

@@ -116,3 +116,5 @@ def test_ctrl_c_leaves_an_aborted_session(tmp_path: Path) -> None:
         assert str(reader.status) == "aborted"
         assert reader.integrity_check().ok
         assert reader.counts()["frames"] > 0
+        summary = reader.summary
+    assert summary is not None and summary["verdict"]["status"] == "incomplete"
