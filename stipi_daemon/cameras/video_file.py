@@ -256,9 +256,7 @@ class VideoFileCamera(ThreadedCamera[_Handle]):
         self._skip_to(h, self._k0)
         return h
 
-    def _read_image(
-        self, h: _Handle
-    ) -> tuple[npt.NDArray[np.uint8], bytes | None] | int | None:
+    def _read_image(self, h: _Handle) -> tuple[npt.NDArray[np.uint8], bytes | None] | int | None:
         """The next frame's image and its JPEG packet (raw MJPG reading, else None); an int
         (its file index) for a damaged frame that is followed by more; None at the end
         (after noting a truncated last frame)."""

@@ -102,8 +102,20 @@ def wait_bootloader(
 
 
 def run_avrdude(avrdude: str, port: str, hex_path: Path, baud: int) -> None:
-    cmd = [avrdude, "-p", "atmega32u4", "-c", "avr109", "-P", port, "-b", str(baud), "-D",
-           "-U", f"flash:w:{hex_path}:i"]
+    cmd = [
+        avrdude,
+        "-p",
+        "atmega32u4",
+        "-c",
+        "avr109",
+        "-P",
+        port,
+        "-b",
+        str(baud),
+        "-D",
+        "-U",
+        f"flash:w:{hex_path}:i",
+    ]
     proc = subprocess.run(cmd, capture_output=True, text=True, check=False)
     out = proc.stdout + proc.stderr
     if "verification error" in out or "verification mismatch" in out:
