@@ -397,6 +397,8 @@ def _recount_stored(
             "frames": int(s_k.size),
             "differing": differ,
             "max_abs_difference_px": float(np.max(np.abs(s_k - stored))) if s_k.size else 0.0,
+            # stored frames the video lacks (left out when the encoder fell behind)
+            "frames_without_video": int((~keep).sum()),
         },
     }
     return data, s_k, record

@@ -88,6 +88,7 @@ def test_recompute_sk_reproduces_every_stored_s_k(
         "frames": n_paired,
         "differing": 0,
         "max_abs_difference_px": 0.0,
+        "frames_without_video": len(rows - stored),  # reported, never silently dropped
     }
     # Another threshold: re-analysed beside the session, never over it.
     assert main(["analyze", str(session), "--recompute-sk", "--threshold", "90"]) == 0

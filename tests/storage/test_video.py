@@ -16,6 +16,7 @@ import pytest
 from stipi_daemon.errors import SessionError
 from stipi_daemon.storage import SessionReader, SessionWriter, StorageOptions
 from stipi_daemon.storage.video import (
+    ENCODER_QUEUE_FRAMES,
     VideoRecorder,
     iter_video_images,
     probe_video,
@@ -145,9 +146,10 @@ _KILLED_WRITER = textwrap.dedent(
     pk = cv2.imencode(".jpg", img)[1].tobytes()
     k = 0
     while True:
-        rec.record(k, k / 60, img, pk)
+        accepted = rec.record(k, k / 60, img, pk)
         w.add_frames([(k, k / 60, k / 60, 1, "")])
         w.commit()
+        print(k, int(accepted), rec.left_out, flush=True)  # what the recorder reported
         if k == 20:
             print("ready", flush=True)
         k += 1
@@ -158,6 +160,11 @@ _KILLED_WRITER = textwrap.dedent(
 
 @pytest.mark.parametrize("mode", ["passthrough", "lossless"])
 def test_kill_9_leaves_a_playable_video_covering_the_rows(tmp_path: Path, mode: str) -> None:
+    """The documented promise, whatever CPU is left: every frame the recorder accepted
+    (``record`` True) and whose ``video_frames`` row was committed plays; the accepted
+    frames not playable yet lie within one commit interval of the newest accepted one (the
+    FFV1 queue and the block the muxer holds); a frame left out (``record`` False, the
+    lossless encoder lagging) is counted in ``left_out`` and has no row."""
     proc = subprocess.Popen(
         [sys.executable, "-c", _KILLED_WRITER, str(tmp_path), mode],
         stdout=subprocess.PIPE,
@@ -165,26 +172,55 @@ def test_kill_9_leaves_a_playable_video_covering_the_rows(tmp_path: Path, mode: 
     )
     assert proc.stdout is not None
     with proc.stdout:
-        assert proc.stdout.readline().strip() == "ready"
+        lines = []
+        while (line := proc.stdout.readline().strip()) != "ready":
+            assert line, "the writer ended before it was ready"
+            lines.append(line)
         os.kill(proc.pid, signal.SIGKILL)
         proc.wait()
+        lines += [ln.strip() for ln in proc.stdout if ln.strip()]
+    reported = [tuple(int(v) for v in ln.split()) for ln in lines]
+    accepted = [k for k, ok, _ in reported if ok]
+    left_out = [k for k, ok, _ in reported if not ok]
+    # Every frame left out is counted, and only in lossless mode can one be.
+    assert [n for _, _, n in reported] == [
+        sum(1 for kk in left_out if kk <= k) for k, _, _ in reported
+    ]
+    assert mode == "lossless" or not left_out
     with SessionReader(tmp_path / "k") as r:
         frames = r.frames()
+        video_rows = r.video_frames()
         assert r.status.value == "interrupted"
         report = r.integrity_check()
+    assert frames.size > 20 and report.ok, report.problems
+    assert not set(video_rows["seq"].tolist()) & set(left_out)
+    assert set(video_rows["seq"].tolist()) <= set(accepted)
     import av
 
-    info = probe_video(tmp_path / "k" / "video.mkv")
-    n_decoded = sum(1 for _ in iter_video_images(info.path))
-    with av.open(str(info.path)) as c:
-        pts_ms = [p.pts for p in c.demux(video=0) if p.size]
-    assert frames.size > 20 and n_decoded > 0 and len(pts_ms) >= n_decoded
-    # Frame k was captured at k/60 s (pts k/60 s, in ms): the video plays up to within
-    # one commit interval of the newest stored frame row.
-    t_newest_row_s = float(frames["t_capture_host_s"][-1])
-    t_last_video_s = pts_ms[n_decoded - 1] / 1000.0
-    assert t_last_video_s >= t_newest_row_s - OPTS.commit_interval_s
-    assert report.ok, report.problems
+    path = tmp_path / "k" / "video.mkv"
+    try:
+        info = probe_video(path)
+    except SessionError:  # FFmpeg opens a Matroska file once it holds its first cluster,
+        info = None  # i.e. once a second frame is muxed: no row may depend on it then
+        assert video_rows.size <= 1
+        n_decoded, pts_ms = 0, []
+    if info is not None:
+        n_decoded = sum(1 for _ in iter_video_images(info.path))
+        with av.open(str(info.path)) as c:
+            pts_ms = [p.pts for p in c.demux(video=0) if p.size]
+        assert len(pts_ms) >= n_decoded
+        # Every committed row's frame plays (the row is added after the frame is muxed).
+        assert n_decoded >= video_rows.size - 1
+    # The accepted frames the video does not play yet: the block the muxer holds and one
+    # cut off mid-write, plus in lossless mode the encoder queue and the frame in the encoder.
+    unplayed = accepted[n_decoded:]
+    lag = 2 + (ENCODER_QUEUE_FRAMES + 1 if mode == "lossless" else 0)
+    assert len(unplayed) <= lag, (mode, n_decoded, unplayed)
+    # At 60 fps that lag is within one commit interval (the documented bound in time).
+    assert (lag - 1) / 60 <= OPTS.commit_interval_s
+    # The rows that the video lacks are the left-out frames and the unplayed accepted ones.
+    rows = set(frames["seq"].tolist())
+    assert rows - set(accepted[:n_decoded]) <= set(left_out) | set(unplayed)
 
 
 def test_schema_version_1_sessions_still_read(tmp_path: Path) -> None:
