@@ -281,6 +281,9 @@ class VideoRecorder:
                 stream = container.add_stream("ffv1", options={"level": "3", "slicecrc": "1"})
                 stream.pix_fmt = "gray" if layout == "gray" else "bgr0"
                 stream.codec_context.gop_size = 1
+                # the encoder's own time base (PyAV's default is 1/24 s): frames are rebased
+                # onto it before encoding, which would round 60 fps pts to 42 ms steps
+                stream.codec_context.time_base = PTS_TIME_BASE
             stream.width, stream.height = w, h
             stream.time_base = PTS_TIME_BASE
             container.metadata[TAG_IMAGE] = layout

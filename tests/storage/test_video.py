@@ -86,6 +86,11 @@ def test_lossless_reproduces_every_pixel(tmp_path: Path, shape: tuple[int, ...])
     assert np.array_equal(read_video_image(path, 4), images[4])
     with pytest.raises(SessionError):
         read_video_image(path, 6)
+    import av
+
+    with av.open(str(path)) as c, SessionReader(tmp_path / "s") as r:
+        # the file's timestamps are the rows' pts [ms], not rounded to another time base
+        assert [f.pts for f in c.decode(video=0)] == r.video_frames()["pts_ms"].tolist()
 
 
 def test_lossless_crop_stores_the_rectangle(tmp_path: Path) -> None:
