@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
-from pydantic import BaseModel, ConfigDict
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 __all__ = [
     "EffectContext",
@@ -34,6 +34,20 @@ class EffectParams(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
     name: str
+
+
+class SpanParams(EffectParams):
+    """Parameters of an effect over one time span ``[t_start_s, t_end_s)`` [s] (default:
+    empty); subclasses fix ``name``."""
+
+    t_start_s: float = Field(default=0.0, ge=0.0, allow_inf_nan=False)
+    t_end_s: float = Field(default=0.0, ge=0.0, allow_inf_nan=False)
+
+    @model_validator(mode="after")
+    def _ordered(self) -> SpanParams:
+        if self.t_end_s < self.t_start_s:
+            raise ValueError(f"t_end_s {self.t_end_s} is before t_start_s {self.t_start_s}")
+        return self
 
 
 @dataclass(frozen=True)

@@ -14,23 +14,14 @@ from __future__ import annotations
 from typing import Literal
 
 import numpy as np
-from pydantic import Field, model_validator
 
-from stipi_daemon.sim.effects.base import EffectContext, EffectParams, FrameDropEffect
+from stipi_daemon.sim.effects.base import EffectContext, FrameDropEffect, SpanParams
 
 
-class Params(EffectParams):
+class Params(SpanParams):
     """Span ``[t_start_s, t_end_s)`` of scene time without frames [s] (default: empty)."""
 
     name: Literal["frame_gap"] = "frame_gap"
-    t_start_s: float = Field(default=0.0, ge=0.0, allow_inf_nan=False)
-    t_end_s: float = Field(default=0.0, ge=0.0, allow_inf_nan=False)
-
-    @model_validator(mode="after")
-    def _ordered(self) -> Params:
-        if self.t_end_s < self.t_start_s:
-            raise ValueError(f"t_end_s {self.t_end_s} is before t_start_s {self.t_start_s}")
-        return self
 
 
 class Effect(FrameDropEffect):
