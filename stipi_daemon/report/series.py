@@ -18,6 +18,7 @@ from typing import Final
 import numpy as np
 import numpy.typing as npt
 
+from stipi_daemon.analysis.observation import GAP_FACTOR, find_frame_gaps, median_frame_period_s
 from stipi_daemon.report.inputs import FloatArray
 
 __all__ = [
@@ -31,8 +32,6 @@ __all__ = [
     "isolated_outliers",
 ]
 
-#: An interval between consecutive samples longer than this many median periods is a gap.
-GAP_FACTOR: Final = 1.5
 #: Frames on each side whose median an outlier candidate is compared with.
 OUTLIER_NEIGHBOURS: Final = 2
 #: A frame is an outlier when it lies further than this many robust noise SDs from the
@@ -64,15 +63,16 @@ class TimeGap:
         return self.end_s - self.start_s
 
 
-def find_gaps(times_s: FloatArray, factor: float = GAP_FACTOR) -> tuple[TimeGap, ...]:
-    """Intervals between consecutive samples longer than ``factor`` median periods.
+def find_gaps(times_s: FloatArray) -> tuple[TimeGap, ...]:
+    """Intervals between consecutive samples longer than :data:`GAP_FACTOR` median periods.
+
+    The analysis' gap rule (:func:`~stipi_daemon.analysis.observation.find_frame_gaps`),
+    applied to any sampled series (frames or force samples), with the samples missing.
 
     Parameters
     ----------
     times_s : numpy.ndarray
         Sample times [s], increasing (non-finite times are ignored).
-    factor : float
-        Threshold as a multiple of the median interval [-] (1.5: one lost frame is a gap).
 
     Returns
     -------
@@ -80,15 +80,12 @@ def find_gaps(times_s: FloatArray, factor: float = GAP_FACTOR) -> tuple[TimeGap,
         In time order; empty with fewer than three samples or a zero median period.
     """
     t = times_s[np.isfinite(times_s)]
-    if t.size < 3:
+    period = median_frame_period_s(t)
+    if t.size < 3 or period <= 0.0:
         return ()
-    dt = np.diff(t)
-    period = float(np.median(dt))
-    if period <= 0.0:
-        return ()
-    idx = np.flatnonzero(dt > factor * period)
     return tuple(
-        TimeGap(float(t[i]), float(t[i + 1]), max(1, round(float(dt[i]) / period) - 1)) for i in idx
+        TimeGap(g.start_s, g.end_s, max(1, round(g.length_s / period) - 1))
+        for g in find_frame_gaps(t, period)
     )
 
 
