@@ -57,8 +57,10 @@ __all__ = [
     "VideoMode",
     "VideoRecorder",
     "iter_video_images",
+    "open_video_file",
     "probe_video",
     "read_video_image",
+    "write_video_frame",
 ]
 
 _log = logging.getLogger(__name__)
@@ -257,41 +259,21 @@ class VideoRecorder:
                 self._stop(f"{self.path}: video recording stopped: {exc}", join=False)
 
     def _open(self, t_capture_s: float, image: Image, packet: bytes | None) -> None:
-        import av
-
         passthrough = self.mode == "passthrough" and packet is not None
         crop = self._crop_for(image.shape) if callable(self._crop_for) else self._crop_for
         crop = None if passthrough else crop
         if crop is not None and self._to_gray is not None:
             image = self._to_gray(image)
         layout = "gray" if image.ndim == 2 else "bgr"
-        container = av.open(str(self.path), "w", format="matroska", options=MUXER_OPTIONS)
-        try:
-            h, w = image.shape[:2]
-            if crop is not None:
-                x0, y0, x1, y1 = crop
-                if not (0 <= x0 < x1 <= w and 0 <= y0 < y1 <= h):
-                    raise ValueError(f"video crop {crop} lies outside the {w}x{h} frame")
-                w, h = x1 - x0, y1 - y0
-            self._crop = crop
-            if passthrough:
-                stream = container.add_stream("mjpeg")
-                stream.pix_fmt = "yuvj420p"
-            else:
-                stream = container.add_stream("ffv1", options={"level": "3", "slicecrc": "1"})
-                stream.pix_fmt = "gray" if layout == "gray" else "bgr0"
-                stream.codec_context.gop_size = 1
-                # the encoder's own time base (PyAV's default is 1/24 s): frames are rebased
-                # onto it before encoding, which would round 60 fps pts to 42 ms steps
-                stream.codec_context.time_base = PTS_TIME_BASE
-            stream.width, stream.height = w, h
-            stream.time_base = PTS_TIME_BASE
-            container.metadata[TAG_IMAGE] = layout
-            if self._crop is not None:
-                container.metadata[TAG_CROP] = ",".join(str(v) for v in self._crop)
-        except BaseException:
-            container.close()
-            raise
+        h, w = image.shape[:2]
+        if crop is not None:
+            x0, y0, x1, y1 = crop
+            if not (0 <= x0 < x1 <= w and 0 <= y0 < y1 <= h):
+                raise ValueError(f"video crop {crop} lies outside the {w}x{h} frame")
+            w, h = x1 - x0, y1 - y0
+        self._crop = crop
+        codec: Literal["mjpeg", "ffv1"] = "mjpeg" if passthrough else "ffv1"
+        container, stream = open_video_file(self.path, codec, layout, (w, h), crop=crop)
         self._container, self._stream = container, stream
         self._codec = "mjpeg" if passthrough else "ffv1"
         self._t0_s = t_capture_s
@@ -317,28 +299,10 @@ class VideoRecorder:
         )
 
     def _mux(self, pts: int, image: Image, packet: bytes | None) -> None:
-        import av
-
-        stream, container = self._stream, self._container
-        if self._codec == "mjpeg":
-            if packet is None:
-                raise ValueError("a frame without its JPEG packet in an MJPG recording")
-            pkt = av.Packet(packet)
-            pkt.stream = stream
-            pkt.time_base = PTS_TIME_BASE
-            pkt.pts = pkt.dts = pts
-            pkt.is_keyframe = True
-            container.mux_one(pkt)
-            return
-        if self._crop is not None:
+        if self._codec != "mjpeg" and self._crop is not None:
             x0, y0, x1, y1 = self._crop
             image = (image if self._to_gray is None else self._to_gray(image))[y0:y1, x0:x1]
-        fmt = "gray" if image.ndim == 2 else "bgr24"
-        frame = av.VideoFrame.from_ndarray(np.ascontiguousarray(image), format=fmt)
-        frame.pts = pts
-        frame.time_base = PTS_TIME_BASE
-        for out in stream.encode(frame):
-            container.mux_one(out)
+        write_video_frame(self._container, self._stream, pts, image, packet)
 
     def _stop(self, reason: str, error: SessionError | None = None, *, join: bool = True) -> None:
         self._failed = reason
@@ -379,6 +343,86 @@ class VideoRecorder:
                 self.path,
                 self.left_out,
             )
+
+
+# ------------------------------------------------------------------------- writing frames
+
+
+def open_video_file(
+    path: Path,
+    codec: Literal["mjpeg", "ffv1"],
+    layout: str,
+    size: tuple[int, int],
+    *,
+    crop: Crop | None = None,
+    frame_rate: Fraction | None = None,
+    options: dict[str, str] | None = None,
+) -> tuple[Any, Any]:
+    """Open ``path`` as a Matroska file with one video stream, as a session video is stored.
+
+    ``codec`` ``mjpeg``: JPEG packets muxed as they are (:func:`write_video_frame`);
+    ``ffv1``: frames encoded losslessly (level 3, every frame intra, CRC per slice), ``gray``
+    or ``bgr0`` by ``layout`` (``"gray"`` or ``"bgr"``, stored as the :data:`TAG_IMAGE` tag).
+    Times are in :data:`PTS_TIME_BASE`. ``size`` is ``(width, height)`` [px]; ``crop``, if
+    any, is stored as the :data:`TAG_CROP` tag; ``frame_rate`` [1/s], if known, is declared
+    (players and OpenCV read it as the file's frame rate); ``options`` are the muxer's
+    (default :data:`MUXER_OPTIONS`). Returns ``(container, stream)``; close the container.
+    """
+    import av
+
+    opts = MUXER_OPTIONS if options is None else options
+    container = av.open(str(path), "w", format="matroska", options=opts)
+    try:
+        if codec == "mjpeg":
+            stream = container.add_stream("mjpeg")
+            stream.pix_fmt = "yuvj420p"
+        else:
+            stream = container.add_stream("ffv1", options={"level": "3", "slicecrc": "1"})
+            stream.pix_fmt = "gray" if layout == "gray" else "bgr0"
+            stream.codec_context.gop_size = 1
+            # the encoder's own time base (PyAV's default is 1/24 s): frames are rebased
+            # onto it before encoding, which would round 60 fps pts to 42 ms steps
+            stream.codec_context.time_base = PTS_TIME_BASE
+        if frame_rate is not None:
+            stream.codec_context.framerate = frame_rate
+        stream.width, stream.height = size
+        stream.time_base = PTS_TIME_BASE
+        container.metadata[TAG_IMAGE] = layout
+        if crop is not None:
+            container.metadata[TAG_CROP] = ",".join(str(v) for v in crop)
+    except BaseException:
+        container.close()
+        raise
+    return container, stream
+
+
+def write_video_frame(
+    container: Any, stream: Any, pts: int, image: Image, packet: bytes | None
+) -> None:
+    """Store one frame at ``pts`` [ms] in a stream of :func:`open_video_file`.
+
+    An ``mjpeg`` stream muxes ``packet`` (a complete JPEG) as it is, a keyframe, without
+    decoding it; an ``ffv1`` stream encodes ``image`` (gray ``(H, W)`` or BGR ``(H, W, 3)``).
+    FFmpeg errors propagate (``OSError`` or ``ValueError``).
+    """
+    import av
+
+    if stream.codec_context.name == "mjpeg":
+        if packet is None:
+            raise ValueError("a frame without its JPEG packet in an MJPG recording")
+        pkt = av.Packet(packet)
+        pkt.stream = stream
+        pkt.time_base = PTS_TIME_BASE
+        pkt.pts = pkt.dts = pts
+        pkt.is_keyframe = True
+        container.mux_one(pkt)
+        return
+    fmt = "gray" if image.ndim == 2 else "bgr24"
+    frame = av.VideoFrame.from_ndarray(np.ascontiguousarray(image), format=fmt)
+    frame.pts = pts
+    frame.time_base = PTS_TIME_BASE
+    for out in stream.encode(frame):
+        container.mux_one(out)
 
 
 # ------------------------------------------------------------------------------ reading
