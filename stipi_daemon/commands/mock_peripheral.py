@@ -1,8 +1,9 @@
 """``stipi-daemon mock-peripheral --scene SCENE``: the emulated probe as a real BLE peripheral.
 
 Thin shell over :func:`stipi_daemon.sim.ble.mock_peripheral.serve`: opens a Bluetooth
-controller with Bumble (``--transport usb:0``, ``hci-socket:0``, ``serial:...``, or
-``virtual:NAME`` for an in-process radio), advertises the probe's name and the Nordic UART
+controller with Bumble (``--transport usb:0``, ``hci-socket:0``, ``serial:...``,
+``virtual:NAME`` for an in-process radio, or ``loopback:PORT`` for a virtual radio that a
+daemon in another process reaches on 127.0.0.1:PORT with ``hci: loopback:PORT``), advertises the probe's name and the Nordic UART
 Service, and streams the scene's load-cell samples in the real wire protocol, answering
 commands as the firmware does, with the module's BLE limits. A second machine's
 ``stipi-daemon`` (bleak on BlueZ) connects to it over the air as to a probe
@@ -28,7 +29,8 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         description=(
             "Advertise the probe's name and the Nordic UART Service on a Bluetooth controller "
             "driven by Bumble and stream SCENE's load-cell samples in the real wire protocol. "
-            "See docs/bench.md for the two-machine bench set-up."
+            "No dongle: --transport loopback:9321 and a daemon with "
+            "configs/probe-ble-loopback.yaml in another terminal. See docs/bench.md."
         ),
     )
     parser.add_argument("--scene", type=Path, required=True, help="scene YAML file")
@@ -36,7 +38,11 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         "--transport",
         required=True,
         metavar="SPEC",
-        help="controller: usb:0, hci-socket:0, serial:/dev/ttyACM0,1000000, virtual:NAME",
+        help=(
+            "controller: usb:0, hci-socket:0, serial:/dev/ttyACM0,1000000, virtual:NAME, or "
+            "loopback:PORT (a virtual radio served on 127.0.0.1:PORT to other processes; "
+            "0 picks a free port)"
+        ),
     )
     parser.add_argument("--seed", type=int, default=None, help="scene seed (default: scene's)")
     parser.add_argument("--name", default="STIPI-01", help="advertised name (default STIPI-01)")
@@ -57,6 +63,9 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     parser.add_argument("--silent-for", type=float, default=3.0, help="silence length [s]")
     parser.add_argument("--disappear-every", type=float, default=None, help="vanish every [s]")
     parser.add_argument("--disappear-for", type=float, default=5.0, help="absence length [s]")
+    parser.add_argument(
+        "--refuse-connections", type=int, default=0, help="drop the first N connections at once"
+    )
     parser.add_argument("--report-every", type=float, default=5.0, help="status line period [s]")
     parser.add_argument("--quiet", action="store_true", help="no status lines")
     parser.set_defaults(handler=run)
@@ -84,6 +93,7 @@ def run(args: argparse.Namespace) -> int:
         disappear_every_s=args.disappear_every,
         disappear_for_s=args.disappear_for,
         report_every_s=args.report_every,
+        refuse_connections=args.refuse_connections,
         quiet=args.quiet,
     )
     with contextlib.suppress(KeyboardInterrupt):

@@ -2,7 +2,10 @@
 
 This module owns :class:`BleTransportConfig` (``kind="ble"``) and :class:`BleTransport`, a
 :class:`~stipi_daemon.probe.transports.base.Transport`. ``open()`` scans for the probe by
-advertised name or by address (``BleakScanner``), connects (``BleakClient``), checks that
+advertised name or by address (``BleakScanner``), connects (``BleakClient`` through
+bleak-retry-connector's ``establish_connection``, which retries the transient failures of a
+connection attempt - BlueZ's ``le-connection-abort-by-local``, a D-Bus hiccup, a link that
+drops during service discovery - up to ``connect_attempts`` times), checks that
 the Nordic UART Service is there and subscribes to its TX characteristic exactly once
 (``start_notify``); every notification's bytes go to ``read()`` in order, whatever frame
 boundaries they cut; ``write()`` sends through the RX characteristic in pieces of the
@@ -13,8 +16,11 @@ subscribes again, once. Retrying, backoff and the heartbeat watchdog belong to
 :class:`~stipi_daemon.probe.link.ProbeLink`, which reopens transports of every kind.
 
 bleak runs on the operating system's stack by default (BlueZ on Linux); with ``hci`` set it
-runs on Bumble's host stack instead, either on a dongle (``usb:0``, ``hci-socket:0``) or on
-an in-process virtual radio (``virtual:NAME``). With ``emulate`` set
+runs on Bumble's host stack instead, either on a dongle (``usb:0``, ``hci-socket:0``), on
+a virtual radio another process serves on the loopback interface (``loopback:9321``: the
+bench without a radio, ``stipi-daemon mock-peripheral --transport loopback:9321``) or on
+an in-process virtual radio (``virtual:NAME``). The bleak calls are the same in every case.
+With ``emulate`` set
 (:class:`~stipi_daemon.probe.transports.configs.BleEmulationConfig`), the transport also
 starts an emulated probe playing a simulator scene on that virtual radio, so a whole
 measurement runs over real BLE stacks in one process (tests, demo). Both come from
@@ -34,7 +40,7 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from stipi_daemon.clock import SessionClock
 from stipi_daemon.errors import DeviceNotFoundError, LinkLostError
-from stipi_daemon.probe.nus import NUS_RX_UUID, NUS_TX_UUID
+from stipi_daemon.probe.nus import NUS_RX_UUID, NUS_TX_UUID, check_hci_spec_is_local
 from stipi_daemon.probe.transports.configs import BleEmulationConfig
 from stipi_daemon.registry import load
 
@@ -47,6 +53,8 @@ if TYPE_CHECKING:
 
 __all__ = ["BleEmulationConfig", "BleTransport", "BleTransportConfig"]
 
+#: Longest back-off bleak-retry-connector waits between two attempts [s] (a missing device).
+_RETRY_BACKOFF_MAX_S = 4.0
 _ADDRESS_RE = re.compile(r"^([0-9A-Fa-f]{2}:){5}[0-9A-Fa-f]{2}$|^[0-9A-Fa-f-]{36}$")
 
 
@@ -87,12 +95,18 @@ class BleTransportConfig(BaseModel):
         ``address`` (with both, both must match).
     hci : str, optional
         Run bleak on Bumble's host stack on this controller instead of the operating
-        system's: ``usb:0``, ``hci-socket:0``, ``serial:/dev/ttyACM0,1000000``, or
-        ``virtual:NAME`` for an in-process virtual radio. Default: the OS stack (BlueZ).
+        system's: ``usb:0``, ``hci-socket:0``, ``serial:/dev/ttyACM0,1000000``,
+        ``loopback:PORT`` for a virtual radio served on 127.0.0.1:PORT by ``stipi-daemon
+        mock-peripheral --transport loopback:PORT`` (network specs must name loopback
+        addresses), or ``virtual:NAME`` for an in-process virtual radio. Default: the OS
+        stack (BlueZ).
     scan_timeout_s : float
         How long one ``open()`` scans for the probe before it reports it missing [s, wall].
     connect_timeout_s : float
         How long one connection attempt and its service discovery may take [s, wall].
+    connect_attempts : int
+        Connection attempts of one ``open()`` (bleak-retry-connector's ``max_attempts``);
+        transient errors are retried, each after bleak-retry-connector's back-off.
     write_with_response : bool
         Send commands as ATT write requests (acknowledged) instead of write commands.
     emulate : BleEmulationConfig, optional
@@ -107,6 +121,7 @@ class BleTransportConfig(BaseModel):
     hci: str | None = Field(None, min_length=1)
     scan_timeout_s: float = Field(10.0, gt=0.0, le=600.0)
     connect_timeout_s: float = Field(10.0, gt=0.0, le=600.0)
+    connect_attempts: int = Field(3, ge=1, le=10)
     write_with_response: bool = False
     emulate: BleEmulationConfig | None = None
 
@@ -116,6 +131,8 @@ class BleTransportConfig(BaseModel):
             raise ValueError("give the probe's advertised 'name' or its 'address'")
         if self.address is not None and not _ADDRESS_RE.match(self.address):
             raise ValueError(f"address {self.address!r} is not AA:BB:CC:DD:EE:FF (or a UUID)")
+        if self.hci is not None:
+            check_hci_spec_is_local(self.hci)
         if (
             self.emulate is not None
             and self.hci is not None
@@ -217,21 +234,33 @@ class BleTransport:
     async def open(self) -> None:
         from bleak import BleakClient
         from bleak.exc import BleakError
+        from bleak_retry_connector import establish_connection
 
+        cfg = self.config
         await self.close()
         await self._start_emulation()
         scanner_cls, client_cls = await self._backends()
         device = await self._find(scanner_cls)
-        client = BleakClient(
-            device,
-            disconnected_callback=self._on_disconnect,
-            timeout=self.config.connect_timeout_s,
-            backend=client_cls,
-        )
+        # Every attempt may take connect_timeout_s, then back off before the next one.
+        limit_s = cfg.connect_attempts * (cfg.connect_timeout_s + _RETRY_BACKOFF_MAX_S)
         try:
-            async with asyncio.timeout(self.config.connect_timeout_s):
-                await client.connect()
-        except (BleakError, TimeoutError, OSError) as exc:
+            async with asyncio.timeout(limit_s):
+                client = await establish_connection(
+                    BleakClient,
+                    device,
+                    cfg.target,
+                    disconnected_callback=self._on_disconnect,
+                    max_attempts=cfg.connect_attempts,
+                    use_services_cache=False,  # discover afresh, as after a firmware change
+                    timeout=cfg.connect_timeout_s,
+                    backend=client_cls,
+                )
+        except TimeoutError:
+            raise LinkLostError(
+                f"{self.name}: no connection within {limit_s:g} s "
+                f"({cfg.connect_attempts} attempt(s) of up to {cfg.connect_timeout_s:g} s)"
+            ) from None
+        except (BleakError, OSError) as exc:
             raise LinkLostError(f"{self.name}: connection failed: {_one_line(exc)}") from exc
         tx = client.services.get_characteristic(NUS_TX_UUID)
         rx = client.services.get_characteristic(NUS_RX_UUID)

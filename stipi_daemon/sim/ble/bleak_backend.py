@@ -350,6 +350,7 @@ class BumbleBleakClient(BaseBleakClient):
         self._proxies: dict[int, CharacteristicProxy[bytes]] = {}
         self._descriptor_proxies: dict[int, DescriptorProxy] = {}
         self._subscribers: dict[int, Callable[[bytes], None]] = {}
+        self._lost_reason: int | None = None
 
     # ------------------------------------------------------------ properties
 
@@ -383,6 +384,7 @@ class BumbleBleakClient(BaseBleakClient):
         except HCI_Error as exc:
             raise BleakError(f"connection to {self.address} failed: {exc}") from exc
         self._connection = connection
+        self._lost_reason = None
         connection.on(connection.EVENT_DISCONNECTION, self._on_disconnection)
         try:
             peer = Peer(connection)
@@ -392,9 +394,19 @@ class BumbleBleakClient(BaseBleakClient):
             self.services = await self._discover(peer)
             if pair:
                 await connection.pair()
-        except BaseException:
+        except BaseException as exc:
             await self.disconnect()
-            raise
+            reason = self._lost_reason
+            task = asyncio.current_task()
+            if reason is None or (task is not None and task.cancelling()):
+                raise
+            # The link dropped under the MTU exchange or the discovery: Bumble cancels the
+            # pending ATT request. bleak's backends report that as a BleakError (BlueZ:
+            # "failed to discover services, device disconnected"), which callers retry.
+            raise BleakError(
+                f"{self.address} disconnected during connection set-up "
+                f"(HCI reason 0x{reason:02X})"
+            ) from exc
 
     async def _discover(self, peer: Peer) -> BleakGATTServiceCollection:
         collection = BleakGATTServiceCollection()
@@ -433,6 +445,7 @@ class BumbleBleakClient(BaseBleakClient):
         return (int(conn.att_mtu) if conn is not None else 23) - 3
 
     def _on_disconnection(self, reason: int) -> None:
+        self._lost_reason = reason
         self._connection = None
         self._peer = None
         self._subscribers.clear()

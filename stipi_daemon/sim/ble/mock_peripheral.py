@@ -1,7 +1,8 @@
 """``mock-peripheral``'s run: the emulated probe as a real BLE peripheral playing a scene.
 
 :func:`serve` opens a Bluetooth controller with Bumble (``usb:0``, ``hci-socket:0``,
-``serial:...``, or ``virtual:NAME`` for an in-process radio), advertises the probe's name
+``serial:...``, ``virtual:NAME`` for an in-process radio, or ``loopback:PORT`` for a
+virtual radio served to other processes on 127.0.0.1:PORT, :mod:`.loopback`), advertises the probe's name
 and the Nordic UART Service, and streams the scene's load-cell samples in the real wire
 protocol through :mod:`.mock_probe`, answering commands as the firmware does, with the
 module's BLE limits (:mod:`.peripheral`, :mod:`.module`). Optional periodic faults: drop
@@ -22,6 +23,8 @@ from stipi_daemon.clock import ScaledClock
 from stipi_daemon.errors import ConfigError
 from stipi_daemon.sim import load_scene
 from stipi_daemon.sim.ble.mock_probe import scene_core, start_ble_probe
+from stipi_daemon.probe.nus import LOOPBACK_SCHEME
+from stipi_daemon.sim.ble.loopback import LoopbackRadioServer
 from stipi_daemon.sim.ble.module import NotificationFaults
 from stipi_daemon.sim.ble.peripheral import BleModuleLimits, LinkCounters
 from stipi_daemon.sim.ble.radio import VIRTUAL_SCHEME, BleRadioError, VirtualRadio
@@ -52,12 +55,15 @@ class MockPeripheralOptions:
     disappear_every_s: float | None = None
     disappear_for_s: float = 5.0
     report_every_s: float = 5.0
+    refuse_connections: int = 0
     quiet: bool = False
 
 
 def _check(opts: MockPeripheralOptions) -> None:
     if not (math.isfinite(opts.speed) and opts.speed > 0):
         raise ConfigError(f"--speed must be > 0, got {opts.speed}")
+    if opts.refuse_connections < 0:
+        raise ConfigError(f"--refuse-connections must be >= 0, got {opts.refuse_connections}")
     if opts.seed is not None and opts.seed < 0:
         raise ConfigError(f"--seed must be >= 0, got {opts.seed}")
     for flag, value in (
@@ -97,22 +103,41 @@ async def serve(opts: MockPeripheralOptions, *, ready: asyncio.Event | None = No
     except ValueError as exc:
         raise ConfigError(f"mock-peripheral: {exc}") from exc
     radio = None
+    server: LoopbackRadioServer | None = None
+    hci = opts.transport
     scheme, _, rest = opts.transport.partition(":")
     if scheme == VIRTUAL_SCHEME:
         with contextlib.suppress(BleRadioError):  # reuse an open radio of that name
             radio = VirtualRadio(rest)
+    elif scheme == LOOPBACK_SCHEME:
+        server = await LoopbackRadioServer.start(opts.transport)
+        hci = server.radio.spec
     clock = ScaledClock(opts.speed)
     mcu = McuClock(clock.now())
     core = scene_core(scene, opts.seed, mcu, clock.now())
-    emulator = await start_ble_probe(
-        opts.transport, clock, core, mcu, name=opts.name, limits=limits, faults=faults
-    )
+    try:
+        emulator = await start_ble_probe(
+            hci, clock, core, mcu, name=opts.name, limits=limits, faults=faults
+        )
+    except BaseException:
+        if server is not None:
+            await server.close()
+        raise
     p = emulator.peripheral
+    p.refuse_connections(opts.refuse_connections)
+    where = opts.transport if server is None else server.spec
     if not opts.quiet:
         print(
-            f"advertising {opts.name} ({p.address.to_string(False)}) on {opts.transport}, "
+            f"advertising {opts.name} ({p.address.to_string(False)}) on {where}, "
             f"scene {scene.name}, MTU <= {opts.max_mtu}, "
             f"{limits.bytes_per_second:.0f} B/s ceiling",
+            flush=True,
+        )
+    if server is not None:
+        # Always printed (also with --quiet): the other process needs the port.
+        print(
+            f"serving a virtual radio on {server.host}:{server.port}: run the daemon with "
+            f"`hci: {server.spec}` (configs/probe-ble-loopback.yaml)",
             flush=True,
         )
     if ready is not None:
@@ -137,7 +162,8 @@ async def serve(opts: MockPeripheralOptions, *, ready: asyncio.Event | None = No
         c = p.counters
         print(
             f"t={clock.now():7.1f} s  connected={p.connected}  conns={c.connections}  "
-            f"notifications={c.notifications}  bytes={c.notified_bytes}  "
+            f"refused={c.connections_refused}  notifications={c.notifications}  "
+            f"bytes={c.notified_bytes}  "
             f"frames_lost={emulator.frames_lost}  samples={emulator.ledger.samples_emitted}",
             flush=True,
         )
@@ -163,6 +189,8 @@ async def serve(opts: MockPeripheralOptions, *, ready: asyncio.Event | None = No
         await emulator.close()
         if radio is not None:
             radio.close()
+        if server is not None:
+            await server.close()
     if not opts.quiet:
         await report()
     return p.counters

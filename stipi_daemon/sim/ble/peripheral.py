@@ -58,6 +58,9 @@ _log = logging.getLogger(__name__)
 REASON_CONNECTION_TIMEOUT: Final = 0x08
 #: HCI reason "remote user terminated connection".
 REASON_REMOTE_USER_TERMINATED: Final = 0x13
+#: HCI reason "connection failed to be established": the first connection events were
+#: missed (BlueZ reports it as ``le-connection-abort-by-local``).
+REASON_FAILED_TO_ESTABLISH: Final = 0x3E
 _MIN_TICK_WALL_S: Final = 0.002
 
 
@@ -130,6 +133,8 @@ class LinkCounters:
     rx_bytes: int = 0
     frames_refused: int = 0
     frames_discarded_on_disconnect: int = 0
+    #: Connections dropped at once by :meth:`NusPeripheral.refuse_connections`.
+    connections_refused: int = 0
 
 
 @dataclass(slots=True)
@@ -218,6 +223,7 @@ class NusPeripheral:
         self._subscribed = False
         self._silent = False
         self._absent = False
+        self._refuse_left = 0
         self._pacer: ConnectionEventPacer | None = None
         self._pending: deque[_Pending] = deque()
         self._receiver = ReceiverSyncModel()
@@ -312,6 +318,28 @@ class NusPeripheral:
             return False
         return True
 
+    def refuse_connections(self, count: int) -> None:
+        """Drop each of the next ``count`` connections as soon as it is made.
+
+        The central's connection completes, then ends with HCI reason 0x3E (connection
+        failed to be established; a controller that refuses that reason from its host
+        gets 0x13) before service discovery finishes - the transient failure of a
+        peripheral that misses the first connection events, which a central retries.
+        Counted in ``counters.connections_refused``, not in ``counters.connections``.
+        """
+        if count < 0:
+            raise ValueError(f"refused connection count must be >= 0, got {count}")
+        self._refuse_left = count
+
+    async def _drop_refused(self, connection: Connection) -> None:
+        try:
+            await connection.disconnect(REASON_FAILED_TO_ESTABLISH)
+        except HCI_Error:
+            with contextlib.suppress(HCI_Error):
+                await connection.disconnect(REASON_REMOTE_USER_TERMINATED)
+        if not self._closed and self._connection is None:
+            await self._advertise()
+
     def set_silent(self, silent: bool) -> None:
         """Stay connected but send no notifications (``True``) or resume (``False``).
 
@@ -352,6 +380,11 @@ class NusPeripheral:
 
     def _on_connection(self, connection: Connection) -> None:
         if connection.role != Role.PERIPHERAL:
+            return
+        if self._refuse_left > 0 and self._connection is None and not self._absent:
+            self._refuse_left -= 1
+            self.counters.connections_refused += 1
+            asyncio.get_running_loop().create_task(self._drop_refused(connection))
             return
         if self._connection is not None or self._absent:
             # The module serves one central; a second one (or one racing a disappearance)

@@ -2,12 +2,16 @@
 
 This module owns the way a Bumble host stack reaches a Bluetooth controller. A spec string
 names it, in Bumble's own syntax (``usb:0``, ``hci-socket:0``, ``serial:/dev/ttyACM0,1000000``,
-``tcp-client:127.0.0.1:9000`` ...) or ``virtual:NAME`` for a :class:`VirtualRadio`: Bumble's
+``tcp-client:127.0.0.1:9000`` ...), ``loopback:PORT`` for a virtual radio another process
+serves on the loopback interface (:mod:`stipi_daemon.sim.ble.loopback`), or ``virtual:NAME``
+for a :class:`VirtualRadio`: Bumble's
 software controllers (:class:`bumble.controller.Controller`) sharing one in-process
 :class:`bumble.link.LocalLink`, over which real link-layer connections, ACL data, ATT and
 GATT run between every device on that radio. Tests, the emulated probe and a central then
 talk "over the air" with no adapter present. It does not build devices or GATT services
 (:mod:`stipi_daemon.sim.ble.peripheral`, :mod:`stipi_daemon.sim.ble.bleak_backend` do).
+A controller that cannot be opened is one line naming the spec; for a USB dongle it says
+whether the dongle is missing or held by someone else and how to run without one.
 """
 
 from __future__ import annotations
@@ -23,12 +27,19 @@ from bumble.transport import open_transport
 from bumble.transport.common import AsyncPipeSink, Transport, TransportSource
 
 from stipi_daemon.errors import StipiError
+from stipi_daemon.probe.nus import (
+    DEFAULT_LOOPBACK_PORT,
+    LOOPBACK_SCHEME,
+    check_hci_spec_is_local,
+    parse_loopback_spec,
+)
 
 __all__ = [
     "VIRTUAL_SCHEME",
     "BleRadioError",
     "HciEndpoint",
     "VirtualRadio",
+    "explain_open_error",
     "open_hci",
     "static_address",
 ]
@@ -37,6 +48,14 @@ __all__ = [
 VIRTUAL_SCHEME: Final = "virtual"
 
 _RADIOS: dict[str, VirtualRadio] = {}
+_USB_SCHEMES: Final = ("usb", "pyusb")
+#: What to do without a dongle (printed with every USB error).
+NO_DONGLE_HINT: Final = (
+    f"without a dongle, serve a virtual radio on this machine: `stipi-daemon mock-peripheral "
+    f"--transport {LOOPBACK_SCHEME}:{DEFAULT_LOOPBACK_PORT}` and a daemon with "
+    f"`hci: {LOOPBACK_SCHEME}:{DEFAULT_LOOPBACK_PORT}` (configs/probe-ble-loopback.yaml, "
+    "docs/bench.md)"
+)
 
 
 class BleRadioError(StipiError):
@@ -165,19 +184,55 @@ class HciEndpoint:
             self._radio.detach(self._controller)
 
 
+def explain_open_error(spec: str, exc: BaseException) -> str:
+    """One line saying why the controller ``spec`` could not be opened, and what to do.
+
+    A USB dongle (``usb:N``, ``pyusb:...``) that is absent, held by the kernel's ``btusb``
+    driver or another program, or not accessible is named as such, with the hint to run
+    without a dongle on a loopback virtual radio; other transports get Bumble's reason.
+    """
+    scheme = spec.partition(":")[0]
+    reason = " ".join(str(exc).split()) or type(exc).__name__
+    if scheme in _USB_SCHEMES:
+        name = type(exc).__name__
+        if "not found" in reason or name in ("USBErrorNotFound", "USBErrorNoDevice"):
+            why = "missing: no USB Bluetooth controller matches it; `bumble-usb-probe` lists them"
+        elif name == "USBErrorBusy" or "BUSY" in reason:
+            why = "in use by the kernel's btusb driver (BlueZ) or another program"
+        elif name == "USBErrorAccess" or "ACCESS" in reason:
+            why = "not accessible to this user: add the udev rule of docs/bench.md"
+        else:
+            why = (
+                "missing, or in use by the kernel's btusb driver (BlueZ) or another "
+                "program; `bumble-usb-probe` lists the dongles"
+            )
+        return f"no Bluetooth USB dongle at {spec} ({why}): {reason}; {NO_DONGLE_HINT}"
+    if scheme == LOOPBACK_SCHEME and isinstance(exc, ConnectionRefusedError):
+        host, port = parse_loopback_spec(spec)
+        return (
+            f"nothing serves a virtual radio at {host}:{port} ({spec}): start "
+            f"`stipi-daemon mock-peripheral --scene SCENE --transport {spec}` first"
+        )
+    return f"cannot open Bluetooth HCI transport {spec!r}: {reason}"
+
+
 async def open_hci(spec: str) -> HciEndpoint:
     """Open the HCI endpoint ``spec`` names.
 
     Parameters
     ----------
     spec : str
-        ``virtual:<name>`` for a controller on an open :class:`VirtualRadio`, otherwise a
-        Bumble transport spec (``usb:0``, ``hci-socket:0``, ``tcp-client:host:port`` ...).
+        ``virtual:<name>`` for a controller on an open :class:`VirtualRadio` of this
+        process, ``loopback:[HOST:]PORT`` for a controller on a radio another process
+        serves on the loopback interface, otherwise a Bumble transport spec (``usb:0``,
+        ``hci-socket:0``, ``tcp-client:127.0.0.1:port`` ...). Network specs must name
+        loopback addresses.
 
     Raises
     ------
     BleRadioError
-        The radio is unknown or the transport cannot be opened (one line naming the spec).
+        The radio is unknown or the transport cannot be opened (one line naming the spec,
+        :func:`explain_open_error`).
     """
     scheme, _, rest = spec.partition(":")
     if scheme == VIRTUAL_SCHEME:
@@ -192,9 +247,17 @@ async def open_hci(spec: str) -> HciEndpoint:
             _controller=controller,
         )
     try:
-        transport = await open_transport(spec)
+        check_hci_spec_is_local(spec)
+    except ValueError as exc:
+        raise BleRadioError(str(exc)) from None
+    bumble_spec = spec
+    if scheme == LOOPBACK_SCHEME:
+        host, port = parse_loopback_spec(spec)
+        bumble_spec = f"tcp-client:{host}:{port}"
+    try:
+        transport = await open_transport(bumble_spec)
     except Exception as exc:  # Bumble raises many types (usb, OS, spec errors)
-        raise BleRadioError(f"cannot open Bluetooth HCI transport {spec!r}: {exc}") from exc
+        raise BleRadioError(explain_open_error(spec, exc)) from exc
     return HciEndpoint(
         spec=spec, source=transport.source, sink=transport.sink, _transport=transport
     )
