@@ -34,7 +34,7 @@ from stipi_daemon.errors import DeviceNotFoundError, LinkLostError, ProtocolErro
 from stipi_daemon.probe.transports.base import Releasable, Transport
 from stipi_daemon.protocol.accounting import SampleAccounting, SampleGap
 from stipi_daemon.protocol.clocksync import ClockSync, ClockSyncConfig
-from stipi_daemon.protocol.decoder import DecodedFrame, FrameDecoder
+from stipi_daemon.protocol.decoder import PROBE_TO_HOST_TYPES, DecodedFrame, FrameDecoder
 from stipi_daemon.protocol.messages import (
     RATE_MAX_HZ,
     RATE_MIN_HZ,
@@ -79,6 +79,7 @@ FAULT_COUNTERS: Final = (
     "version_errors",
     "unknown_type",
     "body_errors",
+    "wrong_direction",
     "gaps",
     "frames_lost",
     "duplicates",
@@ -325,7 +326,9 @@ class ProbeLink:
             else (zero_counts, span_un_per_count)
         )
         self._prefer_config_cal = prefer_config_calibration
-        self.decoder = FrameDecoder()
+        # The probe sends SAMPLES, STATUS and ACK only: a COMMAND on its stream (the host's
+        # own bytes echoed back) is dropped, counted, and never sequenced.
+        self.decoder = FrameDecoder(accept=PROBE_TO_HOST_TYPES)
         self.accounting = SampleAccounting()
         self.clock_sync = ClockSync(clock_sync)
         #: Mapped time of the last sample [s] and how often a sample's mapped time was held

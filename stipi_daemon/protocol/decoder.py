@@ -18,24 +18,53 @@ restart is also recognised from the content: SAMPLES ``first_index`` or STATUS
 ``dropped`` going backwards (modulo 2^32). After a restart the sequence tracker and the
 clock unwrapper start afresh and the frame is delivered with event
 :attr:`~stipi_daemon.protocol.timestamps.SeqEvent.RESTART`.
+
+Frames of the wrong direction
+-----------------------------
+A decoder told which types its sender sends (``accept``; the probe link gives
+:data:`PROBE_TO_HOST_TYPES`) drops a CRC-valid frame of any other type - a host → probe
+COMMAND echoed or looped back onto the probe's stream - before it reaches the sequence
+tracker or the clock: counted in ``wrong_direction`` and recorded as a
+:attr:`~stipi_daemon.protocol.errors.FrameErrorKind.DIRECTION` error, it cannot fake a
+restart, a gap or a clock jump (the host's own seq and t_us count on another clock).
 """
 
 from __future__ import annotations
 
 from collections import deque
+from collections.abc import Collection
 from dataclasses import dataclass, fields, replace
 from typing import Final
 
 from stipi_daemon.protocol.cobs import cobs_decode
 from stipi_daemon.protocol.errors import FrameError, FrameErrorKind
-from stipi_daemon.protocol.messages import MAX_ENCODED_SIZE, Message, Samples, Status, unpack_frame
+from stipi_daemon.protocol.messages import (
+    MAX_ENCODED_SIZE,
+    Message,
+    MsgType,
+    Samples,
+    Status,
+    unpack_frame,
+)
 from stipi_daemon.protocol.timestamps import (
     SeqEvent,
     SequenceTracker,
     TimestampUnwrapper,
 )
 
-__all__ = ["DecodeErrorEvent", "DecodedFrame", "DecoderStats", "FrameDecoder"]
+__all__ = [
+    "HOST_TO_PROBE_TYPES",
+    "PROBE_TO_HOST_TYPES",
+    "DecodeErrorEvent",
+    "DecodedFrame",
+    "DecoderStats",
+    "FrameDecoder",
+]
+
+#: Message types the probe sends (its stream's decoder accepts only these).
+PROBE_TO_HOST_TYPES: Final = frozenset({MsgType.SAMPLES, MsgType.STATUS, MsgType.ACK})
+#: Message types the host sends.
+HOST_TO_PROBE_TYPES: Final = frozenset({MsgType.COMMAND})
 
 _HALF_U32: Final = 1 << 31
 _U32: Final = 1 << 32
@@ -146,6 +175,9 @@ class DecoderStats:
     """CRC-valid frames of an unknown message type."""
     body_errors: int = 0
     """CRC-valid frames whose body does not fit their type."""
+    wrong_direction: int = 0
+    """CRC-valid frames of a type this sender never sends (a COMMAND on the probe's
+    stream), dropped before sequence and clock tracking."""
     resyncs: int = 0
     """Valid frames that followed one or more rejected runs (regained synchronisation)."""
     gaps: int = 0
@@ -171,6 +203,7 @@ class DecoderStats:
             + self.version_errors
             + self.unknown_type
             + self.body_errors
+            + self.wrong_direction
         )
 
     def as_dict(self) -> dict[str, int]:
@@ -185,6 +218,7 @@ _ERROR_FIELD: Final[dict[FrameErrorKind, str]] = {
     FrameErrorKind.VERSION: "version_errors",
     FrameErrorKind.TYPE: "unknown_type",
     FrameErrorKind.BODY: "body_errors",
+    FrameErrorKind.DIRECTION: "wrong_direction",
 }
 
 
@@ -198,9 +232,20 @@ class FrameDecoder:
         they are only counted, as docs/protocol.md requires.
     max_error_events : int
         How many recent :class:`DecodeErrorEvent` objects :attr:`errors` keeps.
+    accept : collection of MsgType, optional
+        The message types this sender sends (:data:`PROBE_TO_HOST_TYPES` for the probe's
+        stream); CRC-valid frames of other types are dropped as
+        :attr:`FrameErrorKind.DIRECTION` errors. Default: every type.
     """
 
-    def __init__(self, *, deliver_duplicates: bool = False, max_error_events: int = 256) -> None:
+    def __init__(
+        self,
+        *,
+        deliver_duplicates: bool = False,
+        max_error_events: int = 256,
+        accept: Collection[MsgType] | None = None,
+    ) -> None:
+        self._accept = None if accept is None else frozenset(accept)
         self._deliver_duplicates = deliver_duplicates
         self._max_error_events = max_error_events
         self.reset()
@@ -341,6 +386,16 @@ class FrameDecoder:
             frame = unpack_frame(cobs_decode(seg))
         except FrameError as exc:
             self._reject(exc.kind, len(seg), exc.offset, exc.detail)
+            return
+        msg_type = frame.message.MSG_TYPE
+        if self._accept is not None and msg_type not in self._accept:
+            self._reject(
+                FrameErrorKind.DIRECTION,
+                len(seg),
+                1,
+                f"{msg_type.name} frame (seq {frame.seq}) is sent by the other end; dropped "
+                "without touching sequence or clock tracking",
+            )
             return
         stats = self._stats
         stats.frames_ok += 1

@@ -30,6 +30,9 @@ class FrameErrorKind(StrEnum):
     """CRC-valid version-1 frame with an unknown message type."""
     BODY = "body"
     """CRC-valid frame whose body does not match its type's layout or field ranges."""
+    DIRECTION = "direction"
+    """CRC-valid frame of a type the other end sends (a host → probe COMMAND on the probe's
+    stream): an echo or loop-back of the host's own bytes, never a probe frame."""
 
 
 class FrameError(ProtocolError):
