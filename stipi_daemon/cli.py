@@ -14,7 +14,7 @@ from pathlib import Path
 
 from stipi_daemon import __version__
 from stipi_daemon.commands import register_all
-from stipi_daemon.errors import StipiError
+from stipi_daemon.errors import ConfigError, StipiError
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -39,6 +39,22 @@ def build_parser() -> argparse.ArgumentParser:
         help="run simulated devices at real speed instead of the config's run.speed",
     )
     parser.add_argument("--quiet", action="store_true", help="print only the results' path")
+    parser.add_argument(
+        "--scene",
+        type=Path,
+        metavar="PATH",
+        help="with --config: the scene the simulated probe and camera play instead of the "
+        "config's (e.g. configs/scenes/grade2.yaml)",
+    )
+    parser.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        dest="overrides",
+        metavar="KEY=VALUE",
+        help="with --config: change one config field by its dotted path, validated like the "
+        "file (repeatable), e.g. --set measurement.stop_when_settled=true",
+    )
     subparsers = parser.add_subparsers(title="commands", metavar="COMMAND")
     register_all(subparsers)
     return parser
@@ -48,7 +64,7 @@ def _run(args: argparse.Namespace) -> int:
     from stipi_daemon.app.config import load_config
     from stipi_daemon.app.daemon import run_measurement
 
-    config = load_config(args.config)
+    config = load_config(args.config, scene=args.scene, overrides=args.overrides)
     outcome = run_measurement(config, speed=1.0 if args.realtime else None, quiet=args.quiet)
     if args.quiet:
         print(outcome.session_dir)
@@ -60,6 +76,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         handler = getattr(args, "handler", None)
+        if (args.scene is not None or args.overrides) and (handler is not None or not args.config):
+            raise ConfigError(
+                "--scene/--set change the config of a measurement: give them with --config "
+                "FILE and no command"
+            )
         if handler is None and args.config is not None:
             return _run(args)
         if handler is None:

@@ -52,7 +52,10 @@ MINIMAL = (
         ),
         (MINIMAL.replace("emulated", "serail"), "field 'probe.transport'"),
         ("camera: {kind: simulator, scene: s.yaml}\n", "field 'probe': Field required"),
-        (MINIMAL + "probe: {rate_hz: 5}\n", "field"),
+        (
+            MINIMAL + "probe: {rate_hz: 5}\n",
+            "line 3: duplicate key 'probe' (already given at line 1",
+        ),
         (MINIMAL + "run: {speed: 0}\n", "field 'run.speed'"),
         (MINIMAL + "measurement: {target_force_n: -1}\n", "field 'measurement.target_force_n'"),
         (MINIMAL + "imaging: {threshold_p: 300}\n", "field 'imaging.threshold_p'"),

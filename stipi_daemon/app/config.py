@@ -6,18 +6,26 @@ video file or the simulator), imaging settings (threshold and ROI of Eqs. 1-2), 
 calibration file, the state machine's thresholds (``measurement``), the analysis
 settings, storage and the run speed. It validates everything with pydantic (unknown keys
 are errors) and reports problems as one :class:`~stipi_daemon.errors.ConfigError` line
-naming the file and the field path. Paths inside the file are resolved relative to the
-file. It does not open devices or files other than the config itself. Each transport's
+naming the file and the field path; a key given twice is refused with its line
+(:mod:`stipi_daemon.yamlfile`). Paths inside the file are resolved relative to the file.
+The command line may change a loaded file without copying it: ``--scene PATH`` (the scene
+every simulated device plays) and ``--set KEY=VALUE`` (any field, by its dotted path),
+validated by the same model; an error names the ``--set`` item. :func:`sessions_root` is
+the one rule by which every command finds the sessions directory (``--root``, else the
+``storage.root`` of ``--config``, else ``./sessions``). It does not open devices or files
+other than the config itself. Each transport's
 and camera's own options live in their modules (:mod:`stipi_daemon.probe.transports`,
 :mod:`stipi_daemon.cameras`).
 """
 
 from __future__ import annotations
 
+import difflib
+from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
 
-import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, ValidationInfo, field_validator
 
 from stipi_daemon.analysis.imaging import ROI
@@ -26,16 +34,21 @@ from stipi_daemon.cameras import CameraConfig
 from stipi_daemon.errors import ConfigError
 from stipi_daemon.measurement.state_machine import MeasurementConfig
 from stipi_daemon.probe.transports import TransportConfig
+from stipi_daemon.storage.layout import DEFAULT_ROOT
+from stipi_daemon.yamlfile import load_yaml
 
 __all__ = [
     "CONFIG_FORMAT",
     "CONFIG_VERSION",
     "DaemonConfig",
     "ImagingSettings",
+    "Override",
     "ProbeSettings",
     "RunSettings",
     "StorageSettings",
     "load_config",
+    "parse_override",
+    "sessions_root",
 ]
 
 CONFIG_FORMAT = "stipi-daemon-config"
@@ -218,8 +231,126 @@ def _loc(loc: tuple[int | str, ...]) -> str:
     return out or "(top level)"
 
 
-def parse_config(data: Any, source: str) -> DaemonConfig:
-    """Validate a parsed YAML mapping; errors name ``source`` and the field path."""
+@dataclass(frozen=True)
+class Override:
+    """One ``--set KEY=VALUE`` of the command line, parsed.
+
+    Attributes
+    ----------
+    key : str
+        Dotted field path (``measurement.stop_when_settled``).
+    value : Any
+        The value, parsed as a YAML scalar (``true``, ``4``, ``0.5``, ``text``; empty:
+        null).
+    text : str
+        As given (``KEY=VALUE``), for messages.
+    """
+
+    key: str
+    value: Any
+    text: str
+
+    @property
+    def parts(self) -> tuple[str, ...]:
+        return tuple(self.key.split("."))
+
+    def owns(self, loc: str) -> bool:
+        """Whether a validation error at dotted ``loc`` concerns this override."""
+        return loc == self.key or loc.startswith(self.key + ".") or self.key.startswith(loc + ".")
+
+
+def parse_override(text: str) -> Override:
+    """Parse one ``--set KEY=VALUE`` (``KEY`` dotted, ``VALUE`` a YAML scalar).
+
+    Raises
+    ------
+    ConfigError
+        No ``=``, an empty key or key part, or a value that is not a YAML scalar.
+    """
+    key, sep, raw = text.partition("=")
+    key = key.strip()
+    example = "e.g. --set measurement.stop_when_settled=true"
+    if not sep or not key:
+        raise ConfigError(f"--set {text!r}: expected KEY=VALUE ({example})")
+    if any(not part.strip() or part != part.strip() for part in key.split(".")):
+        raise ConfigError(f"--set {text!r}: empty or padded part in the dotted key ({example})")
+    value = load_yaml(raw, f"--set {key}")
+    if isinstance(value, dict | list):
+        raise ConfigError(
+            f"--set {text}: the value must be a single value (number, true/false, text), "
+            "not a mapping or list; set each field with its own --set"
+        )
+    return Override(key, value, text)
+
+
+def _apply_override(data: dict[str, Any], ov: Override) -> None:
+    node = data
+    parts = ov.parts
+    for i, part in enumerate(parts[:-1]):
+        child = node.get(part)
+        if child is None:
+            child = node[part] = {}
+        elif not isinstance(child, dict):
+            section = ".".join(parts[: i + 1])
+            raise ConfigError(f"--set {ov.text}: '{section}' is a value, not a section")
+        node = child
+    node[parts[-1]] = ov.value
+
+
+def _apply_scene(data: dict[str, Any], scene: Path, source: str) -> None:
+    """Point every simulated device of the raw config at ``scene`` (absolute path)."""
+    targets: list[dict[str, Any]] = []
+    probe = data.get("probe")
+    transport = probe.get("transport") if isinstance(probe, dict) else None
+    if isinstance(transport, dict):
+        if transport.get("kind") == "emulated":
+            targets.append(transport)
+        elif transport.get("kind") == "ble" and isinstance(transport.get("emulate"), dict):
+            targets.append(transport["emulate"])
+    camera = data.get("camera")
+    if isinstance(camera, dict) and camera.get("kind") == "simulator":
+        targets.append(camera)
+    if not targets:
+        kinds = (
+            f"probe.transport.kind {transport.get('kind') if isinstance(transport, dict) else None}"
+            f", camera.kind {camera.get('kind') if isinstance(camera, dict) else None}"
+        )
+        raise ConfigError(
+            f"--scene: {source} has no simulated device ({kinds}); a scene drives an "
+            "emulated probe (kind emulated, or ble with emulate) or the simulator camera"
+        )
+    for target in targets:
+        target["scene"] = str(scene)
+
+
+def _field_value(model: Any, parts: tuple[str, ...]) -> Any:
+    for part in parts:
+        if not isinstance(model, BaseModel) or part not in type(model).model_fields:
+            return None
+        model = getattr(model, part)
+    return model
+
+
+def _did_you_mean(loc: str) -> str:
+    """`` (did you mean 'x'?)`` for an unknown dotted key of a plain section, else ``""``."""
+    *section, name = loc.split(".")
+    model: type[BaseModel] = DaemonConfig
+    for part in section:
+        field = model.model_fields.get(part)
+        annotation = None if field is None else field.annotation
+        if not (isinstance(annotation, type) and issubclass(annotation, BaseModel)):
+            return ""
+        model = annotation
+    close = difflib.get_close_matches(name, list(model.model_fields), n=1)
+    return f" (did you mean '{close[0]}'?)" if close else ""
+
+
+def parse_config(data: Any, source: str, overrides: Sequence[Override] = ()) -> DaemonConfig:
+    """Validate a parsed YAML mapping; errors name ``source`` and the field path.
+
+    An error in a field an override set names that ``--set KEY=VALUE`` instead of the
+    file; any other error names the file (and that overrides were applied).
+    """
     if not isinstance(data, dict):
         raise ConfigError(f"{source}: the config must be a mapping, got {type(data).__name__}")
     try:
@@ -228,33 +359,87 @@ def parse_config(data: Any, source: str) -> DaemonConfig:
         err = exc.errors()[0]
         # Drop the discriminator tags pydantic inserts into union locations.
         tags = {"serial", "ble", "emulated", "v4l2", "file", "simulator", "rect", "circle"}
-        loc = tuple(p for p in err["loc"] if p not in tags)
+        loc = _loc(tuple(p for p in err["loc"] if p not in tags))
         more = f" (and {exc.error_count() - 1} more)" if exc.error_count() > 1 else ""
         msg = err["msg"]
         if err["type"] == "extra_forbidden":
             msg = "unknown key"
-        raise ConfigError(f"{source}: field '{_loc(loc)}': {msg}{more}") from None
+        owner = next((ov for ov in reversed(overrides) if ov.owns(loc)), None)
+        if owner is not None:
+            field = "" if loc == owner.key else f"field '{loc}': "
+            if msg == "unknown key":
+                msg += _did_you_mean(loc)
+            raise ConfigError(f"--set {owner.text}: {field}{msg}{more}") from None
+        if overrides:
+            source += " (with " + ", ".join(f"--set {ov.key}" for ov in overrides) + ")"
+        raise ConfigError(f"{source}: field '{loc}': {msg}{more}") from None
 
 
-def load_config(path: str | Path) -> DaemonConfig:
-    """Load, validate and resolve a daemon config file.
+def read_config_data(path: Path) -> Any:
+    """The parsed YAML of a config file (duplicate keys refused, naming the line)."""
+    try:
+        text = path.read_text(encoding="utf-8")
+    except OSError as exc:
+        raise ConfigError(f"{path}: cannot read config file: {exc.strerror or exc}") from None
+    return load_yaml(text, str(path))
+
+
+def load_config(
+    path: str | Path, *, scene: Path | None = None, overrides: Sequence[str] = ()
+) -> DaemonConfig:
+    """Load, validate and resolve a daemon config file, with command-line overrides.
+
+    Parameters
+    ----------
+    path : str or Path
+        The YAML file. Its relative paths are resolved against its directory.
+    scene : Path, optional
+        ``--scene``: the scene file every simulated device of the config plays (the
+        emulated probe and the simulator camera); relative to the working directory.
+    overrides : sequence of str
+        ``--set KEY=VALUE`` items, applied in order after ``scene``; each value is a YAML
+        scalar validated by the same model as the file. A relative path given this way is
+        relative to the working directory.
 
     Raises
     ------
     ConfigError
-        The file is missing, unreadable, not YAML, or fails validation; the message names
-        the file and the field.
+        The file is missing, unreadable, not YAML, has a duplicate key, or fails
+        validation (the message names the file and the field, or the ``--set`` item);
+        ``scene`` is missing or the config has no simulated device.
     """
     p = Path(path)
-    try:
-        text = p.read_text(encoding="utf-8")
-    except OSError as exc:
-        raise ConfigError(f"{p}: cannot read config file: {exc.strerror or exc}") from None
-    try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
-        problem = getattr(exc, "problem", None) or str(exc).splitlines()[0]
-        raise ConfigError(f"{p}: not valid YAML{where}: {problem}") from None
-    return parse_config(data, str(p)).resolved(p.resolve().parent)
+    parsed = [parse_override(text) for text in overrides]
+    data = read_config_data(p)
+    if (scene is not None or parsed) and isinstance(data, dict):
+        if scene is not None:
+            if not scene.is_file():
+                raise ConfigError(f"--scene {scene}: no such scene file")
+            _apply_scene(data, scene.resolve(), str(p))
+        for ov in parsed:
+            _apply_override(data, ov)
+    config = parse_config(data, str(p), parsed)
+    # A path set on the command line is relative to the working directory, not the file.
+    relative = [
+        ov
+        for ov in parsed
+        if isinstance(value := _field_value(config, ov.parts), Path) and not value.is_absolute()
+    ]
+    if relative:
+        for ov in relative:
+            _apply_override(data, Override(ov.key, str(Path.cwd() / str(ov.value)), ov.text))
+        config = parse_config(data, str(p), parsed)
+    return config.resolved(p.resolve().parent)
+
+
+def sessions_root(root: Path | None, config: Path | None) -> Path:
+    """The sessions directory a command reads: every command finds it by this one rule.
+
+    ``--root`` when given; else the ``storage.root`` of ``--config`` (resolved against
+    the config file's directory, as the daemon records there); else ``./sessions``.
+    """
+    if root is not None:
+        return root
+    if config is not None:
+        return load_config(config).storage.root
+    return DEFAULT_ROOT

@@ -20,7 +20,7 @@ import argparse
 from pathlib import Path
 
 from stipi_daemon.app.analyze import AnalyzeRequest, analyze
-from stipi_daemon.app.config import load_config
+from stipi_daemon.app.config import load_config, sessions_root
 from stipi_daemon.app.offline_io import parse_roi
 from stipi_daemon.errors import ConfigError, SessionError
 from stipi_daemon.storage import DEFAULT_ROOT
@@ -43,8 +43,9 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     parser.add_argument(
         "--root",
         type=Path,
-        default=DEFAULT_ROOT,
-        help=f"directory holding the sessions (default: ./{DEFAULT_ROOT})",
+        default=None,
+        help="directory holding the sessions (default: the storage.root of --config, else "
+        f"./{DEFAULT_ROOT})",
     )
     parser.add_argument("--video", type=Path, metavar="FILE", help="video to count S_k on")
     parser.add_argument(
@@ -68,7 +69,7 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         type=Path,
         metavar="FILE",
         help="daemon config whose measurement/analysis/imaging settings (and calibration, "
-        "if set) replace the recorded ones",
+        "if set) replace the recorded ones; its storage.root holds the sessions",
     )
     parser.add_argument("--threshold", type=int, metavar="P", help="threshold p of Eq. (1), 0..255")
     parser.add_argument(
@@ -91,12 +92,32 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     parser.add_argument(
         "--out", type=Path, metavar="FILE.json", help="where to write the results (JSON)"
     )
+    parser.add_argument("--overwrite", action="store_true", help="replace an existing --out file")
     parser.add_argument("--quiet", action="store_true", help="print only the output path")
     parser.set_defaults(handler=run)
 
 
+def _check_values(args: argparse.Namespace) -> None:
+    """Refuse option values out of their domain, naming the option (one line each)."""
+    if args.threshold is not None and not 0 <= args.threshold <= 255:
+        raise ConfigError(
+            f"--threshold {args.threshold}: out of range, threshold p of Eq. (1) is a gray "
+            "level 0..255"
+        )
+    if args.out is not None:
+        if args.out.is_dir():
+            raise ConfigError(f"--out {args.out}: is a directory; give a file name (FILE.json)")
+        if not args.out.parent.is_dir():
+            raise ConfigError(f"--out {args.out}: directory {args.out.parent} does not exist")
+        if args.out.exists() and not args.overwrite:
+            raise ConfigError(f"--out {args.out}: exists already (give --overwrite to replace it)")
+    if args.overwrite and args.out is None:
+        raise ConfigError("--overwrite applies to --out (the default output name is new)")
+
+
 def _check(args: argparse.Namespace) -> None:
     """Refuse contradictory or incomplete inputs (one line each)."""
+    _check_values(args)
     if args.session is not None and args.video is not None:
         raise ConfigError("give either SESSION or --video/--force, not both")
     if args.session is None and args.video is None:
@@ -112,6 +133,11 @@ def _check(args: argparse.Namespace) -> None:
             "--roi applies where S_k is counted (--video, or SESSION with --recompute-sk); "
             "the session's S_k was counted live with its recorded ROI"
         )
+    if args.session is not None and args.threshold is not None and not args.recompute_sk:
+        raise ConfigError(
+            "--threshold applies where S_k is counted (--video, or SESSION with "
+            "--recompute-sk); the session's S_k was counted live with its recorded threshold"
+        )
     if args.session is not None and (args.force is not None or args.frame_times is not None):
         raise ConfigError("--force/--frame-times apply to --video; a SESSION has its own samples")
 
@@ -121,7 +147,7 @@ def _session_dir(args: argparse.Namespace) -> Path:
     text: str = args.session
     if "/" in text or Path(text).is_dir():
         return Path(text)
-    directory = Path(args.root) / text
+    directory = sessions_root(args.root, args.config) / text
     if not directory.is_dir():
         raise SessionError(f"{directory}: no such session (list them: stipi-daemon sessions list)")
     return directory

@@ -3,9 +3,9 @@
 Thin shell over :mod:`stipi_daemon.report.write`. ``report SESSION`` writes
 ``<session>/report/report.html`` (self-contained) and the figures as PNGs next to it (or
 into ``--out``); ``report --compare S1 S2 ...`` overlays several sessions and tabulates
-mean and spread per parameter into ``--out``. A session is an id under ``--root``
-(default ``./sessions``) or a path to its directory. A session is only read, never
-changed; its report directory is replaced.
+mean and spread per parameter into ``--out``. A session is an id under ``--root`` (default:
+the ``storage.root`` of ``--config``, else ``./sessions``) or a path to its directory. A
+session is only read, never changed; its report directory is replaced.
 """
 
 from __future__ import annotations
@@ -54,8 +54,16 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     parser.add_argument(
         "--root",
         type=Path,
-        default=DEFAULT_ROOT,
-        help=f"directory holding the sessions (default: ./{DEFAULT_ROOT})",
+        default=None,
+        help="directory holding the sessions (default: the storage.root of --config, else "
+        f"./{DEFAULT_ROOT})",
+    )
+    parser.add_argument(
+        "--config",
+        type=Path,
+        default=argparse.SUPPRESS,
+        metavar="FILE",
+        help="daemon config whose storage.root holds the sessions",
     )
     parser.add_argument(
         "--out",
@@ -76,6 +84,7 @@ def _session_dir(root: Path, text: str) -> Path:
 
 
 def run(args: argparse.Namespace) -> int:
+    from stipi_daemon.app.config import sessions_root
     from stipi_daemon.report.write import write_compare_report, write_session_report
 
     if args.session is not None and args.compare:
@@ -91,10 +100,12 @@ def run(args: argparse.Namespace) -> int:
             raise ConfigError(
                 f"--labels: {len(args.labels)} labels for {len(args.compare)} sessions"
             )
-        dirs = [_session_dir(args.root, s) for s in args.compare]
+        root = sessions_root(args.root, getattr(args, "config", None))
+        dirs = [_session_dir(root, s) for s in args.compare]
         written = write_compare_report(dirs, args.out or DEFAULT_COMPARE_OUT, args.labels)
     else:
-        written = write_session_report(_session_dir(args.root, args.session), args.out)
+        root = sessions_root(args.root, getattr(args, "config", None))
+        written = write_session_report(_session_dir(root, args.session), args.out)
     print(f"report: {written.html_path}")
     if written.verdict:
         print(f"verdict: {written.verdict}")

@@ -2,8 +2,9 @@
 
 Thin shell over :mod:`stipi_daemon.storage`: ``list`` prints one line per session under
 the root, ``show`` prints a session's manifest, summary, row counts and integrity, and
-``export`` writes its tables to CSV or Parquet. The default root is ``./sessions`` (the
-daemon's configuration may record elsewhere; pass ``--root`` then). A session ``ID`` may
+``export`` writes its tables to CSV or Parquet. The root is ``--root``, else the
+``storage.root`` of ``--config FILE`` (where that config's daemon records), else
+``./sessions``. A session ``ID`` may
 also be given as a path to its directory (anything containing a ``/``).
 """
 
@@ -11,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -42,8 +44,16 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         p.add_argument(
             "--root",
             type=Path,
-            default=DEFAULT_ROOT,
-            help=f"directory holding the sessions (default: ./{DEFAULT_ROOT})",
+            default=None,
+            help="directory holding the sessions (default: the storage.root of --config, "
+            f"else ./{DEFAULT_ROOT})",
+        )
+        p.add_argument(
+            "--config",
+            type=Path,
+            default=argparse.SUPPRESS,
+            metavar="FILE",
+            help="daemon config whose storage.root holds the sessions",
         )
 
     p_list = sub.add_parser("list", help="one line per session: id, created, status, counts")
@@ -60,8 +70,35 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     add_root(p_export)
     p_export.add_argument("--format", choices=EXPORT_FORMATS, required=True, dest="fmt")
     p_export.add_argument("--out", type=Path, required=True, help="output directory")
-    p_export.add_argument("--force", action="store_true", help="overwrite existing files")
+    p_export.add_argument(
+        "--overwrite", action="store_true", help="replace existing files in the output directory"
+    )
+    # Deprecated spelling of --overwrite, kept working (hidden from --help).
+    p_export.add_argument("--force", action=_DeprecatedOverwrite, help=argparse.SUPPRESS)
     p_export.set_defaults(handler=_cmd_export)
+
+
+class _DeprecatedOverwrite(argparse.Action):
+    """``--force``: the old name of ``--overwrite``; works, and says so on stderr."""
+
+    def __init__(self, option_strings: Sequence[str], dest: str, **kwargs: object) -> None:
+        super().__init__(option_strings, "overwrite", nargs=0, help=argparse.SUPPRESS)
+
+    def __call__(
+        self,
+        parser: argparse.ArgumentParser,
+        namespace: argparse.Namespace,
+        values: str | Sequence[object] | None,
+        option_string: str | None = None,
+    ) -> None:
+        print("stipi-daemon: note: --force is deprecated, use --overwrite", file=sys.stderr)
+        namespace.overwrite = True
+
+
+def _root(args: argparse.Namespace) -> Path:
+    from stipi_daemon.app.config import sessions_root
+
+    return sessions_root(args.root, getattr(args, "config", None))
 
 
 def _session_dir(root: Path, session_id: str) -> Path:
@@ -88,9 +125,9 @@ def format_table(header: Sequence[str], rows: Sequence[Sequence[str]]) -> str:
 
 
 def _cmd_list(args: argparse.Namespace) -> int:
-    listings = list_sessions(args.root)
+    listings = list_sessions(root := _root(args))
     if not listings:
-        print(f"no sessions in {args.root}")
+        print(f"no sessions in {root}")
         return 0
     rows = [
         [
@@ -142,7 +179,7 @@ def _video_text(path: Path) -> str:
 
 
 def _cmd_show(args: argparse.Namespace) -> int:
-    with SessionReader(_session_dir(args.root, args.session_id)) as reader:
+    with SessionReader(_session_dir(_root(args), args.session_id)) as reader:
         status = reader.status
         meta = reader.meta()
         counts = reader.counts()
@@ -193,8 +230,8 @@ def _indent(text: str) -> str:
 
 
 def _cmd_export(args: argparse.Namespace) -> int:
-    with SessionReader(_session_dir(args.root, args.session_id)) as reader:
-        written = export_session(reader, args.out, args.fmt, overwrite=args.force)
+    with SessionReader(_session_dir(_root(args), args.session_id)) as reader:
+        written = export_session(reader, args.out, args.fmt, overwrite=args.overwrite)
     for path in written:
         print(path)
     return 0

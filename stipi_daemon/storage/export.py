@@ -177,7 +177,7 @@ def export_session(
     if not overwrite:
         for target in [*targets, validity_target, *(out / src.name for src in extras)]:
             if target.exists():
-                raise SessionError(f"{target}: exists already (use --force to overwrite)")
+                raise SessionError(f"{target}: exists already (use --overwrite to replace it)")
     writer = _write_csv if fmt == "csv" else _write_parquet
     written: list[Path] = []
     try:

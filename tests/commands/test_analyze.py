@@ -69,7 +69,8 @@ def test_default_output_goes_next_to_the_session_never_over_it(
     assert written.parent == session_dir and written.name.startswith("analysis-")
     assert json.loads(written.read_text())["summary"]["phase"] == "done"
     assert (session_dir / "summary.json").read_bytes() == summary
-    err = _error(capsys, ["analyze", str(session_dir), "--out", str(session_dir / "summary.json")])
+    summary_path = str(session_dir / "summary.json")
+    err = _error(capsys, ["analyze", str(session_dir), "--out", summary_path, "--overwrite"])
     assert "refusing to overwrite the recorded file" in err
     written.unlink()
 

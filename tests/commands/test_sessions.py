@@ -110,7 +110,7 @@ def test_export(root: Path, tmp_path: Path, fmt: str, capsys: pytest.CaptureFixt
         for table in TABLES:
             assert_equal_to_reader(reader, table, read(out / f"{table.name}.{fmt}", table))
     assert main([*args, "--out", str(out)]) == 2
-    assert "exists already (use --force" in capsys.readouterr().err
+    assert "exists already (use --overwrite" in capsys.readouterr().err
     assert main([*args, "--out", str(out), "--force"]) == 0
 
 
