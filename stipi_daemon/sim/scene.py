@@ -14,7 +14,6 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any, Literal
 
-import yaml
 from pydantic import (
     BaseModel,
     ConfigDict,
@@ -27,6 +26,7 @@ from pydantic import (
 from stipi_daemon.errors import ConfigError
 from stipi_daemon.sim.effects import effect_module, known_effects
 from stipi_daemon.sim.effects.base import EffectParams
+from stipi_daemon.yamlfile import load_yaml
 
 __all__ = [
     "GRADE_PRESETS",
@@ -377,8 +377,5 @@ def load_scene(path: str | Path) -> Scene:
         text = p.read_text(encoding="utf-8")
     except OSError as exc:
         raise ConfigError(f"{p}: cannot read scene file: {exc.strerror or exc}") from exc
-    try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        raise ConfigError(f"{p.name}: not valid YAML: {exc}") from exc
+    data = load_yaml(text, p.name)  # a key given twice is an error naming its line
     return parse_scene(data, p.name)
