@@ -174,6 +174,7 @@ def _create_session(
         options=StorageOptions(
             commit_interval_s=storage.commit_interval_s,
             min_free_bytes=int(storage.min_free_mb * 1e6),
+            min_free_setting=f"config field storage.min_free_mb = {storage.min_free_mb:g} MB",
         ),
         software={"sk_kernel": sk_kernel()},
         video=storage.video != "off",

@@ -72,7 +72,7 @@ def _fmt_bytes(n: float) -> str:
     raise AssertionError("unreachable")  # pragma: no cover
 
 
-def check_free_space(root: Path, min_free_bytes: int) -> int:
+def check_free_space(root: Path, min_free_bytes: int, setting: str = "min_free_bytes") -> int:
     """Raise :class:`SessionError` unless ``root``'s file system has ``min_free_bytes`` free.
 
     Parameters
@@ -81,6 +81,9 @@ def check_free_space(root: Path, min_free_bytes: int) -> int:
         Existing directory the session will be created in.
     min_free_bytes : int
         Required free space [B] (``0`` disables the check).
+    setting : str
+        The setting the requirement came from, named in the error so that the user knows
+        what to change (the daemon: ``config field storage.min_free_mb = 100 MB``).
 
     Returns
     -------
@@ -91,7 +94,7 @@ def check_free_space(root: Path, min_free_bytes: int) -> int:
     if free_b < min_free_bytes:
         raise SessionError(
             f"not enough free disk space for a new session in {root}: {_fmt_bytes(free_b)} "
-            f"free, {_fmt_bytes(min_free_bytes)} required (storage option min_free_bytes)"
+            f"free, {_fmt_bytes(min_free_bytes)} required ({setting})"
         )
     return free_b
 

@@ -76,6 +76,9 @@ class StorageOptions:
         price of one fsync per commit (about 7 per second at the default interval).
     min_free_bytes : int
         Free space required on the file system before a session is created [B].
+    min_free_setting : str
+        Where ``min_free_bytes`` came from, named in the too-little-space error (the
+        daemon gives its config field ``storage.min_free_mb``).
     background_commit : bool
         Run the commit timer in a background thread (default). Without it, commits happen
         only inside ``add_*``/``commit``/``finish`` calls, and the loss bound holds only if
@@ -86,6 +89,7 @@ class StorageOptions:
     synchronous: Synchronous = "NORMAL"
     min_free_bytes: int = layout.DEFAULT_MIN_FREE_BYTES
     background_commit: bool = True
+    min_free_setting: str = "StorageOptions.min_free_bytes"
 
     def __post_init__(self) -> None:
         if not 0.001 <= self.commit_interval_s <= 60.0:
@@ -204,7 +208,7 @@ class SessionWriter:
             root.mkdir(parents=True, exist_ok=True)
         except OSError as exc:
             raise SessionError(f"{root}: cannot create the sessions directory: {exc}") from exc
-        layout.check_free_space(root, options.min_free_bytes)
+        layout.check_free_space(root, options.min_free_bytes, options.min_free_setting)
         session_id = layout.check_session_id(session_id or layout.new_session_id())
         directory = root / session_id
         created_utc = layout.utc_now_iso()
