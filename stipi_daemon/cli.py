@@ -15,6 +15,7 @@ from pathlib import Path
 from stipi_daemon import __version__
 from stipi_daemon.commands import register_all
 from stipi_daemon.errors import ConfigError, StipiError
+from stipi_daemon.storage.metadata import FIELD_DOCS, METADATA_FIELDS
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -55,6 +56,14 @@ def build_parser() -> argparse.ArgumentParser:
         help="with --config: change one config field by its dotted path, validated like the "
         "file (repeatable), e.g. --set measurement.stop_when_settled=true",
     )
+    for field in METADATA_FIELDS:
+        parser.add_argument(
+            f"--{field}",
+            dest=f"metadata_{field}",
+            metavar="TEXT",
+            help=f"with --config: the session's {field}, {FIELD_DOCS[field]} (replaces the "
+            f"config's session.{field}; stored in manifest.json metadata)",
+        )
     subparsers = parser.add_subparsers(title="commands", metavar="COMMAND")
     register_all(subparsers)
     return parser
@@ -63,12 +72,19 @@ def build_parser() -> argparse.ArgumentParser:
 def _run(args: argparse.Namespace) -> int:
     from stipi_daemon.app.config import load_config
     from stipi_daemon.app.daemon import run_measurement
+    from stipi_daemon.app.session_metadata import apply_metadata_options
 
     config = load_config(args.config, scene=args.scene, overrides=args.overrides)
+    config = apply_metadata_options(config, _metadata_options(args))
     outcome = run_measurement(config, speed=1.0 if args.realtime else None, quiet=args.quiet)
     if args.quiet:
         print(outcome.session_dir)
     return outcome.exit_code
+
+
+def _metadata_options(args: argparse.Namespace) -> dict[str, str | None]:
+    """The daemon's ``--subject/--site/--operator/--note`` values (None: not given)."""
+    return {f: getattr(args, f"metadata_{f}", None) for f in METADATA_FIELDS}
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -80,6 +96,12 @@ def main(argv: Sequence[str] | None = None) -> int:
             raise ConfigError(
                 "--scene/--set change the config of a measurement: give them with --config "
                 "FILE and no command"
+            )
+        given = any(v is not None for v in _metadata_options(args).values())
+        if given and (handler is not None or not args.config):
+            raise ConfigError(
+                "--subject/--site/--operator/--note describe a measurement: give them with "
+                "--config FILE and no command"
             )
         if handler is None and args.config is not None:
             return _run(args)

@@ -4,7 +4,8 @@ This module owns the schema of the YAML file a lab edits: the probe (``probe.tra
 serial, BLE or an emulated probe on a pty, plus rate and LED level), the camera (V4L2, a
 video file or the simulator), imaging settings (threshold and ROI of Eqs. 1-2), the
 calibration file, the state machine's thresholds (``measurement``), the analysis
-settings, storage and the run speed. It validates everything with pydantic (unknown keys
+settings, storage, the run speed and the session's metadata (``session``: subject, site,
+operator, note). It validates everything with pydantic (unknown keys
 are errors) and reports problems as one :class:`~stipi_daemon.errors.ConfigError` line
 naming the file and the field path; a key given twice is refused with its line
 (:mod:`stipi_daemon.yamlfile`). Paths inside the file are resolved relative to the file.
@@ -35,6 +36,7 @@ from stipi_daemon.errors import ConfigError
 from stipi_daemon.measurement.state_machine import MeasurementConfig
 from stipi_daemon.probe.transports import TransportConfig
 from stipi_daemon.storage.layout import DEFAULT_ROOT
+from stipi_daemon.storage.metadata import metadata_problem
 from stipi_daemon.yamlfile import load_yaml
 
 __all__ = [
@@ -45,6 +47,7 @@ __all__ = [
     "Override",
     "ProbeSettings",
     "RunSettings",
+    "SessionSettings",
     "StorageSettings",
     "load_config",
     "parse_override",
@@ -156,6 +159,34 @@ class StorageSettings(_Model):
     video_roi_only: bool = False
 
 
+class SessionSettings(_Model):
+    """Who and what a session is of: stored as the manifest's ``metadata``.
+
+    The daemon's ``--subject``, ``--site``, ``--operator`` and ``--note`` replace these
+    (:mod:`stipi_daemon.app.session_metadata`). Rules (:mod:`stipi_daemon.storage.metadata`):
+    subject, site and operator are one line of at most 64 characters; the note is text
+    of at most 2000 characters.
+
+    Attributes
+    ----------
+    subject, site, operator, note : str or None
+        Participant or specimen code, recording site, who held the probe, free note.
+    """
+
+    subject: str | None = None
+    site: str | None = None
+    operator: str | None = None
+    note: str | None = None
+
+    @field_validator("subject", "site", "operator", "note")
+    @classmethod
+    def _metadata_rules(cls, value: str | None, info: ValidationInfo) -> str | None:
+        problem = metadata_problem(str(info.field_name), value)
+        if problem is not None:
+            raise ValueError(problem)
+        return value
+
+
 class DaemonConfig(_Model):
     """The whole configuration file."""
 
@@ -169,6 +200,7 @@ class DaemonConfig(_Model):
     analysis: AnalysisSettings = Field(AnalysisSettings(), validate_default=True)
     storage: StorageSettings = StorageSettings()
     run: RunSettings = RunSettings()
+    session: SessionSettings = SessionSettings()
 
     @field_validator("analysis")
     @classmethod

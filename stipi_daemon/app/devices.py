@@ -27,6 +27,7 @@ from stipi_daemon.analysis.calibration import Calibration
 from stipi_daemon.analysis.imaging import CircleROI, FrameProcessor, RectROI, sk_kernel, to_gray
 from stipi_daemon.app.config import DaemonConfig
 from stipi_daemon.app.imaging import calibration_record, check_roi_fits
+from stipi_daemon.app.session_metadata import session_metadata
 from stipi_daemon.cameras import CameraStream, open_camera
 from stipi_daemon.clock import ScaledClock
 from stipi_daemon.measurement.pipeline import MeasurementPipeline
@@ -159,7 +160,8 @@ def _create_session(
     roi: CircleROI | RectROI | None,
     probe: ProbeLink,
 ) -> SessionWriter:
-    """Create the session: config, calibration record, probe info, software versions."""
+    """Create the session: config, calibration record, probe info, software versions,
+    metadata (subject, site, operator, note)."""
     storage = config.storage
     return SessionWriter.create(
         storage.root,
@@ -178,6 +180,7 @@ def _create_session(
         ),
         software={"sk_kernel": sk_kernel()},
         video=storage.video != "off",
+        metadata=session_metadata(config),
     )
 
 
@@ -187,6 +190,7 @@ def _video_recorder(
     threshold_p: int,
     roi: CircleROI | RectROI | None,
     clock: ScaledClock,
+    camera_metadata: dict[str, Any],
 ) -> VideoRecorder | None:
     """The session video's recorder as ``storage.video`` says (None: none).
 
@@ -194,13 +198,15 @@ def _video_recorder(
     default ``passthrough`` records a source without encoded frames losslessly only in
     real time (clock speed 1): an accelerated simulation delivers its frames faster than
     FFV1 encodes them on the CPU the measurement needs; ``lossless`` records it anyway (the
-    encoder leaves out frames it cannot keep up with, docs/storage.md).
+    encoder leaves out frames it cannot keep up with, docs/storage.md). A simulated MJPG
+    camera (its metadata's ``jpeg_quality`` set) delivers JPEGs: passed through at any speed.
     """
     storage, path = config.storage, writer.video_path
     if storage.video == "off" or path is None:
         return None
     speed = clock.speed
-    if storage.video == "passthrough" and config.camera.kind == "simulator" and speed != 1.0:
+    raw_sim = config.camera.kind == "simulator" and camera_metadata.get("jpeg_quality") is None
+    if storage.video == "passthrough" and raw_sim and speed != 1.0:
         writer.add_event(
             clock.now(),
             "video_not_recorded",
@@ -291,7 +297,7 @@ async def open_devices(
         await camera.close()
         await probe.close()
         raise
-    recorder = _video_recorder(config, writer, threshold_p, roi, clock)
+    recorder = _video_recorder(config, writer, threshold_p, roi, clock, camera.camera.metadata())
     return Devices(clock, probe, camera, writer, recorder)
 
 

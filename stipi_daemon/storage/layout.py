@@ -24,6 +24,7 @@ from typing import Any, Final
 
 from stipi_daemon import __version__
 from stipi_daemon.errors import SessionError
+from stipi_daemon.storage.metadata import check_metadata
 from stipi_daemon.storage.schema import FORMAT_NAME, FORMAT_VERSION, SCHEMA_VERSION, to_jsonable
 
 DB_NAME: Final = "session.sqlite"
@@ -142,11 +143,14 @@ def build_manifest(
     commit_interval_s: float,
     synchronous: str,
     software: Mapping[str, str | None] | None = None,
+    metadata: Mapping[str, str | None] | None = None,
 ) -> dict[str, Any]:
     """The manifest of a new session (plain JSON types).
 
     ``software`` adds the caller's entries to the manifest's software versions
-    (:func:`software_versions`).
+    (:func:`software_versions`). ``metadata`` (subject, site, operator, note;
+    :mod:`.metadata`) is checked and stored as ``manifest["metadata"]``, every field
+    present (null when not given).
 
     ``created_monotonic_s`` and ``created_unix_s`` are read together at creation: they tie
     the host monotonic clock of every ``t_host_s`` column to UTC
@@ -174,6 +178,7 @@ def build_manifest(
             "video": VIDEO_NAME if video else None,
         },
         "storage": {"commit_interval_s": commit_interval_s, "synchronous": synchronous},
+        "metadata": check_metadata(metadata or {}, "session"),
     }
 
 

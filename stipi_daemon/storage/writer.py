@@ -172,6 +172,7 @@ class SessionWriter:
         video: bool = False,
         options: StorageOptions | None = None,
         software: Mapping[str, str | None] | None = None,
+        metadata: Mapping[str, str | None] | None = None,
     ) -> SessionWriter:
         """Create a new session directory and start recording into it.
 
@@ -195,6 +196,9 @@ class SessionWriter:
         software : mapping, optional
             Versions of the routines that produced the data (e.g. ``sk_kernel``), recorded
             in the manifest beside the storage's own software versions.
+        metadata : mapping, optional
+            Subject, site, operator and note (:mod:`.metadata`), stored as the manifest's
+            ``metadata`` (every field null when not given).
 
         Raises
         ------
@@ -227,6 +231,7 @@ class SessionWriter:
             commit_interval_s=options.commit_interval_s,
             synchronous=options.synchronous,
             software=software,
+            metadata=metadata,
         )
         try:
             directory.mkdir()
