@@ -26,6 +26,7 @@ from typing import Any
 
 import numpy as np
 import numpy.typing as npt
+from pydantic import ValidationError
 
 from stipi_daemon.analysis.flags import Flag
 from stipi_daemon.analysis.imaging import CircleROI, FrameProcessor, RectROI
@@ -250,10 +251,12 @@ def parse_roi(text: str) -> CircleROI | RectROI | None:
         if kind == "rect" and len(parts) == 4:
             x, y, w, h = (int(x) for x in parts)
             return RectROI(kind="rect", x_px=x, y_px=y, width_px=w, height_px=h)
-    except ValueError as exc:
-        first = str(exc).splitlines()
-        detail = first[-1].strip() if first else str(exc)
-        raise DataFileError(f"--roi {text!r}: {detail}") from None
+    except ValidationError as exc:
+        err = exc.errors()[0]
+        field = ".".join(str(part) for part in err["loc"])
+        raise DataFileError(f"--roi {text!r}: {field}: {err['msg']}") from None
+    except ValueError as exc:  # float()/int() of a part
+        raise DataFileError(f"--roi {text!r}: {exc}") from None
     raise DataFileError(f"--roi {text!r}: expected circle:CX,CY,R or rect:X,Y,W,H (pixels) or full")
 
 
@@ -324,7 +327,13 @@ def count_video(
     p = Path(path)
     if not p.is_file():
         raise DataFileError(f"{p}: no such video file")
-    cap = cv2.VideoCapture(str(p))
+    from stipi_daemon.cameras.video_file import not_a_video, quiet_opencv
+
+    problem = not_a_video(p)
+    if problem is not None:
+        raise DataFileError(f"{p}: OpenCV cannot open this video ({problem})")
+    with quiet_opencv():
+        cap = cv2.VideoCapture(str(p))
     try:
         if not cap.isOpened():
             raise DataFileError(f"{p}: OpenCV cannot open this video (unsupported or corrupt)")

@@ -29,6 +29,8 @@ from __future__ import annotations
 
 import math
 import os
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -42,13 +44,48 @@ from stipi_daemon.cameras.threaded import RawFrame, ThreadedCamera
 from stipi_daemon.clock import SessionClock
 from stipi_daemon.errors import CameraError
 
-__all__ = ["VideoFileCamera", "fourcc_string"]
+__all__ = ["VideoFileCamera", "fourcc_string", "not_a_video", "quiet_opencv"]
 
 #: Frames the capture thread decodes ahead of delivery [-].
 PREFETCH_FRAMES = 8
 
 _JPEG_FOURCCS = frozenset({"MJPG", "JPEG", "AVRN", "LJPG", "MJLS"})
 _EOI = b"\xff\xd9"
+
+
+@contextmanager
+def quiet_opencv() -> Iterator[None]:
+    """OpenCV's own log lines (``[ WARN ]``) off while a file is probed; restored after.
+
+    Our error says what is wrong with the file in one line; OpenCV's backend chatter
+    (e.g. "backend is generally available but can't be used to capture by name") would
+    be a second, unhelpful one.
+    """
+    previous = cv2.utils.logging.getLogLevel()
+    cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
+    try:
+        yield
+    finally:
+        cv2.utils.logging.setLogLevel(previous)
+
+
+def not_a_video(path: Path) -> str | None:
+    """Why ``path`` is not a video FFmpeg can read (``None``: it has a video stream).
+
+    Probed with PyAV, whose FFmpeg logging is off, before OpenCV opens the file:
+    OpenCV's bundled FFmpeg prints its own errors ("moov atom not found") to stderr, and
+    turning those off would also silence them for the rest of the process.
+    """
+    import av
+
+    try:
+        with av.open(str(path)) as container:
+            if not container.streams.video:
+                return "the file has no video stream"
+    except (av.error.FFmpegError, UnicodeDecodeError) as exc:
+        reason = getattr(exc, "strerror", None) or str(exc)
+        return str(reason).rstrip(".")
+    return None
 
 
 def fourcc_string(code: float) -> str:
@@ -180,7 +217,11 @@ class VideoFileCamera(ThreadedCamera[_Handle]):
             raise CameraError(f"video file {p}: not a regular file")
         if not os.access(p, os.R_OK):
             raise CameraError(f"video file {p}: permission denied")
-        cap = cv2.VideoCapture(str(p), cv2.CAP_FFMPEG)
+        problem = not_a_video(p)
+        if problem is not None:
+            raise CameraError(f"video file {p}: not a video OpenCV/FFmpeg can read ({problem})")
+        with quiet_opencv():
+            cap = cv2.VideoCapture(str(p), cv2.CAP_FFMPEG)
         if not cap.isOpened():
             cap.release()
             raise CameraError(f"video file {p}: not a video OpenCV/FFmpeg can read")
