@@ -7,7 +7,7 @@ Each equation takes its points from one source: Eq. (4) from measured pairs
 (:func:`~stipi_daemon.analysis.calibration_procedure.displacement_points`); Eq. (5) from
 measured pairs (``s_px``, ``force_n``) or from the force plateaus of a recording
 (:func:`~stipi_daemon.analysis.calibration_procedure.find_force_plateaus`). A recording is a
-session directory (stored S_k) or a directory holding ``video.avi``, ``frames.csv`` and
+session directory (stored S_k) or a directory holding ``video.mkv``, ``frames.csv`` and
 ``force.csv`` as ``stipi-daemon simulate`` writes them (S_k counted with the request's
 threshold and ROI, :mod:`stipi_daemon.app.offline_io`). The fits and the file format are
 :mod:`stipi_daemon.analysis.calibration`'s. Progress and the fit report go to ``emit``.
@@ -132,11 +132,11 @@ def _load_recording(
             None if p is None else int(p),
             f"session {data.session_id}",
         )
-    video = path / "video.avi"
+    video = path / "video.mkv"
     if not path.is_dir() or not video.is_file():
         raise DataFileError(
             f"{path}: not a recording (expected a session directory with manifest.json, or a "
-            "directory with video.avi, frames.csv and force.csv)"
+            "directory with video.mkv, frames.csv and force.csv)"
         )
     if threshold is None:
         raise ConfigError(f"{path}: counting S on the video needs --threshold P")

@@ -7,7 +7,7 @@ d_s): ``--depth-pairs FILE.csv`` (columns ``s0_px``, ``depth_change_mm``) or
 displacement; S_0 is the mean S over each). Eq. (5) (S against the force F):
 ``--force-pairs FILE.csv`` (columns ``s_px``, ``force_n``) or ``--force-recording PATH``
 (force plateaus found in the load-cell series; S and F averaged over each). A recording
-PATH is a session directory (stored S_k) or a directory holding ``video.avi``,
+PATH is a session directory (stored S_k) or a directory holding ``video.mkv``,
 ``frames.csv`` and ``force.csv`` as ``stipi-daemon simulate`` writes them (S_k counted
 with ``--threshold``/``--roi``). The fits, their refusals and the file format are
 :mod:`stipi_daemon.analysis.calibration`'s; recordings are turned into points by

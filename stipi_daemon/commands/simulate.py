@@ -22,16 +22,23 @@ def _resolution(text: str) -> tuple[int, int]:
     return int(m.group(1)), int(m.group(2))
 
 
+def _coding(codec: str, jpeg_quality: int | None) -> str:
+    if codec == "mjpeg":
+        return f"MJPG, JPEG quality {jpeg_quality}"
+    return "lossless FFV1"
+
+
 def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     parser = subparsers.add_parser(
         "simulate",
         help="render a simulated measurement (video, force samples, ground truth)",
         description=(
-            "Render a scene file (configs/scenes/*.yaml) into DIR: video.avi (MJPG), "
-            "frames.csv, force.csv and ground_truth.json."
+            "Render a scene file (configs/scenes/*.yaml) into DIR: video.mkv (the camera's "
+            "JPEGs as encoded when the scene's camera is mjpg or it names jpeg_compression, "
+            "else lossless FFV1), frames.csv, force.csv and ground_truth.json."
         ),
     )
-    parser.add_argument("scene", type=Path, metavar="SCENE", help="scene YAML file")
+    parser.add_argument("scene_file", type=Path, metavar="SCENE", help="scene YAML file")
     parser.add_argument("--out", type=Path, required=True, metavar="DIR", help="output directory")
     parser.add_argument("--seed", type=int, default=None, help="random seed (default: scene's)")
     parser.add_argument(
@@ -45,7 +52,7 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
 def run(args: argparse.Namespace) -> int:
     from stipi_daemon.sim import load_scene, write_outputs
 
-    scene = load_scene(args.scene)
+    scene = load_scene(args.scene_file)
     if args.seed is not None and args.seed < 0:
         raise ConfigError(f"--seed must be >= 0, got {args.seed}")
     if args.fps is not None and not 0.0 < args.fps <= 1000.0:
@@ -55,7 +62,7 @@ def run(args: argparse.Namespace) -> int:
         try:
             scene = scene.with_camera(width=w, height=h, fps=args.fps)
         except ValueError as exc:
-            raise ConfigError(f"{args.scene.name}: camera override: {exc}") from exc
+            raise ConfigError(f"{args.scene_file.name}: camera override: {exc}") from exc
     show = not args.quiet and sys.stdout.isatty()
     if show:
         from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
@@ -76,7 +83,8 @@ def run(args: argparse.Namespace) -> int:
         paths = write_outputs(scene, args.out, args.seed)
     if not args.quiet:
         print(
-            f"{paths.frames_written} frames -> {paths.video}\n"
+            f"{paths.frames_written} frames ({_coding(paths.video_codec, paths.jpeg_quality)}) "
+            f"-> {paths.video}\n"
             f"{paths.samples_written} force samples -> {paths.force_csv}\n"
             f"frame times -> {paths.frames_csv}\nground truth -> {paths.ground_truth_json}"
         )

@@ -4,8 +4,9 @@ A scene file (``configs/scenes/*.yaml``) describes tissue, indenter, force profi
 camera, load cell and a list of effects. The package turns it into frames, load-cell
 samples and a ground truth: :mod:`.scene` (typed scene files), :mod:`.physics` (closed-form
 mechanics), :mod:`.render` (frames), :mod:`.loadcell` (ADC), :mod:`.pipeline` (streams and
-effects), :mod:`.truth` (ground truth), :mod:`.output` (files), :mod:`.effects` (one
-module per effect, imported only when a scene lists it). As live devices for the daemon:
+effects), :mod:`.jpeg` (the camera's JPEG encoding), :mod:`.truth` (ground truth),
+:mod:`.output` (files), :mod:`.effects` (one module per effect, imported only when a scene
+lists it). As live devices for the daemon:
 :mod:`.camera` (the scene as a camera), :mod:`.imaging` (a scene's calibration, threshold,
 ROI and truth), :mod:`.feather` (an emulated Feather 32u4 speaking the wire protocol on a
 pty), :mod:`.emulated_transport` (that Feather behind the real serial path) and

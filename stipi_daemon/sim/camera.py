@@ -5,10 +5,14 @@ frames are rendered in the capture thread (a few frames ahead), stamped
 ``t0 + t_frame`` on the session clock (``t0`` = session time of scene time 0, by default
 the first open) and delivered no earlier than that time, so a clock running at speed 4
 replays a 120 s scene in 30 s of wall time. Frames the scene's effects drop (for example
-``dropped_frames``) are missing from the stream and show as ``seq`` gaps. It behaves as a
-live camera across a stall: a reopen resumes at the current scene time, frames missed
-meanwhile are lost. It does not model the probe (that is the simulated transport's job) and
-adds no effects of its own; :meth:`~.threaded.ThreadedCamera.stall` injects freezes.
+``dropped_frames``) are missing from the stream and show as ``seq`` gaps. A Motion-JPEG
+scene (``camera.pixel_format: mjpg`` or the ``jpeg_compression`` effect) delivers each frame
+as an MJPG camera does: the JPEG (``CameraFrame.packet``, which the session video stores as
+it is, passthrough) with its decode as the image the daemon measures; other scenes deliver
+raw frames (stored losslessly). It behaves as a live camera across a stall: a reopen
+resumes at the current scene time, frames missed meanwhile are lost. It does not model the
+probe (that is the simulated transport's job) and adds no effects of its own;
+:meth:`~.threaded.ThreadedCamera.stall` injects freezes.
 """
 
 from __future__ import annotations
@@ -20,6 +24,7 @@ from typing import Any
 from stipi_daemon.cameras.base import SimulatorCameraConfig
 from stipi_daemon.cameras.threaded import RawFrame, ThreadedCamera
 from stipi_daemon.clock import SessionClock
+from stipi_daemon.sim.jpeg import scene_encoding
 from stipi_daemon.sim.pipeline import Pipeline, SimFrame
 from stipi_daemon.sim.scene import Scene, load_scene
 
@@ -58,6 +63,7 @@ class SimulatorCamera(ThreadedCamera[Iterator[SimFrame]]):
         self.seed = scene.seed if seed is None else seed
         self._t0_s = t0_s
         self._pipeline: Pipeline | None = None
+        self._encoding = scene_encoding(scene)
 
     @classmethod
     def from_config(
@@ -94,6 +100,7 @@ class SimulatorCamera(ThreadedCamera[Iterator[SimFrame]]):
             "fps": cam.fps,
             "size": [cam.width, cam.height],
             "pixel_format": cam.pixel_format,
+            "jpeg_quality": self._encoding.jpeg_quality,
             "t0_s": self._t0_s,
         }
 
@@ -114,7 +121,7 @@ class SimulatorCamera(ThreadedCamera[Iterator[SimFrame]]):
         if f is None:
             return None
         t0 = self._t0_s if self._t0_s is not None else 0.0
-        return RawFrame(f.index, t0 + f.t_s, f.image)
+        return RawFrame(f.index, t0 + f.t_s, f.image, f.packet)
 
     def _close_source(self, handle: Iterator[SimFrame]) -> None:
         close = getattr(handle, "close", None)

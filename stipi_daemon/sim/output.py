@@ -1,10 +1,17 @@
 """Files of a simulated measurement: video, frame timestamps, force samples, ground truth.
 
 This module owns the on-disk layout written by ``stipi-daemon simulate`` and
-:func:`write_outputs`: ``video.avi`` (Motion-JPEG, whose independent frames survive a
-truncated file), ``frames.csv`` (index, t_s of every frame written), ``force.csv``
-(index, t_mcu_us, t_true_s, adc_counts, force_n, true_force_n) and ``ground_truth.json``.
-It is the simulator's only I/O; the frames and samples come from :mod:`.pipeline`.
+:func:`write_outputs`: ``video.mkv``, ``frames.csv`` (index, t_s, true_area_px of every
+frame written), ``force.csv`` (index, t_mcu_us, t_true_s, adc_counts, force_n,
+true_force_n) and ``ground_truth.json``. The video is a Matroska file written with PyAV the
+way a session's video is stored (:func:`stipi_daemon.storage.video.open_video_file`): a
+Motion-JPEG scene (:func:`.jpeg.scene_encoding`) stores each frame's JPEG exactly as the
+simulated camera encoded it, muxed without re-encoding (codec ``mjpeg``); every other scene
+stores the rendered frames losslessly (FFV1, ``gray`` or ``bgr0``), so that reading the
+file back gives the simulator's frames bit for bit. Every frame is intra, so a truncated
+file decodes up to its cut. Presentation times are the frames' scene times in ms (a frame
+an effect dropped leaves a gap); the declared frame rate is the camera's. It is the
+simulator's only I/O; the frames and samples come from :mod:`.pipeline`.
 """
 
 from __future__ import annotations
@@ -13,24 +20,29 @@ import csv
 import json
 from collections.abc import Callable
 from dataclasses import dataclass
+from fractions import Fraction
 from pathlib import Path
-
-import cv2
+from typing import Any, Literal
 
 from stipi_daemon.errors import StipiError
 from stipi_daemon.sim.pipeline import Pipeline, frame_count
 from stipi_daemon.sim.scene import Scene
 from stipi_daemon.sim.truth import ground_truth
+from stipi_daemon.storage.video import open_video_file, write_video_frame
 
-__all__ = ["VIDEO_FOURCC", "OutputPaths", "write_outputs"]
+__all__ = ["VIDEO_FILE", "OutputPaths", "write_outputs"]
 
-#: FourCC of the video: Motion-JPEG, every frame an independent JPEG.
-VIDEO_FOURCC = "MJPG"
+#: File name of the video in the output directory (as a session's: ``video.mkv``).
+VIDEO_FILE = "video.mkv"
 
 
 @dataclass(frozen=True)
 class OutputPaths:
-    """Where :func:`write_outputs` put each file."""
+    """Where :func:`write_outputs` put each file, and how the video is coded.
+
+    ``video_codec`` is ``mjpeg`` (the camera's JPEGs at ``jpeg_quality``) or ``ffv1``
+    (lossless; ``jpeg_quality`` None).
+    """
 
     video: Path
     frames_csv: Path
@@ -38,6 +50,8 @@ class OutputPaths:
     ground_truth_json: Path
     frames_written: int
     samples_written: int
+    video_codec: str = "ffv1"
+    jpeg_quality: int | None = None
 
 
 def write_outputs(
@@ -46,27 +60,24 @@ def write_outputs(
     seed: int | None = None,
     *,
     progress: Callable[[int, int], None] | None = None,
-    jpeg_quality: int = 95,
 ) -> OutputPaths:
     """Render ``scene`` and write its video, frame times, force samples and ground truth.
 
     Parameters
     ----------
     scene : Scene
-        The scene.
+        The scene; its camera and effects decide the video's coding (module docstring).
     out_dir : str or Path
         Directory to write into (created if missing).
     seed : int, optional
         Random seed (default: the scene's).
     progress : callable, optional
         Called as ``progress(frames_done, frames_total)`` after every frame.
-    jpeg_quality : int
-        MJPG quality, 1..100.
 
     Raises
     ------
     StipiError
-        The directory or the video cannot be written.
+        The directory or a file cannot be written (the message names it).
     """
     out = Path(out_dir)
     try:
@@ -74,41 +85,101 @@ def write_outputs(
     except OSError as exc:
         raise StipiError(f"{out}: cannot create output directory: {exc.strerror}") from exc
     pipe = Pipeline(scene, seed)
-    cam = scene.camera
+    codec: Literal["mjpeg", "ffv1"] = "mjpeg" if pipe.encoding.is_jpeg else "ffv1"
     paths = OutputPaths(
-        video=out / "video.avi",
+        video=out / VIDEO_FILE,
         frames_csv=out / "frames.csv",
         force_csv=out / "force.csv",
         ground_truth_json=out / "ground_truth.json",
         frames_written=0,
         samples_written=0,
+        video_codec=codec,
+        jpeg_quality=pipe.encoding.jpeg_quality,
     )
-    writer = cv2.VideoWriter(
-        str(paths.video),
-        cv2.VideoWriter.fourcc(*VIDEO_FOURCC),
-        float(cam.fps),
+    try:
+        written = _write_video(pipe, paths, progress)
+    except (OSError, ValueError) as exc:  # av.FFmpegError is an OSError or ValueError
+        raise StipiError(f"{paths.video}: cannot write the video: {exc}") from exc
+    try:
+        n_samples = _write_force(pipe, paths.force_csv)
+    except OSError as exc:
+        raise StipiError(f"{paths.force_csv}: cannot write: {exc.strerror or exc}") from exc
+    r = pipe.renderer.roi
+    truth = ground_truth(
+        scene,
+        pipe.seed,
+        model=pipe.model,
+        roi={"cx_px": r.cx_px, "cy_px": r.cy_px, "radius_px": r.radius_px},
+    )
+    doc = truth.to_json_dict()
+    doc["outputs"] = {
+        "video": paths.video.name,
+        "video_codec": codec,
+        "jpeg_quality": pipe.encoding.jpeg_quality,
+        "video_encoding_from": pipe.encoding.source,
+        "frames_csv": paths.frames_csv.name,
+        "force_csv": paths.force_csv.name,
+        "frames_written": written,
+        "samples_written": n_samples,
+    }
+    paths.ground_truth_json.write_text(
+        json.dumps(doc, indent=2, sort_keys=True) + "\n", encoding="utf-8"
+    )
+    return OutputPaths(
+        video=paths.video,
+        frames_csv=paths.frames_csv,
+        force_csv=paths.force_csv,
+        ground_truth_json=paths.ground_truth_json,
+        frames_written=written,
+        samples_written=n_samples,
+        video_codec=codec,
+        jpeg_quality=pipe.encoding.jpeg_quality,
+    )
+
+
+def _write_video(
+    pipe: Pipeline, paths: OutputPaths, progress: Callable[[int, int], None] | None
+) -> int:
+    """Write ``video.mkv`` and ``frames.csv`` frame by frame; the number of frames."""
+    cam = pipe.scene.camera
+    layout = "gray" if pipe.renderer.channels == 1 else "bgr"
+    codec: Literal["mjpeg", "ffv1"] = "mjpeg" if paths.video_codec == "mjpeg" else "ffv1"
+    container: Any
+    container, stream = open_video_file(
+        paths.video,
+        codec,
+        layout,
         (cam.width, cam.height),
-        cam.pixel_format == "bgr8",
+        frame_rate=Fraction(repr(float(cam.fps))),
+        options={},  # written in one go: no flush per packet
     )
-    if not writer.isOpened():
-        raise StipiError(f"{paths.video}: OpenCV cannot open an {VIDEO_FOURCC} video writer")
-    writer.set(cv2.VIDEOWRITER_PROP_QUALITY, float(jpeg_quality))
-    total = frame_count(scene)
+    total = frame_count(pipe.scene)
     written = 0
+    last_pts = -1
     try:
         with paths.frames_csv.open("w", newline="", encoding="utf-8") as fcsv:
             w = csv.writer(fcsv)
             w.writerow(["index", "t_s", "true_area_px"])
-            for n, frame in enumerate(pipe.frames(), start=1):
-                writer.write(frame.image)
+            for frame in pipe.frames():
+                pts = max(last_pts + 1, round(frame.t_s * 1000.0))
+                write_video_frame(container, stream, pts, frame.image, frame.packet)
+                last_pts = pts
                 w.writerow([frame.index, repr(frame.t_s), repr(frame.true_area_px)])
                 written += 1
                 if progress is not None:
-                    progress(n, total)
+                    progress(written, total)
+        if codec == "ffv1":
+            for packet in stream.encode(None):  # the encoder's last frames
+                container.mux_one(packet)
     finally:
-        writer.release()
+        container.close()
+    return written
+
+
+def _write_force(pipe: Pipeline, path: Path) -> int:
+    """Write ``force.csv``; the number of samples."""
     batch = pipe.force_batch()
-    with paths.force_csv.open("w", newline="", encoding="utf-8") as f:
+    with path.open("w", newline="", encoding="utf-8") as f:
         w = csv.writer(f)
         w.writerow(["index", "t_mcu_us", "t_true_s", "adc_counts", "force_n", "true_force_n"])
         for s in batch.samples():
@@ -122,30 +193,4 @@ def write_outputs(
                     repr(s.true_force_n),
                 ]
             )
-    r = pipe.renderer.roi
-    truth = ground_truth(
-        scene,
-        pipe.seed,
-        model=pipe.model,
-        roi={"cx_px": r.cx_px, "cy_px": r.cy_px, "radius_px": r.radius_px},
-    )
-    doc = truth.to_json_dict()
-    doc["outputs"] = {
-        "video": paths.video.name,
-        "video_fourcc": VIDEO_FOURCC,
-        "frames_csv": paths.frames_csv.name,
-        "force_csv": paths.force_csv.name,
-        "frames_written": written,
-        "samples_written": len(batch),
-    }
-    paths.ground_truth_json.write_text(
-        json.dumps(doc, indent=2, sort_keys=True) + "\n", encoding="utf-8"
-    )
-    return OutputPaths(
-        video=paths.video,
-        frames_csv=paths.frames_csv,
-        force_csv=paths.force_csv,
-        ground_truth_json=paths.ground_truth_json,
-        frames_written=written,
-        samples_written=len(batch),
-    )
+    return len(batch)

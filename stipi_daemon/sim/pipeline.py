@@ -3,8 +3,11 @@
 This module owns the schedule of frames (k / fps) and samples (i / rate on the MCU's
 clock), the seeding (one ``SeedSequence`` per scene seed, one child per effect and
 stream, so that frames and samples are reproducible and independent of each other) and
-the application of the scene's effects in registry order. A scene without effects builds
-an empty effect list and runs no effect code. It does not write files (:mod:`.output`).
+the application of the scene's effects in registry order, and the camera's encoder: in a
+Motion-JPEG scene (:func:`.jpeg.scene_encoding`) each frame is JPEG-encoded once, after
+every image effect, and the frame's image is the decode of that JPEG, which the frame
+carries (``packet``); other scenes' frames are raw. A scene without effects builds an empty
+effect list and runs no effect code. It does not write files (:mod:`.output`).
 """
 
 from __future__ import annotations
@@ -26,6 +29,7 @@ from stipi_daemon.sim.effects.base import (
     RenderEffect,
     SampleClockEffect,
 )
+from stipi_daemon.sim.jpeg import Encoding, decode_jpeg, encode_jpeg, scene_encoding
 from stipi_daemon.sim.loadcell import LoadCellModel
 from stipi_daemon.sim.physics import SceneModel
 from stipi_daemon.sim.render import Renderer
@@ -45,12 +49,15 @@ __all__ = [
 
 @dataclass(frozen=True)
 class SimFrame:
-    """One frame: its camera index, timestamp [s], image and the true S at that time [px]."""
+    """One frame: its camera index, timestamp [s], image and the true S at that time [px];
+    in a Motion-JPEG scene ``packet`` is the JPEG the camera delivered and ``image`` its
+    decode (None: a raw frame, ``image`` as rendered)."""
 
     index: int
     t_s: float
     image: NDArray[np.uint8]
     true_area_px: float
+    packet: bytes | None = None
 
 
 @dataclass(frozen=True)
@@ -157,6 +164,9 @@ class Pipeline:
         params = sorted(scene.effects, key=lambda p: order.index(p.name))
         #: Instantiated effects, in order of application (empty for a clean scene).
         self.effects: list[object] = [effect_module(p.name).Effect(p, ctx) for p in params]
+        #: The camera's encoding: JPEG quality or raw (``jpeg_compression`` is applied as it).
+        self.encoding: Encoding = scene_encoding(scene)
+        self._channels = self.renderer.channels
         children = np.random.SeedSequence(self.seed).spawn(len(self.effects))
         self._seeds = [c.spawn(2) for c in children]
 
@@ -178,7 +188,11 @@ class Pipeline:
         k0 = max(0, math.ceil(start_s * fps - 1e-9))
         k1 = n - 1 if end_s is None else min(n - 1, math.floor(end_s * fps + 1e-9))
         render_fx: list[tuple[RenderEffect, np.random.SeedSequence]] = self._of(RenderEffect, 0)
-        frame_fx: list[tuple[FrameEffect, np.random.SeedSequence]] = self._of(FrameEffect, 0)
+        frame_fx: list[tuple[FrameEffect, np.random.SeedSequence]] = [
+            (e, ss)
+            for e, ss in self._of(FrameEffect, 0)
+            if getattr(getattr(e, "params", None), "name", None) != "jpeg_compression"
+        ]
         drop_fx: list[tuple[FrameDropEffect, np.random.SeedSequence]] = self._of(FrameDropEffect, 0)
         model, renderer = self.model, self.renderer
         if not (render_fx or frame_fx or drop_fx):
@@ -186,7 +200,7 @@ class Pipeline:
             areas = model.occluded_area_px(times)
             for j, k in enumerate(range(k0, k1 + 1)):
                 s = float(areas[j])
-                yield SimFrame(k, float(times[j]), renderer.render_area(s), s)
+                yield self._encoded(k, float(times[j]), renderer.render_area(s), s)
             return
         for k in range(k0, k1 + 1):
             t = k / fps
@@ -200,7 +214,16 @@ class Pipeline:
             image = self._render(k, t, render_fx, rngs)
             for e, _ in frame_fx:
                 image = e.apply_frame(image, t, rngs[id(e)])
-            yield SimFrame(k, t, image, s)
+            yield self._encoded(k, t, image, s)
+
+    def _encoded(self, k: int, t: float, image: NDArray[np.uint8], s: float) -> SimFrame:
+        """The frame as the camera delivers it: raw, or its JPEG (encoded once) and the
+        decode of that JPEG."""
+        q = self.encoding.jpeg_quality
+        if q is None:
+            return SimFrame(k, t, image, s)
+        packet = encode_jpeg(image, q)
+        return SimFrame(k, t, decode_jpeg(packet, self._channels), s, packet)
 
     def _render(
         self,

@@ -58,7 +58,8 @@ class Renderer:
         self.model = model if model is not None else SceneModel(scene)
         cam, probe = scene.camera, scene.probe
         self.width, self.height = cam.width, cam.height
-        self.channels = 3 if cam.pixel_format == "bgr8" else 1
+        #: Channels of a rendered frame: gray8 1, bgr8 and mjpg (a colour camera) 3.
+        self.channels = 1 if cam.pixel_format == "gray8" else 3
         self.threshold = probe.threshold
         self.occluded_level = probe.occluded_level
         #: Waveguide radius [px] and centre (pixel centres are integers).

@@ -29,6 +29,7 @@ from stipi_daemon.sim.effects.base import EffectParams
 from stipi_daemon.yamlfile import load_yaml
 
 __all__ = [
+    "DEFAULT_JPEG_QUALITY",
     "GRADE_PRESETS",
     "CalibrationSpec",
     "CameraSpec",
@@ -205,20 +206,32 @@ class ProbeSpec(_Model):
         return self
 
 
+#: JPEG quality [1..100] of an ``mjpg`` camera whose scene sets no ``jpeg_quality``.
+DEFAULT_JPEG_QUALITY = 95
+
+
 class CameraSpec(_Model):
-    """The camera."""
+    """The camera. ``pixel_format``: ``gray8`` or ``bgr8`` deliver raw frames (stored
+    losslessly), ``mjpg`` a JPEG of the BGR picture per frame at ``jpeg_quality``
+    (default :data:`DEFAULT_JPEG_QUALITY`; only with ``mjpg``); docs/simulator.md."""
 
     width: int = Field(default=640, ge=64, le=7680)
     height: int = Field(default=480, ge=48, le=4320)
     fps: float = Field(default=60.0, gt=0.0, le=1000.0)
     exposure_s: float = Field(default=0.008, gt=0.0)
-    pixel_format: Literal["gray8", "bgr8"] = "bgr8"
+    pixel_format: Literal["gray8", "bgr8", "mjpg"] = "bgr8"
+    jpeg_quality: int | None = Field(default=None, ge=1, le=100)
 
     @model_validator(mode="after")
     def _exposure(self) -> CameraSpec:
         if self.exposure_s > 1.0 / self.fps:
             raise ValueError(
                 f"exposure_s {self.exposure_s} is longer than the frame period {1 / self.fps}"
+            )
+        if self.jpeg_quality is not None and self.pixel_format != "mjpg":
+            raise ValueError(
+                f"jpeg_quality applies to pixel_format mjpg only (this camera is "
+                f"{self.pixel_format}: raw frames)"
             )
         return self
 
@@ -266,6 +279,16 @@ class Scene(_Model):
                 raise ValueError("; ".join(f"effects[{e}" for e in errors))
             return tuple(parsed)
         return v
+
+    @model_validator(mode="after")
+    def _one_jpeg_quality(self) -> Scene:
+        named = [e for e in self.effects if e.name == "jpeg_compression"]
+        if named and self.camera.jpeg_quality is not None:
+            raise ValueError(
+                "camera.jpeg_quality and the jpeg_compression effect's quality both set "
+                "the JPEG quality: give one"
+            )
+        return self
 
     def with_camera(
         self, *, width: int | None = None, height: int | None = None, fps: float | None = None

@@ -3,8 +3,8 @@
 ``<root>/<session_id>/`` holds ``session.sqlite`` (every force sample, frame, event,
 transition, gap, clock probe and live parameter), ``manifest.json`` (format, versions,
 config, calibration, firmware; written at creation), ``summary.json`` (final results,
-written atomically at the end), optionally ``video.avi`` (written by the caller), and
-``writer.lock`` while a writer is alive. :class:`SessionWriter` records,
+written atomically at the end), optionally ``video.mkv`` (the camera stream,
+:mod:`.video`), and ``writer.lock`` while a writer is alive. :class:`SessionWriter` records,
 :class:`SessionReader` reads (also while another process records), :func:`export_session`
 writes CSV/Parquet. This package is an adapter: it stores what it is given and computes
 nothing. The layout, schema and durability argument are in ``docs/storage.md``.

@@ -98,7 +98,7 @@ def test_simulator_files_match_ground_truth(
     truth = json.loads((sim_dir / "ground_truth.json").read_text())
     assert truth["scene"] == "grade1_short"
     out = tmp_path / "sim.json"
-    argv = ["analyze", "--video", str(sim_dir / "video.avi"), "--force", str(sim_dir / "force.csv")]
+    argv = ["analyze", "--video", str(sim_dir / "video.mkv"), "--force", str(sim_dir / "force.csv")]
     assert main([*argv, "--out", str(out)]) == 0
     text = capsys.readouterr().out
     assert "(ok, tolerance 1 %)" in text and "OUTSIDE" not in text
@@ -122,7 +122,7 @@ def test_simulator_files_with_explicit_calibration_and_options(
     argv = [
         "analyze",
         "--video",
-        str(sim_dir / "video.avi"),
+        str(sim_dir / "video.mkv"),
         "--force",
         str(sim_dir / "force.csv"),
         "--frame-times",
@@ -225,7 +225,7 @@ def _session_with_video(sim_dir: Path, root: Path) -> Path:
         writer.add_force_samples(force)
         writer.add_frames([(i, t, t, 0, "") for i, t in frames])
         writer.add_transition(0.0, "idle", "armed", "armed by the operator")
-        (root / "with-video" / "video.mkv").write_bytes((sim_dir / "video.avi").read_bytes())
+        (root / "with-video" / "video.mkv").write_bytes((sim_dir / "video.mkv").read_bytes())
         writer.finish("complete", {"ground_truth": truth})
     return root / "with-video"
 
@@ -253,7 +253,7 @@ def test_recompute_sk_from_the_session_video(
 def test_refusals_are_one_line(
     session_dir: Path, sim_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    video, force = str(sim_dir / "video.avi"), str(sim_dir / "force.csv")
+    video, force = str(sim_dir / "video.mkv"), str(sim_dir / "force.csv")
     gt = str(sim_dir / "ground_truth.json")
     bad_force = tmp_path / "force.csv"
     bad_force.write_text("t_s,newtons\n0,1\n")
@@ -294,8 +294,8 @@ def test_refusals_are_one_line(
     # No ground truth, no calibration: the user must give one.
     lone = tmp_path / "lone"
     lone.mkdir()
-    (lone / "video.avi").write_bytes((sim_dir / "video.avi").read_bytes())
-    err = _error(capsys, ["analyze", "--video", str(lone / "video.avi"), "--force", force])
+    (lone / "video.mkv").write_bytes((sim_dir / "video.mkv").read_bytes())
+    err = _error(capsys, ["analyze", "--video", str(lone / "video.mkv"), "--force", force])
     assert "no calibration: give --calibration CAL.json" in err
 
 

@@ -28,7 +28,11 @@ def _record(directory: Path, camera: dict[str, Any], storage: dict[str, Any]) ->
     extra: dict[str, Any] = {}
     if cam["kind"] == "file":  # the simulator's MJPG rendering of the same scene
         cam.pop("scene")
-        cam["path"] = str(write_outputs(load_scene(scene), directory / "sim").video)
+        plain = load_scene(scene)
+        mjpg = plain.model_copy(
+            update={"camera": plain.camera.model_copy(update={"pixel_format": "mjpg"})}
+        )
+        cam["path"] = str(write_outputs(mjpg, directory / "sim").video)
         cal, _ = scaled_calibration(load_scene(scene))
         extra["calibration"] = str(save_calibration(directory / "cal.json", cal))
     doc = extra | {

@@ -1,19 +1,23 @@
-"""Effect ``jpeg_compression``: the frame goes through a JPEG encoder (phone video, MJPG).
+"""Effect ``jpeg_compression``: the camera's frames are JPEGs (phone video, an MJPG camera).
 
-Owns only the round trip through OpenCV's JPEG codec at ``quality``; ringing and 8x8
-blocking move edge pixels across the threshold p.
+Owns the effect's parameter (``quality``). Naming it makes the scene a Motion-JPEG scene
+(:func:`stipi_daemon.sim.jpeg.scene_encoding`): the pipeline encodes each frame once, after
+every other image effect, at this quality, and the frame the analysis sees is the decode of
+that JPEG, which travels with it (``SimFrame.packet``) into the simulated camera and the
+written video. Ringing and 8x8 blocking move edge pixels across the threshold p.
+:meth:`Effect.apply_frame` is the same round trip for a lone image.
 """
 
 from __future__ import annotations
 
 from typing import Literal
 
-import cv2
 import numpy as np
 from numpy.typing import NDArray
 from pydantic import Field
 
 from stipi_daemon.sim.effects.base import EffectContext, EffectParams, FrameEffect
+from stipi_daemon.sim.jpeg import decode_jpeg, encode_jpeg
 
 
 class Params(EffectParams):
@@ -30,9 +34,6 @@ class Effect(FrameEffect):
     def apply_frame(
         self, image: NDArray[np.uint8], t_s: float, rng: np.random.Generator
     ) -> NDArray[np.uint8]:
-        ok, buf = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, self.params.quality])
-        if not ok:  # pragma: no cover - OpenCV encodes any uint8 image
-            raise RuntimeError("OpenCV failed to JPEG-encode a frame")
-        flag = cv2.IMREAD_COLOR if image.ndim == 3 else cv2.IMREAD_GRAYSCALE
-        out: NDArray[np.uint8] = np.asarray(cv2.imdecode(buf, flag), dtype=np.uint8)
-        return out
+        """``image`` through the JPEG encoder at ``quality`` and back (same layout)."""
+        channels = 3 if image.ndim == 3 else 1
+        return decode_jpeg(encode_jpeg(image, self.params.quality), channels)
