@@ -33,7 +33,10 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
             "configs/probe-ble-loopback.yaml in another terminal. See docs/bench.md."
         ),
     )
-    parser.add_argument("--scene", type=Path, required=True, help="scene YAML file")
+    # dest differs from the top-level --scene (a measurement's scene override)
+    parser.add_argument(
+        "--scene", type=Path, required=True, dest="scene_file", help="scene YAML file"
+    )
     parser.add_argument(
         "--transport",
         required=True,
@@ -75,7 +78,7 @@ def run(args: argparse.Namespace) -> int:
     from stipi_daemon.sim.ble.mock_peripheral import MockPeripheralOptions, serve
 
     opts = MockPeripheralOptions(
-        scene=args.scene,
+        scene=args.scene_file,
         transport=args.transport,
         seed=args.seed,
         name=args.name,

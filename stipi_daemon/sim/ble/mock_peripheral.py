@@ -76,6 +76,20 @@ def _check(opts: MockPeripheralOptions) -> None:
             raise ConfigError(f"{flag} must be a time > 0 s, got {value}")
 
 
+async def _open_radio(
+    transport: str,
+) -> tuple[str, VirtualRadio | None, LoopbackRadioServer | None]:
+    """The HCI spec the probe runs on, and the radio or loopback server opened for it."""
+    scheme, _, rest = transport.partition(":")
+    if scheme == VIRTUAL_SCHEME:
+        with contextlib.suppress(BleRadioError):  # reuse an open radio of that name
+            return transport, VirtualRadio(rest), None
+    elif scheme == LOOPBACK_SCHEME:
+        server = await LoopbackRadioServer.start(transport)
+        return server.radio.spec, None, server
+    return transport, None, None
+
+
 async def serve(opts: MockPeripheralOptions, *, ready: asyncio.Event | None = None) -> LinkCounters:
     """Run the emulated probe until ``duration_s`` (or cancellation); return its counters.
 
@@ -102,16 +116,7 @@ async def serve(opts: MockPeripheralOptions, *, ready: asyncio.Event | None = No
         faults = NotificationFaults(opts.drop, opts.corrupt, opts.delay_ms * 1e-3)
     except ValueError as exc:
         raise ConfigError(f"mock-peripheral: {exc}") from exc
-    radio = None
-    server: LoopbackRadioServer | None = None
-    hci = opts.transport
-    scheme, _, rest = opts.transport.partition(":")
-    if scheme == VIRTUAL_SCHEME:
-        with contextlib.suppress(BleRadioError):  # reuse an open radio of that name
-            radio = VirtualRadio(rest)
-    elif scheme == LOOPBACK_SCHEME:
-        server = await LoopbackRadioServer.start(opts.transport)
-        hci = server.radio.spec
+    hci, radio, server = await _open_radio(opts.transport)
     clock = ScaledClock(opts.speed)
     mcu = McuClock(clock.now())
     core = scene_core(scene, opts.seed, mcu, clock.now())
@@ -158,7 +163,7 @@ async def serve(opts: MockPeripheralOptions, *, ready: asyncio.Event | None = No
     async def disappear() -> None:
         await p.disappear(opts.disappear_for_s)
 
-    async def report() -> None:
+    def status_line() -> None:
         c = p.counters
         print(
             f"t={clock.now():7.1f} s  connected={p.connected}  conns={c.connections}  "
@@ -167,6 +172,9 @@ async def serve(opts: MockPeripheralOptions, *, ready: asyncio.Event | None = No
             f"frames_lost={emulator.frames_lost}  samples={emulator.ledger.samples_emitted}",
             flush=True,
         )
+
+    async def report() -> None:
+        status_line()
 
     tasks = [
         asyncio.create_task(every(opts.disconnect_every_s, p.drop_link)),
@@ -191,6 +199,6 @@ async def serve(opts: MockPeripheralOptions, *, ready: asyncio.Event | None = No
             radio.close()
         if server is not None:
             await server.close()
-    if not opts.quiet:
-        await report()
+        if not opts.quiet:  # also after Ctrl-C (cancellation): what the module did
+            status_line()
     return p.counters
