@@ -32,9 +32,12 @@ __all__ = [
     "DisplacementInterval",
     "DisplacementPoint",
     "ForcePoint",
+    "depth_domain_problem",
     "displacement_points",
     "find_force_plateaus",
+    "fit_domain_warnings",
     "fit_report",
+    "force_domain_problem",
     "force_points",
 ]
 
@@ -310,6 +313,93 @@ def displacement_points(
                 n_frames=n,
             )
         )
+    return out
+
+
+def depth_domain_problem(
+    depth_change_mm: Sequence[float] | FloatArray, indenter_length_mm: float
+) -> tuple[int, str] | None:
+    """The first Eq. (4) calibration point outside the domain of Eq. (3), with why.
+
+    Eq. (3), ``D_p = l - d_s``, defines the depth change d_s on ``[0, l]`` (Section III.B:
+    the indenter of length l moves by at most its length), so a pitting depth lies in
+    ``[0, l]`` too. A measured d_s outside it (another unit, a displacement of the stage
+    rather than of the indenter, the wrong ``l``) would calibrate Eq. (4) to give
+    negative pitting depths.
+
+    Parameters
+    ----------
+    depth_change_mm : sequence of float
+        Measured depth changes d_s [mm].
+    indenter_length_mm : float
+        Indenter length l [mm], > 0.
+
+    Returns
+    -------
+    (int, str) or None
+        Index of the first point outside ``0 <= d_s <= l`` and a description
+        ("d_s = 31 mm is above l = 12 mm: D_p = l - d_s would be -19 mm"); None if all
+        lie inside.
+
+    Raises
+    ------
+    CalibrationError
+        ``indenter_length_mm`` is not finite and > 0.
+    """
+    length = float(indenter_length_mm)
+    if not (math.isfinite(length) and length > 0.0):
+        raise CalibrationError(f"indenter length l must be finite and > 0 mm, got {length}")
+    d = np.asarray(depth_change_mm, dtype=np.float64)
+    bad = np.flatnonzero(~((d >= 0.0) & (d <= length)))
+    if bad.size == 0:
+        return None
+    i = int(bad[0])
+    v = float(d[i])
+    where = "above l" if v > length else "below 0"
+    return i, (
+        f"d_s = {v:g} mm is {where} = {length:g} mm: Eq. (3) needs 0 <= d_s <= l "
+        f"(D_p = l - d_s would be {length - v:g} mm)"
+    )
+
+
+def force_domain_problem(force_n: Sequence[float] | FloatArray) -> tuple[int, str] | None:
+    """The first Eq. (5) calibration point with a negative force, with why (None: none).
+
+    Eq. (5) maps the occluded area to the force pressing the sensing probe, which cannot
+    pull: F >= 0 [N].
+    """
+    f = np.asarray(force_n, dtype=np.float64)
+    bad = np.flatnonzero(~(f >= 0.0))
+    if bad.size == 0:
+        return None
+    i = int(bad[0])
+    return i, f"F = {float(f[i]):g} N is negative: Eq. (5) needs a pressing force F >= 0"
+
+
+def fit_domain_warnings(cal: Calibration) -> list[str]:
+    """Where the fitted Eqs. (4)-(5) leave their domain over the calibrated range.
+
+    Eq. (4) increases over its S0 range, so its largest d_s is at the top of the range
+    and its smallest at the bottom; outside ``[0, l]`` the analysis clips d_s and flags
+    D_p (``depth_clipped``), so a calibration that does so inside its own range is
+    reported here. Each entry is one line; empty when none.
+    """
+    out: list[str] = []
+    length = cal.indenter_length_mm
+    if cal.s0_valid_range_px is not None:
+        s_lo, s_hi = cal.s0_valid_range_px
+        top = cal.depth_change_mm(s_hi)
+        if top > length:
+            out.append(
+                f"Eq. (4) reaches d_s = {top:.4g} mm > l = {length:g} mm at S0 = {s_hi:.6g} px:"
+                f" D_p = l - d_s < 0 there (clipped to 0 and flagged depth_clipped)"
+            )
+        bottom = cal.depth_change_mm(s_lo)
+        if bottom < 0.0:
+            out.append(
+                f"Eq. (4) gives d_s = {bottom:.4g} mm < 0 at S0 = {s_lo:.6g} px: D_p > l there"
+                " (clipped to l and flagged depth_clipped)"
+            )
     return out
 
 

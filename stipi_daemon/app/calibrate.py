@@ -37,13 +37,17 @@ from stipi_daemon.analysis.calibration_procedure import (
     DEFAULT_PLATEAU_TOLERANCE_N,
     DEFAULT_TRIM_S,
     DisplacementInterval,
+    depth_domain_problem,
     displacement_points,
     find_force_plateaus,
+    fit_domain_warnings,
     fit_report,
+    force_domain_problem,
     force_points,
 )
 from stipi_daemon.analysis.imaging import CircleROI, RectROI
 from stipi_daemon.app.offline_io import (
+    CsvTable,
     count_video,
     match_frame_times,
     read_csv_table,
@@ -152,12 +156,26 @@ def _load_recording(
     return _Series(t, s, ft, fn, threshold, f"video {video}")
 
 
+def _check_domain(table: CsvTable, problem: tuple[int, str] | None, option: str | None) -> None:
+    """Refuse a calibration point outside its equation's domain, naming file and line."""
+    if problem is None:
+        return
+    i, why = problem
+    hint = f"; check the column's unit, or {option}" if option else "; check the column's sign"
+    raise CalibrationError(f"{table.path}: line {int(table.lines[i])}: {why}{hint}")
+
+
 def _depth_points(
     request: CalibrateRequest, thresholds: list[int], emit: Emit
 ) -> tuple[FloatArray, FloatArray]:
     """Eq. (4) points: S_0 [px] and depth change d_s [mm]."""
     if request.depth_pairs is not None:
         table = read_csv_table(request.depth_pairs, ["s0_px", "depth_change_mm"])
+        _check_domain(
+            table,
+            depth_domain_problem(table.columns["depth_change_mm"], request.indenter_length_mm),
+            "--indenter-length",
+        )
         emit(f"Eq. (4): {len(table)} pairs from {request.depth_pairs}")
         return table.columns["s0_px"], table.columns["depth_change_mm"]
     assert request.depth_recording is not None and request.displacements is not None
@@ -165,6 +183,11 @@ def _depth_points(
     if rec.threshold_p is not None:
         thresholds.append(rec.threshold_p)
     table = read_csv_table(request.displacements, ["t_start_s", "t_end_s", "depth_change_mm"])
+    _check_domain(
+        table,
+        depth_domain_problem(table.columns["depth_change_mm"], request.indenter_length_mm),
+        "--indenter-length",
+    )
     intervals = [
         DisplacementInterval(float(a), float(b), float(d))
         for a, b, d in zip(
@@ -198,6 +221,7 @@ def _force_points(
     """Eq. (5) points: S [px] and force F [N]."""
     if request.force_pairs is not None:
         table = read_csv_table(request.force_pairs, ["s_px", "force_n"])
+        _check_domain(table, force_domain_problem(table.columns["force_n"]), None)
         emit(f"Eq. (5): {len(table)} pairs from {request.force_pairs}")
         return table.columns["s_px"], table.columns["force_n"]
     assert request.force_recording is not None
@@ -277,6 +301,8 @@ def calibrate(request: CalibrateRequest, emit: Emit) -> tuple[Calibration, Path]
     emit("")
     for line in fit_report(cal):
         emit(line)
+    for line in fit_domain_warnings(cal):
+        emit(f"warning: {line}")
     if threshold is None:
         emit(
             "warning: no threshold p recorded (--threshold): the daemon will need "

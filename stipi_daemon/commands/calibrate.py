@@ -19,6 +19,7 @@ procedure is in ``docs/calibration.md``.
 from __future__ import annotations
 
 import argparse
+import math
 from pathlib import Path
 
 from stipi_daemon.analysis.calibration import DEFAULT_INDENTER_LENGTH_MM
@@ -127,6 +128,26 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     parser.set_defaults(handler=run)
 
 
+def _check_values(args: argparse.Namespace) -> None:
+    """Refuse option values out of their domain, naming the option (one line each)."""
+    if args.threshold is not None and not 0 <= args.threshold <= 255:
+        raise ConfigError(
+            f"--threshold {args.threshold}: out of range, threshold p of Eq. (1) is a gray "
+            "level 0..255"
+        )
+    positive = (
+        ("--indenter-length", args.indenter_length, "mm", "the indenter length l of Eq. (3)"),
+        ("--plateau-tolerance", args.plateau_tolerance, "N", "a plateau's force band"),
+        ("--plateau-min", args.plateau_min, "s", "the shortest plateau"),
+    )
+    for option, value, unit, what in positive:
+        if not (math.isfinite(value) and value > 0.0):
+            raise ConfigError(f"{option} {value:g}: must be > 0 {unit} ({what})")
+    for option, value, unit in (("--min-force", args.min_force, "N"), ("--trim", args.trim, "s")):
+        if not (math.isfinite(value) and value >= 0.0):
+            raise ConfigError(f"{option} {value:g}: must be >= 0 {unit}")
+
+
 def run(args: argparse.Namespace) -> int:
     if args.out.exists() and not args.overwrite:
         raise ConfigError(f"{args.out}: exists already (give --overwrite to replace it)")
@@ -134,8 +155,7 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError("--depth-recording needs --displacements FILE.csv")
     if args.depth_recording is None and args.displacements is not None:
         raise ConfigError("--displacements applies to --depth-recording")
-    if args.threshold is not None and not 0 <= args.threshold <= 255:
-        raise ConfigError(f"--threshold must be 0..255, got {args.threshold}")
+    _check_values(args)
     request = CalibrateRequest(
         out=args.out,
         depth_pairs=args.depth_pairs,
