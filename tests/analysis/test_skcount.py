@@ -183,7 +183,8 @@ def assert_built() -> None:
     [
         (np.zeros((4, 4), np.uint16), 10, TypeError, "uint8"),
         (np.zeros((4, 4), np.float32), 10, TypeError, "uint8"),
-        (np.zeros((4, 4, 3), np.uint8), 10, ValueError, "2-D"),
+        (np.zeros((4, 4, 4), np.uint8), 10, ValueError, "2 \\(YUYV\\) or 3 \\(BGR\\) channels"),
+        (np.zeros((4, 4, 3), np.uint8), 10, ValueError, "needs bgr_weights"),
         (np.zeros(16, np.uint8), 10, ValueError, "2-D"),
         (np.zeros((4, 8), np.uint8)[:, ::2], 10, ValueError, "column stride 2"),
         (np.zeros((4, 4), np.uint8)[::-1], 10, ValueError, "row stride -4"),
