@@ -1,15 +1,14 @@
 """``stipi-daemon mock-peripheral --scene SCENE``: the emulated probe as a real BLE peripheral.
-
 Thin shell over :func:`stipi_daemon.sim.ble.mock_peripheral.serve`: opens a Bluetooth
 controller with Bumble (``--transport usb:0``, ``hci-socket:0``, ``serial:...``,
 ``virtual:NAME`` for an in-process radio, or ``loopback:PORT`` for a virtual radio that a
-daemon in another process reaches on 127.0.0.1:PORT with ``hci: loopback:PORT``), advertises the probe's name and the Nordic UART
-Service, and streams the scene's load-cell samples in the real wire protocol, answering
-commands as the firmware does, with the module's BLE limits. A second machine's
-``stipi-daemon`` (bleak on BlueZ) connects to it over the air as to a probe
-(docs/bench.md). Optional periodic faults: drop the link, go silent, disappear. Runs until
-``--duration`` or Ctrl-C, then prints what the module did. The simulator is imported only
-when the command runs.
+daemon in another process reaches on 127.0.0.1:PORT with ``hci: loopback:PORT``), advertises
+the probe's name and the Nordic UART Service, and streams the scene's load-cell samples in
+the real wire protocol, answering commands as the firmware does, with the module's BLE
+limits. A second machine's ``stipi-daemon`` (bleak on BlueZ) connects to it over the air as
+to a probe (docs/bench.md). Optional periodic faults: drop the link, go silent, disappear.
+Runs until ``--duration`` or Ctrl-C, then prints what the module did. The simulator is
+imported only when the command runs.
 """
 
 from __future__ import annotations

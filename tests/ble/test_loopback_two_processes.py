@@ -39,16 +39,30 @@ _SERVING = re.compile(r"serving a virtual radio on (127\.0\.0\.1):(\d+)")
 
 
 @contextmanager
-def mock_peripheral(*extra: str, scene: Path = SCENES / "grade1.yaml") -> Iterator[
-    tuple[subprocess.Popen[str], int, list[str]]
-]:
+def mock_peripheral(
+    *extra: str, scene: Path = SCENES / "grade1.yaml"
+) -> Iterator[tuple[subprocess.Popen[str], int, list[str]]]:
     """Start ``stipi-daemon mock-peripheral --transport loopback:0``; yield it, its port and
     the lines it printed before serving. Stopped with SIGINT (then killed) and reaped."""
     proc = subprocess.Popen(
         [
-            sys.executable, "-m", "stipi_daemon", "mock-peripheral",
-            "--scene", str(scene), "--transport", "loopback:0", "--seed", str(SEED),
-            "--speed", str(SPEED), "--duration", "600", "--report-every", "1000", *extra,
+            sys.executable,
+            "-m",
+            "stipi_daemon",
+            "mock-peripheral",
+            "--scene",
+            str(scene),
+            "--transport",
+            "loopback:0",
+            "--seed",
+            str(SEED),
+            "--speed",
+            str(SPEED),
+            "--duration",
+            "600",
+            "--report-every",
+            "1000",
+            *extra,
         ],
         cwd=REPO,
         stdout=subprocess.PIPE,
@@ -68,7 +82,9 @@ def mock_peripheral(*extra: str, scene: Path = SCENES / "grade1.yaml") -> Iterat
             m = _SERVING.search(line)
             if m:
                 port = int(m.group(2))
-        assert port is not None, f"mock-peripheral did not serve: {lines} {proc.stderr.read() if proc.stderr else ''}"
+        assert port is not None, (
+            f"mock-peripheral did not serve: {lines} {proc.stderr.read() if proc.stderr else ''}"
+        )
         yield proc, port, lines
     finally:
         if proc.poll() is None:
@@ -115,7 +131,9 @@ async def _serial_reference(n: int) -> list[tuple[int, int, float | None, int]]:
     return rows[:n]
 
 
-def _relative(rows: list[tuple[int, int, float | None, int]]) -> list[tuple[int, int, float | None, int]]:
+def _relative(
+    rows: list[tuple[int, int, float | None, int]],
+) -> list[tuple[int, int, float | None, int]]:
     t0 = rows[0][3]
     return [(i, adc, force, t - t0) for i, adc, force, t in rows]
 
@@ -149,8 +167,14 @@ def test_a_killed_daemon_frees_the_probe_for_the_next_one() -> None:
     timeout, advertises again, and the next daemon connects."""
     with mock_peripheral() as (_proc, port, _lines):
         victim = subprocess.Popen(
-            [sys.executable, "-m", "tests.ble._loopback_client", f"loopback:{port}", "100000",
-             str(SPEED)],
+            [
+                sys.executable,
+                "-m",
+                "tests.ble._loopback_client",
+                f"loopback:{port}",
+                "100000",
+                str(SPEED),
+            ],
             cwd=REPO,
             stdout=subprocess.DEVNULL,
             stderr=subprocess.DEVNULL,
@@ -186,9 +210,23 @@ def test_refused_connections_are_retried_within_one_open() -> None:
 )
 def test_unusable_controllers_are_one_line(spec: str, needle: str) -> None:
     done = subprocess.run(
-        [sys.executable, "-m", "stipi_daemon", "mock-peripheral", "--scene",
-         str(SCENES / "grade1.yaml"), "--transport", spec, "--duration", "1"],
-        cwd=REPO, capture_output=True, text=True, timeout=120, check=False,
+        [
+            sys.executable,
+            "-m",
+            "stipi_daemon",
+            "mock-peripheral",
+            "--scene",
+            str(SCENES / "grade1.yaml"),
+            "--transport",
+            spec,
+            "--duration",
+            "1",
+        ],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=False,
     )
     assert done.returncode != 0
     err = done.stderr.strip()
@@ -200,9 +238,23 @@ def test_unusable_controllers_are_one_line(spec: str, needle: str) -> None:
 def test_port_in_use_is_one_line() -> None:
     with mock_peripheral() as (_proc, port, _lines):
         done = subprocess.run(
-            [sys.executable, "-m", "stipi_daemon", "mock-peripheral", "--scene",
-             str(SCENES / "grade1.yaml"), "--transport", f"loopback:{port}", "--duration", "1"],
-            cwd=REPO, capture_output=True, text=True, timeout=120, check=False,
+            [
+                sys.executable,
+                "-m",
+                "stipi_daemon",
+                "mock-peripheral",
+                "--scene",
+                str(SCENES / "grade1.yaml"),
+                "--transport",
+                f"loopback:{port}",
+                "--duration",
+                "1",
+            ],
+            cwd=REPO,
+            capture_output=True,
+            text=True,
+            timeout=120,
+            check=False,
         )
     assert done.returncode != 0
     assert done.stderr.strip().count("\n") == 0 and "in use" in done.stderr

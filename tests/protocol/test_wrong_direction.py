@@ -9,6 +9,7 @@ the clean stream's decode without the foreign frame.
 from __future__ import annotations
 
 import asyncio
+
 import pytest
 
 from stipi_daemon.clock import ScaledClock
@@ -147,7 +148,10 @@ def test_probe_link_drops_it_and_keeps_rows_gaps_and_clock_sync() -> None:
     model, clean_model = link.clock_sync.model, clean.clock_sync.model
     assert model.epoch_mcu_us == clean_model.epoch_mcu_us == 40_000
     assert model.n_observations == clean_model.n_observations
-    assert (model.first_mcu_us, model.last_mcu_us) == (clean_model.first_mcu_us, clean_model.last_mcu_us)
+    assert (model.first_mcu_us, model.last_mcu_us) == (
+        clean_model.first_mcu_us,
+        clean_model.last_mcu_us,
+    )
     assert link.clock_sync.resets == ()
     assert link.decoder.stats.wrong_direction == 1
     assert link.accounting.lost == clean.accounting.lost == 0

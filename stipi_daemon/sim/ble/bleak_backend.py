@@ -396,7 +396,7 @@ class BumbleBleakClient(BaseBleakClient):
                 await connection.pair()
         except BaseException as exc:
             await self.disconnect()
-            reason = self._lost_reason
+            reason = self._disconnect_reason()
             task = asyncio.current_task()
             if reason is None or (task is not None and task.cancelling()):
                 raise
@@ -404,8 +404,7 @@ class BumbleBleakClient(BaseBleakClient):
             # pending ATT request. bleak's backends report that as a BleakError (BlueZ:
             # "failed to discover services, device disconnected"), which callers retry.
             raise BleakError(
-                f"{self.address} disconnected during connection set-up "
-                f"(HCI reason 0x{reason:02X})"
+                f"{self.address} disconnected during connection set-up (HCI reason 0x{reason:02X})"
             ) from exc
 
     async def _discover(self, peer: Peer) -> BleakGATTServiceCollection:
@@ -443,6 +442,10 @@ class BumbleBleakClient(BaseBleakClient):
     def _max_write_without_response(self) -> int:
         conn = self._connection
         return (int(conn.att_mtu) if conn is not None else 23) - 3
+
+    def _disconnect_reason(self) -> int | None:
+        """HCI reason of the last disconnection of this client (None: none since connect)."""
+        return self._lost_reason
 
     def _on_disconnection(self, reason: int) -> None:
         self._lost_reason = reason

@@ -65,7 +65,7 @@ class _ClientProtocol(StreamPacketSource):
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
         assert isinstance(transport, asyncio.WriteTransport)
         controller = self.server.radio.new_controller()
-        controller.host = _SocketSink(transport)  # type: ignore[assignment]
+        controller.host = _SocketSink(transport)
         self.set_packet_sink(controller)
         self.controller = controller
         self.transport = transport

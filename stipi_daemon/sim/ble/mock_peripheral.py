@@ -2,9 +2,9 @@
 
 :func:`serve` opens a Bluetooth controller with Bumble (``usb:0``, ``hci-socket:0``,
 ``serial:...``, ``virtual:NAME`` for an in-process radio, or ``loopback:PORT`` for a
-virtual radio served to other processes on 127.0.0.1:PORT, :mod:`.loopback`), advertises the probe's name
-and the Nordic UART Service, and streams the scene's load-cell samples in the real wire
-protocol through :mod:`.mock_probe`, answering commands as the firmware does, with the
+virtual radio served to other processes on 127.0.0.1:PORT, :mod:`.loopback`), advertises
+the probe's name and the Nordic UART Service, and streams the scene's load-cell samples in
+the real wire protocol through :mod:`.mock_probe`, answering commands as the firmware does, with the
 module's BLE limits (:mod:`.peripheral`, :mod:`.module`). Optional periodic faults: drop
 the link, go silent, disappear. The command line is
 :mod:`stipi_daemon.commands.mock_peripheral`'s.
@@ -21,10 +21,10 @@ from pathlib import Path
 
 from stipi_daemon.clock import ScaledClock
 from stipi_daemon.errors import ConfigError
-from stipi_daemon.sim import load_scene
-from stipi_daemon.sim.ble.mock_probe import scene_core, start_ble_probe
 from stipi_daemon.probe.nus import LOOPBACK_SCHEME
+from stipi_daemon.sim import load_scene
 from stipi_daemon.sim.ble.loopback import LoopbackRadioServer
+from stipi_daemon.sim.ble.mock_probe import scene_core, start_ble_probe
 from stipi_daemon.sim.ble.module import NotificationFaults
 from stipi_daemon.sim.ble.peripheral import BleModuleLimits, LinkCounters
 from stipi_daemon.sim.ble.radio import VIRTUAL_SCHEME, BleRadioError, VirtualRadio
