@@ -1,4 +1,5 @@
 """``stipi-daemon mock-peripheral --scene SCENE``: the emulated probe as a real BLE peripheral.
+
 Thin shell over :func:`stipi_daemon.sim.ble.mock_peripheral.serve`: opens a Bluetooth
 controller with Bumble (``--transport usb:0``, ``hci-socket:0``, ``serial:...``,
 ``virtual:NAME`` for an in-process radio, or ``loopback:PORT`` for a virtual radio that a
