@@ -2,7 +2,8 @@
 
 This module owns the mechanical model behind a scene: the Kelvin-Voigt tissue under the
 operator's force profile (pit creation), its recovery after the release pushing the
-indenter into the PDMS tip (a spring in series, giving the rebound force), and the
+indenter into the PDMS tip (a spring in series, giving the rebound force) with the shape
+of the scene's tissue model (:mod:`.tissue`; Kelvin-Voigt unless the scene names one), and the
 probe's occluded area S(t) through the calibration of Eqs. (4)-(5), evaluated with
 :class:`~stipi_daemon.analysis.calibration.Calibration` rather than re-implemented. Every
 quantity is in closed form; nothing here draws random numbers, renders or does I/O.
@@ -19,6 +20,10 @@ Model (docs/simulator.md has the derivation):
   tissue pushes the indenter into the tip (stiffness k_p): c D' + k D = F, F = F_0 +
   k_p (D_p - D). Both D and F relax exponentially with tau_r = tau k / (k + k_p) and
   F(t) = F_inf - (F_inf - F_0) exp(-(t - T_0)/tau_r), F_inf = F_0 + k_p (k D_p - F_0)/(k + k_p).
+* A scene with ``tissue.model`` keeps the pitting phase, F_0, F_inf and D_inf (they follow
+  from E, k_p and the calibration) and replaces exp(-(t - T_0)/tau_r) by the model's
+  recovery function remaining(t - T_0): F(t) = F_inf - (F_inf - F_0) remaining(t - T_0),
+  and D likewise (:mod:`.tissue.base` says what a model describes).
 * S(t) = C1 + C2 F(t) (Eq. 5) during the recovery; during the pitting phase either the
   tip carries the applied force (S = C1 + C2 F_a, ``applied_force``) or the locked
   indenter leaves the waveguide clear (S = 0, ``none``; the paper's Fig. 4 (a)).
@@ -35,6 +40,8 @@ from numpy.typing import ArrayLike, NDArray
 from stipi_daemon.analysis.calibration import Calibration
 from stipi_daemon.errors import ConfigError
 from stipi_daemon.sim.scene import Scene
+from stipi_daemon.sim.tissue.base import RecoveryModel
+from stipi_daemon.sim.tissue.kelvin_voigt import KelvinVoigt, recovery_time_constant_s
 
 __all__ = ["SceneModel", "scaled_calibration"]
 
@@ -97,8 +104,10 @@ class SceneModel:
         self.indenter_radius_mm = scene.indenter.diameter_mm / 2.0
         #: Tissue stiffness k = pi^2 R E / 3, Eq. (7) inverted [N/mm].
         self.stiffness_n_per_mm = math.pi**2 * self.indenter_radius_mm * e_n_per_mm2 / 3.0
-        #: Tissue time constant tau = eta / E [s].
-        self.tissue_tau_s = scene.tissue.time_constant_s
+        tissue = scene.tissue
+        #: Kelvin-Voigt tissue time constant tau = eta / E [s]; None when the scene names a
+        #: tissue model (its parameters then set the recovery).
+        self.tissue_tau_s: float | None = tissue.time_constant_s if tissue.model is None else None
         #: Time constant of the creep under load [s] (the damper of an edematous tissue
         #: expels fluid under the indenter faster than it refills; docs/simulator.md).
         self.loading_tau_s = scene.tissue.loading_time_constant_s
@@ -108,7 +117,7 @@ class SceneModel:
         self.end_s = fp.duration_s
         self.calibration, self.area_scale = scaled_calibration(scene)
 
-        k, tau = self.stiffness_n_per_mm, self.tissue_tau_s
+        k = self.stiffness_n_per_mm
         # Pitting phase: idle (F = 0), linear approach, hold at F_a.
         segs: list[tuple[float, float, float]] = [(0.0, 0.0, 0.0)]
         if fp.approach_s > 0.0:
@@ -148,8 +157,21 @@ class SceneModel:
                 f"{self.f0_n:.3f} N (S_0 = {self.s0_px:.1f} px) must lie in [0, "
                 f"{restoring:.3f}) N, the tissue's restoring force k D_p"
             )
-        #: Time constant of the recovery of D, F and S, tau k / (k + k_p) [s].
-        self.recovery_tau_s = tau * k / (k + kp)
+        #: The recovery function after T_0 (the scene's tissue model).
+        self.recovery: RecoveryModel
+        try:
+            if self.tissue_tau_s is not None:
+                tau_r = recovery_time_constant_s(self.tissue_tau_s, k, kp)
+                self.recovery = KelvinVoigt(tau_s=tau_r)
+            else:
+                assert tissue.model is not None
+                self.recovery = tissue.model.build()
+        except ConfigError as exc:
+            raise ConfigError(f"{scene.name}: tissue: {exc}") from exc
+        #: Time constant of the recovery of D, F and S [s]: tau k / (k + k_p) for a
+        #: Kelvin-Voigt tissue, the model's effective time constant (1 - 1/e of the
+        #: recovery done, :mod:`.tissue.base`) otherwise.
+        self.recovery_tau_s = self.recovery.effective_time_constant_s()
         #: Asymptotic rebound force F_inf [N].
         self.f_inf_n = self.f0_n + kp * (restoring - self.f0_n) / (k + kp)
         #: Asymptotic depth under the tip D_inf [mm].
@@ -168,9 +190,7 @@ class SceneModel:
         return result
 
     def _recovery_decay(self, t_s: FloatArray) -> FloatArray:
-        x = np.maximum(t_s - self.t0_s, 0.0) / self.recovery_tau_s
-        result: FloatArray = np.exp(-x)
-        return result
+        return self.recovery.remaining(np.maximum(t_s - self.t0_s, 0.0))
 
     def applied_force_profile_n(self, t_s: ArrayLike) -> FloatArray:
         """Operator's force on the locked indenter before T_0, 0 after [N]."""
@@ -183,7 +203,7 @@ class SceneModel:
         return out
 
     def depth_mm(self, t_s: ArrayLike) -> FloatArray:
-        """Pit depth D(t) [mm]: Kelvin-Voigt creep before T_0, recovery after."""
+        """Pit depth D(t) [mm]: Kelvin-Voigt creep before T_0, the tissue model's recovery after."""
         t = np.asarray(t_s, dtype=np.float64)
         out = np.zeros_like(t)
         for i, seg in enumerate(self._segments):

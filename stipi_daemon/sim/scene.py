@@ -26,6 +26,7 @@ from pydantic import (
 from stipi_daemon.errors import ConfigError
 from stipi_daemon.sim.effects import effect_module, known_effects
 from stipi_daemon.sim.effects.base import EffectParams
+from stipi_daemon.sim.tissue.spec import TissueModelSpec
 from stipi_daemon.yamlfile import load_yaml
 
 __all__ = [
@@ -62,16 +63,34 @@ class _Model(BaseModel):
 
 
 class TissueSpec(_Model):
-    """The tissue: a phantom grade, or Young's modulus with viscosity or time constant."""
+    """The tissue: a phantom grade, or Young's modulus with viscosity or time constant.
+
+    ``model`` names a tissue model of :mod:`stipi_daemon.sim.tissue` and its parameters
+    (docs/simulator.md, "Tissue models"); then E comes from ``grade`` or ``e_kpa``, the
+    loading time constant from ``grade`` or ``loading_tau_s``, and the recovery from the
+    model alone. Without it the tissue is Kelvin-Voigt with tau (or eta), as before.
+    """
 
     grade: Literal["I", "II", "III", "IV"] | None = None
     e_kpa: float | None = Field(default=None, gt=0.0)
     eta_n_s_per_mm2: float | None = Field(default=None, gt=0.0)
     tau_s: float | None = Field(default=None, gt=0.0)
     loading_tau_s: float | None = Field(default=None, gt=0.0)
+    model: TissueModelSpec | None = None
 
     @model_validator(mode="after")
     def _one_definition(self) -> TissueSpec:
+        if self.model is not None:
+            if self.tau_s is not None or self.eta_n_s_per_mm2 is not None:
+                raise ValueError(
+                    "with 'model', give no 'tau_s'/'eta_n_s_per_mm2' (the model's "
+                    "parameters set the recovery)"
+                )
+            if (self.grade is None) == (self.e_kpa is None):
+                raise ValueError("with 'model', give exactly one of 'grade' and 'e_kpa'")
+            if self.grade is None and self.loading_tau_s is None:
+                raise ValueError("with 'model' and 'e_kpa', give 'loading_tau_s'")
+            return self
         if self.grade is not None:
             if self.e_kpa is not None and (self.eta_n_s_per_mm2 or self.tau_s) is None:
                 raise ValueError("with 'grade', give both e_kpa and eta/tau to override, or none")
@@ -92,7 +111,9 @@ class TissueSpec(_Model):
 
     @property
     def time_constant_s(self) -> float:
-        """Kelvin-Voigt retardation time tau = eta / E [s]."""
+        """Kelvin-Voigt retardation time tau = eta / E [s] (a tissue without ``model``)."""
+        if self.model is not None:
+            raise ValueError(f"tissue model {self.model.name!r} has no Kelvin-Voigt tau")
         if self.tau_s is not None:
             return self.tau_s
         if self.eta_n_s_per_mm2 is not None:

@@ -5,6 +5,14 @@ definitions (Eqs. 3-8) on the closed-form model of :mod:`.physics` - S_0 at T_0,
 over the recovery window, T_s where S first reaches 98 % of S_max, E from Eq. (7) on the
 model's D_p - and the JSON form written next to the video, with units in every key. It
 does not render, sample or analyse anything.
+
+For every tissue model (:mod:`.tissue`) the paper's quantities are read off the true
+curve: T_r by the 98 % rule (Eq. 6) on S(t) (closed form where the model has one, else
+Brent's method on its monotone recovery function); the effective time constant
+``time_constant_s``, the time at which 1 - 1/e of the recovery S_inf - S_0 is done (tau
+itself for Kelvin-Voigt; :mod:`.tissue.base` says why this definition); eta = E T_r
+(Eq. 8, ``viscosity_n_s_per_mm2``) and E tau (``viscosity_from_time_constant_...``).
+``tissue_model`` records the model's name, parameters (units in the keys) and source.
 """
 
 from __future__ import annotations
@@ -50,7 +58,9 @@ class GroundTruth:
     ts_s, recovery_time_s : float
         T_s and T_r = T_s - T_0, Eq. (6) [s] (0 when S_0 already exceeds 98 % of S_max).
     time_constant_s : float
-        Time constant of the recovery of S, F and D [s] (what a Kelvin-Voigt fit of S finds).
+        Time constant of the recovery of S, F and D [s]: tau_r for a Kelvin-Voigt tissue
+        (what a Kelvin-Voigt fit of S finds), the effective time constant (1 - 1/e of the
+        recovery done) for another tissue model.
     recovered_fraction : float
         (S_max - S_0) / (S_inf - S_0): how far the recovery got inside the window [-].
     window_s : float
@@ -62,7 +72,12 @@ class GroundTruth:
     viscosity_from_time_constant_n_s_per_mm2 : float
         E tau_r [N s/mm^2].
     tissue_e_kpa, tissue_eta_n_s_per_mm2, tissue_tau_s : float
-        The scene's tissue (E, eta, tau = eta / E).
+        The scene's tissue (E, eta, tau = eta / E); eta and tau are None when the scene
+        names a tissue model (its parameters are in ``tissue_model``).
+    tissue_model : dict
+        ``name``, ``title``, ``parameters`` (units in the keys), ``units``, ``equation``,
+        ``source`` of the recovery model, its ``effective_time_constant_s`` and the rules
+        behind ``time_constant_s`` and ``recovery_time_s``.
     creep_fraction : float
         D_p k / F_a: how far the pit crept toward F_a / k during the hold [-]. Eq. (7)
         returns tissue_e_kpa / creep_fraction.
@@ -101,12 +116,13 @@ class GroundTruth:
     viscosity_n_s_per_mm2: float
     viscosity_from_time_constant_n_s_per_mm2: float
     tissue_e_kpa: float
-    tissue_eta_n_s_per_mm2: float
-    tissue_tau_s: float
+    tissue_eta_n_s_per_mm2: float | None
+    tissue_tau_s: float | None
     creep_fraction: float
     stiffness_n_per_mm: float
     tip_stiffness_n_per_mm: float
     indenter_radius_mm: float
+    tissue_model: dict[str, Any]
     calibration: dict[str, Any]
     roi: dict[str, float]
     frame: dict[str, Any]
@@ -164,7 +180,7 @@ def ground_truth(
     if level <= s0:
         tr = 0.0
     else:
-        tr = tau_r * math.log((s_inf - s0) / (s_inf - level))
+        tr = m.recovery.settling_time_s(s0, s_inf, level)
     f_r = (s_max - cal.c1_px) / cal.c2_px_per_n
     r_mm = m.indenter_radius_mm
     d_p = m.depth_at_release_mm
@@ -198,12 +214,17 @@ def ground_truth(
         viscosity_n_s_per_mm2=e_kpa * 1e-3 * tr,
         viscosity_from_time_constant_n_s_per_mm2=e_kpa * 1e-3 * tau_r,
         tissue_e_kpa=scene.tissue.youngs_modulus_kpa,
-        tissue_eta_n_s_per_mm2=scene.tissue.youngs_modulus_kpa * 1e-3 * m.tissue_tau_s,
+        tissue_eta_n_s_per_mm2=(
+            None
+            if m.tissue_tau_s is None
+            else scene.tissue.youngs_modulus_kpa * 1e-3 * m.tissue_tau_s
+        ),
         tissue_tau_s=m.tissue_tau_s,
         creep_fraction=d_p * m.stiffness_n_per_mm / m.applied_force_n,
         stiffness_n_per_mm=m.stiffness_n_per_mm,
         tip_stiffness_n_per_mm=m.tip_stiffness_n_per_mm,
         indenter_radius_mm=r_mm,
+        tissue_model=_tissue_model_record(m),
         calibration={
             "alpha1_mm_per_px2": cal.alpha1_mm_per_px2,
             "alpha2_mm_per_px": cal.alpha2_mm_per_px,
@@ -233,3 +254,20 @@ def ground_truth(
         },
         effects=[e.model_dump() for e in scene.effects],
     )
+
+
+def _tissue_model_record(m: SceneModel) -> dict[str, Any]:
+    rec = m.recovery
+    return {
+        "name": rec.NAME,
+        "title": rec.TITLE,
+        "parameters": dict(rec.parameters),
+        "units": {p.name: p.unit for p in rec.PARAMETERS},
+        "equation": rec.EQUATION,
+        "source": rec.SOURCE,
+        "from_scene": "tissue.model" if m.scene.tissue.model is not None else "tissue (tau)",
+        "effective_time_constant_s": m.recovery_tau_s,
+        "time_constant_rule": "time after T_0 at which 1 - 1/e of S_inf - S_0 is recovered",
+        "recovery_time_rule": "T_s - T_0, S first reaches 98 % of S_max (Eq. 6)",
+        "viscosity_rule": "eta = E T_r (Eq. 8)",
+    }
