@@ -1,0 +1,94 @@
+"""A daemon run on the simulated camera records the session video as a real camera's
+(docs/simulator.md, "Video"; docs/storage.md).
+
+An MJPG scene's camera hands the daemon each frame's JPEG, so the default
+``storage.video: passthrough`` stores those JPEGs as they were encoded (codec ``mjpeg``, at
+any clock speed, no frame left out), and the S_k the daemon stored is the count on the
+decode of the very packet stored (``analyze --recompute-sk`` reproduces every one). A scene
+with raw frames is recorded losslessly (codec ``ffv1``).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import av
+import pytest
+import yaml
+
+from stipi_daemon.app.config import load_config
+from stipi_daemon.app.daemon import run_measurement
+from stipi_daemon.cli import main
+from stipi_daemon.sim import Pipeline, load_scene
+from stipi_daemon.storage import SessionReader
+from tests.daemon._support import SHORT_MEASUREMENT, short_scene, write_config
+
+
+def _run(directory: Path, pixel_format: str, storage: dict[str, Any]) -> Path:
+    scene = short_scene(directory, width=160, height=120)
+    doc = yaml.safe_load(scene.read_text())
+    doc["camera"]["pixel_format"] = pixel_format
+    scene.write_text(yaml.safe_dump(doc))
+    path = write_config(
+        directory,
+        {
+            "probe": {"transport": {"kind": "emulated", "scene": str(scene)}},
+            "camera": {"kind": "simulator", "scene": str(scene)},
+            "measurement": SHORT_MEASUREMENT,
+            "run": {"speed": 2.0},
+        },
+    )
+    cfg = yaml.safe_load(path.read_text())
+    cfg["storage"].update(storage)
+    path.write_text(yaml.safe_dump(cfg))
+    return run_measurement(load_config(path), quiet=True).session_dir
+
+
+def _show(session: Path, capsys: pytest.CaptureFixture[str]) -> str:
+    capsys.readouterr()
+    assert main(["sessions", "show", str(session)]) == 0
+    return capsys.readouterr().out
+
+
+def test_mjpg_scene_is_recorded_passthrough(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    session = _run(tmp_path, "mjpg", {})  # the default: passthrough
+    video = json.loads((session / "summary.json").read_text())["run"]["video"]
+    assert (video["mode"], video["codec"], video["left_out"]) == ("passthrough", "mjpeg", 0)
+    with SessionReader(session) as reader:
+        assert reader.integrity_check().ok
+        seqs = reader.frames()["seq"].tolist()
+        stored = reader.video_frames()
+        assert stored["seq"].tolist() == seqs and len(seqs) > 100  # every measured frame
+        started = [e.detail for e in reader.events() if e.kind == "video_started"]
+    assert [(d["mode"], d["codec"]) for d in started] == [("passthrough", "mjpeg")]
+    # The stored packets are the simulator's JPEGs of those frames, byte for byte.
+    scene = load_scene(tmp_path / "grade1_daemon_e2e.yaml")
+    encoded = {f.index: f.packet for f in Pipeline(scene).frames()}
+    with av.open(str(session / "video.mkv")) as container:
+        stream = container.streams.video[0]
+        assert stream.codec_context.name == "mjpeg"
+        packets = [bytes(p) for p in container.demux(stream) if p.size]
+    assert packets == [encoded[s] for s in seqs]
+    assert "mjpeg 160x120" in _show(session, capsys)
+    # The S_k the daemon stored is the count on the decode of the stored packet.
+    out = tmp_path / "re.json"
+    assert main(["analyze", str(session), "--recompute-sk", "--out", str(out)]) == 0
+    check = json.loads(out.read_text())["settings"]["imaging"]["s_k_vs_stored"]
+    assert (check["frames"], check["differing"], check["frames_without_video"]) == (
+        len(seqs),
+        0,
+        0,
+    )
+
+
+def test_raw_scene_is_recorded_losslessly(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    session = _run(tmp_path, "bgr8", {"video": "lossless"})
+    video = json.loads((session / "summary.json").read_text())["run"]["video"]
+    assert (video["mode"], video["codec"]) == ("lossless", "ffv1") and video["frames"] > 0
+    assert "ffv1 160x120" in _show(session, capsys)
