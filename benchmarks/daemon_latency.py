@@ -9,8 +9,9 @@ core with the 99th-percentile frame-to-disk latency under one frame period".
 
 What runs. The simulator renders a grade-I scene (1 s approach, 5.5 s hold, 20 s recovery)
 at 1280x720, 60 fps, through the real CLI (``stipi-daemon simulate SCENE --resolution
-1280x720``: MJPG AVI). The real daemon (:func:`stipi_daemon.app.daemon.run_daemon`) then
-measures it at speed 1: ``camera: {kind: file, path: video.avi, pace: true}`` (the capture
+1280x720``; the scene's camera is ``mjpg``: JPEGs in ``video.mkv``). The real daemon
+(:func:`stipi_daemon.app.daemon.run_daemon`) then measures it at speed 1:
+``camera: {kind: file, path: video.mkv, pace: true}`` (the capture
 thread decodes each JPEG to gray, frame k is delivered at t0 + k / 60 s on the session
 clock) and the emulated Feather on a pty (100 Hz, through pyserial) playing the same scene,
 with storage in a temporary directory. The daemon runs in a worker process pinned to one
@@ -192,6 +193,7 @@ def prepare(tmp: Path) -> tuple[Path, dict[str, Any]]:
     doc = yaml.safe_load((REPO_ROOT / "configs" / "scenes" / "grade1.yaml").read_text())
     doc["name"] = "grade1_latency"
     doc["force_profile"].update({"approach_s": 1.0, "hold_s": 5.5, "recovery_s": 20.0})
+    doc["camera"]["pixel_format"] = "mjpg"  # an MJPG camera's file: JPEGs, as before
     scene = tmp / "grade1_latency.yaml"
     scene.write_text(yaml.safe_dump(doc))
     out = tmp / "render"
@@ -218,7 +220,7 @@ def prepare(tmp: Path) -> tuple[Path, dict[str, Any]]:
     cal_path = save_calibration(tmp / "calibration.json", cal)
     config = {
         "probe": {"transport": {"kind": "emulated", "scene": str(scene)}, "rate_hz": 100},
-        "camera": {"kind": "file", "path": str(out / "video.avi"), "pace": True},
+        "camera": {"kind": "file", "path": str(out / "video.mkv"), "pace": True},
         "calibration": str(cal_path),
         "imaging": {
             "threshold_p": int(truth["frame"]["threshold_p"]),

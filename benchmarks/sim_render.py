@@ -2,16 +2,20 @@
 
 Run as ``./dev python benchmarks/sim_render.py``. Renders the grade-III scene (no effects)
 at 1280x720 and 60 fps for its full 120 s (7201 frames) in memory, then the same with
-sensor noise and LED flicker, and the no-effect scene again with the MJPG video writer;
-writes the real-time factor (scene seconds per wall-clock second) with the machine to
-docs/simulator-performance.md.
+sensor noise and LED flicker, and the no-effect scene written by ``simulate``'s
+:func:`~stipi_daemon.sim.write_outputs` twice: as it is (lossless FFV1 ``video.mkv``) and
+with an ``mjpg`` camera (each frame JPEG-encoded and decoded, the JPEGs muxed); writes the
+real-time factor (scene seconds per wall-clock second) and the video's size with the
+machine to docs/simulator-performance.md.
 """
 
 from __future__ import annotations
 
 import os
 import platform
+import shutil
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -23,26 +27,25 @@ sys.path.insert(0, str(ROOT))
 
 from _machine import cpu_model  # noqa: E402
 
-from stipi_daemon.sim import Pipeline, load_scene  # noqa: E402
-from stipi_daemon.sim.output import VIDEO_FOURCC  # noqa: E402
+from stipi_daemon.sim import Pipeline, load_scene, write_outputs  # noqa: E402
+from stipi_daemon.sim.scene import Scene  # noqa: E402
 
 
-def run(pipe: Pipeline, video: Path | None = None) -> tuple[float, int]:
-    writer = None
-    if video is not None:
-        cam = pipe.scene.camera
-        writer = cv2.VideoWriter(
-            str(video), cv2.VideoWriter.fourcc(*VIDEO_FOURCC), cam.fps, (cam.width, cam.height)
-        )
-    t = time.perf_counter()
-    n = 0
-    for f in pipe.frames():
-        if writer is not None:
-            writer.write(f.image)
-        n += 1
-    if writer is not None:
-        writer.release()
-    return time.perf_counter() - t, n
+def run(scene: Scene, write: bool) -> tuple[float, int, str]:
+    """Wall time [s], frames and video size of rendering ``scene`` (written or not)."""
+    if not write:
+        t = time.perf_counter()
+        n = sum(1 for _ in Pipeline(scene).frames())
+        return time.perf_counter() - t, n, "-"
+    out = Path(tempfile.mkdtemp(prefix="stipi_sim_bench_"))
+    try:
+        t = time.perf_counter()
+        paths = write_outputs(scene, out)
+        wall = time.perf_counter() - t
+        size = f"{paths.video.stat().st_size / 1e6:.0f} MB {paths.video_codec}"
+        return wall, paths.frames_written, size
+    finally:
+        shutil.rmtree(out, ignore_errors=True)
 
 
 def main() -> None:
@@ -52,23 +55,25 @@ def main() -> None:
     scene = load_scene(ROOT / "configs/scenes/grade3.yaml").with_camera(width=1280, height=720)
     duration = scene.force_profile.duration_s
     rows = []
+    mjpg = scene.model_copy(
+        update={"camera": scene.camera.model_copy(update={"pixel_format": "mjpg"})}
+    )
     cases = [
-        ("no effects, frames in memory", scene, None),
+        ("no effects, frames in memory", scene, False),
         (
             "sensor_noise + led_flicker, in memory",
             scene.with_effects(
                 [{"name": "sensor_noise", "sigma_levels": 2.0}, {"name": "led_flicker"}]
             ),
-            None,
+            False,
         ),
-        ("no effects, written to MJPG .avi", scene, Path("/tmp/stipi_sim_bench.avi")),
+        ("no effects, written (lossless FFV1 video.mkv)", scene, True),
+        ("mjpg camera (quality 95), written (JPEGs muxed)", mjpg, True),
     ]
-    for label, sc, video in cases:
-        wall, n = run(Pipeline(sc), video)
-        rows.append((label, n, wall, duration / wall, wall / n * 1e3))
+    for label, sc, write in cases:
+        wall, n, size = run(sc, write)
+        rows.append((label, n, wall, duration / wall, wall / n * 1e3, size))
         print(f"{label}: {n} frames in {wall:.1f} s, real-time factor {duration / wall:.1f}")
-    if cases[2][2] is not None:
-        cases[2][2].unlink(missing_ok=True)
     lines = [
         "# Simulator rendering speed",
         "",
@@ -77,10 +82,10 @@ def main() -> None:
         "(`cv2.setNumThreads(1)`, process pinned to one CPU). Real-time factor = scene",
         "duration / wall-clock time; > 1 is faster than real time.",
         "",
-        "| case | frames | wall [s] | real-time factor | per frame [ms] |",
-        "|---|---:|---:|---:|---:|",
+        "| case | frames | wall [s] | real-time factor | per frame [ms] | video |",
+        "|---|---:|---:|---:|---:|---:|",
     ]
-    lines += [f"| {a} | {b} | {c:.1f} | {d:.1f} | {e:.2f} |" for a, b, c, d, e in rows]
+    lines += [f"| {a} | {b} | {c:.1f} | {d:.1f} | {e:.2f} | {f} |" for a, b, c, d, e, f in rows]
     lines += [
         "",
         f"Machine: {cpu_model()}, {os.cpu_count()} logical CPUs; Python "
