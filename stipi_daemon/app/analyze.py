@@ -70,6 +70,7 @@ from stipi_daemon.errors import ConfigError, DataFileError, SessionError
 from stipi_daemon.measurement.replay import Recording, ReplayOutcome, ReplaySetup, replay
 from stipi_daemon.measurement.state_machine import FAULT_PHASES, MeasurementConfig, Phase
 from stipi_daemon.storage import SessionState, layout
+from stipi_daemon.storage.metadata import metadata_of
 
 __all__ = [
     "OUTPUT_FORMAT",
@@ -554,6 +555,8 @@ def analyze_session(request: AnalyzeRequest) -> AnalysisRun:
         truth_rows,
     )
     doc["summary"] = recomputed
+    # Who and what the session is of (subject, site, operator, note), as recorded.
+    doc["metadata"] = metadata_of(data.manifest, data.directory / layout.MANIFEST_NAME)
     out = request.out if request.out is not None else _default_out(data.directory)
     _check_out(out, [data.directory / name for name in _PROTECTED])
     header = [f"session {data.session_id} ({status}), {data.directory}"]

@@ -1,35 +1,41 @@
-"""``stipi-daemon sessions``: list, show and export recorded sessions.
+"""``stipi-daemon sessions``: list, show and export recorded sessions, and tabulate them.
 
-Thin shell over :mod:`stipi_daemon.storage`: ``list`` prints one line per session under
-the root, ``show`` prints a session's manifest, summary, row counts and integrity, and
-``export`` writes its tables to CSV or Parquet. The root is ``--root``, else the
+Thin shell over :mod:`stipi_daemon.storage` and :mod:`stipi_daemon.app.sessions_view`:
+``list`` prints one line per session under the root (``--subject/--site/--operator``
+keep exact matches), ``show`` prints a session's metadata, manifest, summary, row counts
+and integrity, ``export`` writes one session to CSV, Parquet or MATLAB (default
+``exports/<ID>`` next to the sessions directory), and ``table`` writes one row per session
+(metadata, verdict, every quantity's value and validity) to CSV or Parquet (default
+``exports/results.csv`` next to the sessions directory). The root is ``--root``, else the
 ``storage.root`` of ``--config FILE`` (where that config's daemon records), else
-``./sessions``. A session ``ID`` may
-also be given as a path to its directory (anything containing a ``/``).
+``./sessions``. A session ``ID`` may also be given as a path to its directory (anything
+containing a ``/``).
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from collections.abc import Sequence
 from pathlib import Path
 
 from stipi_daemon.errors import SessionError
-from stipi_daemon.storage import (
-    DEFAULT_ROOT,
-    EXPORT_FORMATS,
-    SessionReader,
-    export_session,
-    list_sessions,
+from stipi_daemon.storage import DEFAULT_ROOT, EXPORT_FORMATS, SessionReader, export_session
+from stipi_daemon.storage.export import (
+    default_export_dir,
+    default_table_path,
+    write_results_table,
 )
+from stipi_daemon.storage.metadata import FIELD_DOCS
+
+#: Metadata fields ``list`` and ``table`` select on (exact match).
+_SEARCHABLE = ("subject", "site", "operator")
 
 
 def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     parser = subparsers.add_parser(
         "sessions",
-        help="list, show and export recorded sessions",
+        help="list, show, export and tabulate recorded sessions",
         description="List, inspect and export recorded sessions (one directory each).",
     )
 
@@ -56,26 +62,77 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
             help="daemon config whose storage.root holds the sessions",
         )
 
-    p_list = sub.add_parser("list", help="one line per session: id, created, status, counts")
+    def add_where(p: argparse.ArgumentParser) -> None:
+        for field in _SEARCHABLE:
+            p.add_argument(
+                f"--{field}",
+                metavar="TEXT",
+                help=f"only sessions whose {field} ({FIELD_DOCS[field]}) is TEXT, exactly",
+            )
+
+    p_list = sub.add_parser(
+        "list",
+        help="one line per session: id, created, status, subject, site, operator, label, "
+        "validity, counts, severity",
+        description="One line per session. LABEL is the first line of the session's note, "
+        "else scene:<name> for simulated devices; VALIDITY is the summary's verdict.",
+    )
     add_root(p_list)
+    add_where(p_list)
     p_list.set_defaults(handler=_cmd_list)
 
-    p_show = sub.add_parser("show", help="manifest, summary, row counts and integrity")
+    p_show = sub.add_parser("show", help="metadata, manifest, summary, row counts, integrity")
     p_show.add_argument("session_id", metavar="ID", help="session id or directory path")
     add_root(p_show)
     p_show.set_defaults(handler=_cmd_show)
 
-    p_export = sub.add_parser("export", help="write every table to CSV or Parquet")
+    p_export = sub.add_parser(
+        "export",
+        help="write a session to CSV or Parquet (one file per table) or MATLAB (.mat)",
+        description="Write a session: csv/parquet give one file per table, validity.<fmt> "
+        "(each quantity's validity), session.<fmt> (its results row) and copies of "
+        "manifest.json, summary.json and video.mkv; mat gives <ID>.mat (force samples, "
+        "frames with S_k, results, metadata; scipy.io.loadmat reads it). Never writes into "
+        "a session directory.",
+    )
     p_export.add_argument("session_id", metavar="ID", help="session id or directory path")
     add_root(p_export)
-    p_export.add_argument("--format", choices=EXPORT_FORMATS, required=True, dest="fmt")
-    p_export.add_argument("--out", type=Path, required=True, help="output directory")
+    p_export.add_argument(
+        "--format", choices=EXPORT_FORMATS, default="csv", dest="fmt", help="default: csv"
+    )
+    p_export.add_argument(
+        "--out",
+        type=Path,
+        help="output directory (default: exports/ID next to the sessions directory, "
+        "i.e. ROOT/../exports/ID)",
+    )
     p_export.add_argument(
         "--overwrite", action="store_true", help="replace existing files in the output directory"
     )
     # Deprecated spelling of --overwrite, kept working (hidden from --help).
     p_export.add_argument("--force", action=_DeprecatedOverwrite, help=argparse.SUPPRESS)
     p_export.set_defaults(handler=_cmd_export)
+
+    p_table = sub.add_parser(
+        "table",
+        help="one row per session (metadata, verdict, each quantity and its validity) "
+        "to CSV or Parquet",
+        description="Write one row per session: id, status, subject, site, operator, note, "
+        "label, verdict, duration and counts, then for each quantity its value (unit in the "
+        "column name: depth_mm, elasticity_kpa, ...; empty when invalid), _status, _flags "
+        "and _reason. Unreadable sessions are rows with status 'error'. The format follows "
+        "the --out suffix; Parquet also keeps each column's unit in its metadata.",
+    )
+    add_root(p_table)
+    add_where(p_table)
+    p_table.add_argument(
+        "--out",
+        type=Path,
+        help="results.csv or results.parquet (default: exports/results.csv next to the "
+        "sessions directory, i.e. ROOT/../exports/results.csv)",
+    )
+    p_table.add_argument("--overwrite", action="store_true", help="replace an existing file")
+    p_table.set_defaults(handler=_cmd_table)
 
 
 class _DeprecatedOverwrite(argparse.Action):
@@ -110,128 +167,39 @@ def _session_dir(root: Path, session_id: str) -> Path:
     return directory
 
 
-def _fmt_optional(value: object, fmt: str = "{}") -> str:
-    return "-" if value is None else fmt.format(value)
-
-
-def format_table(header: Sequence[str], rows: Sequence[Sequence[str]]) -> str:
-    """Left-aligned text table with two spaces between columns."""
-    widths = [max(len(str(x)) for x in col) for col in zip(header, *rows, strict=True)]
-    lines = [header, *rows]
-    return "\n".join(
-        "  ".join(str(cell).ljust(w) for cell, w in zip(line, widths, strict=True)).rstrip()
-        for line in lines
-    )
+def _where(args: argparse.Namespace) -> dict[str, str | None]:
+    return {field: getattr(args, field) for field in _SEARCHABLE}
 
 
 def _cmd_list(args: argparse.Namespace) -> int:
-    listings = list_sessions(root := _root(args))
-    if not listings:
-        print(f"no sessions in {root}")
-        return 0
-    rows = [
-        [
-            s.session_id,
-            s.created_utc or "-",
-            s.status,
-            s.validity,
-            _fmt_optional(s.duration_s, "{:.1f} s"),
-            _fmt_optional(s.n_frames),
-            _fmt_optional(s.n_samples),
-            s.severity or "-",
-        ]
-        for s in listings
-    ]
-    print(
-        format_table(
-            [
-                "ID",
-                "CREATED (UTC)",
-                "STATUS",
-                "VALIDITY",
-                "DURATION",
-                "FRAMES",
-                "SAMPLES",
-                "SEVERITY",
-            ],
-            rows,
-        )
-    )
-    for s in listings:
-        if s.error is not None:
-            print(f"{s.session_id}: {s.error}")
+    from stipi_daemon.app.sessions_view import list_text
+
+    print(list_text(_root(args), _where(args)))
     return 0
 
 
-def _video_text(path: Path) -> str:
-    """``video.mkv (1234567 B, mjpeg 1920x1080, 7200 frames)``; the error if unreadable."""
-    from stipi_daemon.storage.video import probe_video
-
-    try:
-        info = probe_video(path)
-    except SessionError as exc:
-        return f"{path.name} ({path.stat().st_size} B, unreadable: {exc})"
-    crop = "" if info.crop is None else ", crop " + ",".join(str(v) for v in info.crop)
-    return (
-        f"{path.name} ({info.size_bytes} B, {info.codec} {info.width}x{info.height} "
-        f"{info.image}{crop}, {info.frames} frames)"
-    )
-
-
 def _cmd_show(args: argparse.Namespace) -> int:
-    with SessionReader(_session_dir(_root(args), args.session_id)) as reader:
-        status = reader.status
-        meta = reader.meta()
-        counts = reader.counts()
-        report = reader.integrity_check()
-        video = reader.video_path
-        if video is None:
-            video_text = "none"
-        elif video.exists():
-            video_text = _video_text(video)
-        else:
-            video_text = f"{video.name} (reserved, not present)"
-        facts = [
-            ("session", reader.session_id),
-            ("directory", str(reader.directory)),
-            ("status", status.value),
-            ("created", str(reader.manifest["created_utc"])),
-            ("finished", meta.get("finished_utc", "-")),
-            ("duration", _fmt_optional(reader.duration_s(), "{:.3f} s")),
-            ("video", video_text),
-            ("integrity", "ok" if report.ok else "FAILED: " + "; ".join(report.problems)),
-        ]
-        if status.value == "recording" and reader.writer_owner is not None:
-            facts.append(("writer", json.dumps(reader.writer_owner)))
-        width = max(len(k) for k, _ in facts)
-        for key, value in facts:
-            print(f"{key.ljust(width)}  {value}")
-        print("rows:")
-        name_width = max(len(name) for name in counts)
-        for name, n in counts.items():
-            print(f"  {name.ljust(name_width)}  {n:>9}")
-        print("manifest:")
-        print(_indent(json.dumps(reader.manifest, indent=2)))
-        try:
-            summary = reader.summary
-        except SessionError as exc:
-            print(f"summary: unreadable: {exc}")
-            return 1
-        if summary is None:
-            print("summary: none")
-        else:
-            print("summary:")
-            print(_indent(json.dumps(summary, indent=2)))
-        return 0 if report.ok else 1
+    from stipi_daemon.app.sessions_view import show_text
 
-
-def _indent(text: str) -> str:
-    return "\n".join("  " + line for line in text.splitlines())
+    text, status = show_text(_session_dir(_root(args), args.session_id))
+    print(text)
+    return status
 
 
 def _cmd_export(args: argparse.Namespace) -> int:
-    with SessionReader(_session_dir(_root(args), args.session_id)) as reader:
-        written = export_session(reader, args.out, args.fmt, overwrite=args.overwrite)
+    root = _root(args)
+    directory = _session_dir(root, args.session_id)
+    out = args.out if args.out is not None else default_export_dir(directory)
+    with SessionReader(directory) as reader:
+        written = export_session(reader, out, args.fmt, overwrite=args.overwrite, roots=[root])
     for path in written:
         print(path)
+    return 0
+
+
+def _cmd_table(args: argparse.Namespace) -> int:
+    root = _root(args)
+    out = args.out if args.out is not None else default_table_path(root)
+    path, n = write_results_table(root, out, _where(args), overwrite=args.overwrite)
+    print(f"{path} ({n} session{'s' if n != 1 else ''})")
     return 0

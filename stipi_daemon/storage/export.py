@@ -1,14 +1,23 @@
-"""Export of a session's tables to CSV or Parquet, one file per table.
+"""Export of a session to CSV, Parquet or MATLAB, and of the sessions' results table.
 
 This module owns the conversion of the tables read by :class:`~.reader.SessionReader`
 into ``<out>/<table>.csv`` or ``<out>/<table>.parquet`` (via pyarrow), plus copies of
-``manifest.json``, ``summary.json`` and the video (``video.mkv``, unchanged) so that the
-export carries its configuration, calibration, results and primary data, and
-``validity.<csv|parquet>``: one row per reported quantity (value, unit,
-``valid``/``flagged``/``invalid``/``unknown``, the flags that concern it, the reason) and a
-last row ``verdict`` (the session's verdict and its line), so a spreadsheet never shows a
-number without its validity. All tables are read from one database snapshot. It does not
-open sessions or decide what to export (the ``sessions export`` command does).
+``manifest.json`` (with the session's metadata: subject, site, operator, note),
+``summary.json`` and the video (``video.mkv``, unchanged) so that the export carries its
+configuration, calibration, results and primary data; ``validity.<csv|parquet>``: one
+row per reported quantity (value, unit, ``valid``/``flagged``/``invalid``/``unknown``, the
+flags that concern it, the reason) and a last row ``verdict`` (the session's verdict and
+its line), so a spreadsheet never shows a number without its validity; and
+``session.<csv|parquet>``: the session's row of the results table
+(:mod:`.results_table`). ``mat`` writes one MATLAB file ``<out>/<session_id>.mat``
+(:func:`export_mat`). :func:`write_results_table` writes one row per session of a
+sessions directory. All tables are read from one database snapshot.
+
+Where exports go: by default ``exports/<session_id>/`` and ``exports/results.csv`` next
+to the sessions directory (``<root>/../exports``; :func:`default_export_dir`). An export
+never writes into a session: :func:`check_export_target` refuses a target inside any
+session directory, the sessions directory itself, or a new directory directly in it
+(it would be listed as a session), before anything is written.
 
 CSV: a header row of column names (which carry the units), integers in decimal, floats in
 Python's shortest round-trip form, NULL as an empty field. Parquet: int64, float64 (NULL
@@ -18,9 +27,15 @@ as null) and string columns; each field's metadata holds its ``unit`` and ``doc`
 from __future__ import annotations
 
 import csv
+import filecmp
+import json
 import shutil
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any, Final, Literal
+
+import numpy as np
+import numpy.typing as npt
 
 from stipi_daemon.errors import SessionError
 from stipi_daemon.storage import layout
@@ -29,12 +44,25 @@ from stipi_daemon.storage.reader import (
     SessionReader,
     quantity_status,
     quantity_value,
+    session_dirs,
     verdict_of,
+)
+from stipi_daemon.storage.results_table import (
+    collect_rows,
+    quantity_cells,
+    session_row,
+    table_format,
+    write_rows,
 )
 from stipi_daemon.storage.schema import TABLES, Table
 
-ExportFormat = Literal["csv", "parquet"]
-EXPORT_FORMATS: Final[tuple[ExportFormat, ...]] = ("csv", "parquet")
+ExportFormat = Literal["csv", "parquet", "mat"]
+EXPORT_FORMATS: Final[tuple[ExportFormat, ...]] = ("csv", "parquet", "mat")
+#: Name of the directory next to the sessions directory that exports go to by default.
+EXPORTS_DIR: Final = "exports"
+#: Format name and version stored in a ``.mat`` export.
+MAT_FORMAT: Final = "stipi-session-mat"
+MAT_VERSION: Final = 1
 
 
 def _csv_value(value: Any) -> str:
@@ -135,38 +163,128 @@ def _write_validity(path: Path, fmt: ExportFormat, rows: list[tuple[Any, ...]]) 
     pq.write_table(pa.Table.from_arrays(arrays, schema=schema), path)
 
 
+def default_export_dir(session_dir: Path) -> Path:
+    """``<root>/../exports/<session_id>``: the default target of a session's export."""
+    return session_dir.parent.parent / EXPORTS_DIR / session_dir.name
+
+
+def default_table_path(root: Path) -> Path:
+    """``<root>/../exports/results.csv``: the default results table of a sessions root."""
+    return root.parent / EXPORTS_DIR / "results.csv"
+
+
+def _holds_session(directory: Path) -> bool:
+    """A directory that is (or was) written by a session writer: database or writer lock."""
+    return (directory / layout.DB_NAME).exists() or (directory / layout.LOCK_NAME).exists()
+
+
+def check_export_target(
+    out: Path, roots: Sequence[Path], sessions: Sequence[Path] = (), *, is_file: bool = False
+) -> None:
+    """Refuse an export target that would write into a session.
+
+    Parameters
+    ----------
+    out : Path
+        The target directory (or file with ``is_file``).
+    roots : sequence of Path
+        Sessions directories: neither may be the target directory, nor may the target be
+        a new directory directly in one (it would be listed as a session).
+    sessions : sequence of Path
+        Session directories to protect besides every directory holding a session database
+        or writer lock (the exported session, each session of ``roots``).
+
+    Raises
+    ------
+    SessionError
+        One line naming ``out`` and the session or sessions directory it would write into.
+    """
+    target = out.resolve()
+    protected = {p.resolve() for p in sessions}
+    for root in roots:
+        if root.is_dir():
+            protected.update(p.resolve() for p in session_dirs(root))
+    directory = target.parent if is_file else target
+    for p in (directory, *directory.parents):
+        if p in protected or _holds_session(p):
+            raise SessionError(
+                f"--out {out}: inside the session directory {p}; an export never writes "
+                "into a session (choose a directory outside the sessions directory)"
+            )
+    for root in roots:
+        r = root.resolve()
+        if not is_file and (target == r or target.parent == r):
+            raise SessionError(
+                f"--out {out}: {'is' if target == r else 'is directly in'} the sessions "
+                f"directory {root}, where an export would look like a session (choose a "
+                f"directory outside it, e.g. {root.parent / EXPORTS_DIR})"
+            )
+
+
+def _conflicts(pairs: Sequence[tuple[Path | None, Path]]) -> list[Path]:
+    """Targets that exist; a copy whose target already holds the same bytes is none."""
+    return [
+        dst
+        for src, dst in pairs
+        if dst.exists() and not (src is not None and filecmp.cmp(src, dst, shallow=False))
+    ]
+
+
 def export_session(
-    reader: SessionReader, out_dir: Path | str, fmt: ExportFormat, *, overwrite: bool = False
+    reader: SessionReader,
+    out_dir: Path | str,
+    fmt: ExportFormat,
+    *,
+    overwrite: bool = False,
+    roots: Sequence[Path] = (),
 ) -> list[Path]:
-    """Write every table of a session to ``out_dir``, one file per table.
+    """Write a session to ``out_dir``: one file per table, or one ``.mat`` file.
 
     Parameters
     ----------
     reader : SessionReader
         The open session.
     out_dir : Path or str
-        Target directory (created if missing).
-    fmt : {"csv", "parquet"}
-        File format.
+        Target directory (created if missing); :func:`check_export_target` refuses one in
+        a session (the exported one, a session of ``roots`` or of the session's own
+        sessions directory) before anything is written.
+    fmt : {"csv", "parquet", "mat"}
+        File format; ``mat`` writes ``<out_dir>/<session_id>.mat`` (:func:`export_mat`).
     overwrite : bool
-        Replace existing files; otherwise an existing target file raises.
+        Replace existing files; otherwise an existing target file raises (a copy whose
+        target holds the same bytes, e.g. ``manifest.json`` of an export in the other
+        format, is not a conflict).
+    roots : sequence of Path
+        Further sessions directories to protect.
 
     Returns
     -------
     list of Path
-        The files written (tables in :data:`~.schema.TABLES` order, the validity file, then
-        the JSON files and the session's ``video.mkv``, copied as it is).
+        The files written (tables in :data:`~.schema.TABLES` order, the validity file, the
+        session's row, then the JSON files and the session's ``video.mkv``, copied as it is).
 
     Raises
     ------
     SessionError
-        Unknown format, an existing target file without ``overwrite``, or a write error.
+        Unknown format, a target in a session, an existing target file without
+        ``overwrite``, or a write error.
     """
     if fmt not in EXPORT_FORMATS:
         raise SessionError(f"export format {fmt!r} is not one of {', '.join(EXPORT_FORMATS)}")
     out = Path(out_dir)
+    check_export_target(out, [*roots, reader.directory.parent], [reader.directory])
+    if fmt == "mat":
+        target = out / f"{reader.session_id}.mat"
+        if target.exists() and not overwrite:
+            raise SessionError(f"{target}: exists already (use --overwrite to replace it)")
+        try:
+            out.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise SessionError(f"{out}: export failed: {exc}") from exc
+        export_mat(reader, target)
+        return [target]
     targets = [out / f"{t.name}.{fmt}" for t in TABLES]
-    validity_target = out / f"validity.{fmt}"
+    validity_target, row_target = out / f"validity.{fmt}", out / f"session.{fmt}"
     extras = [
         src
         for src in (reader.manifest_path, reader.summary_path, reader.video_path)
@@ -175,9 +293,10 @@ def export_session(
         and src.name in (layout.MANIFEST_NAME, layout.SUMMARY_NAME, layout.VIDEO_NAME)
     ]
     if not overwrite:
-        for target in [*targets, validity_target, *(out / src.name for src in extras)]:
-            if target.exists():
-                raise SessionError(f"{target}: exists already (use --overwrite to replace it)")
+        written_here = [(None, t) for t in [*targets, validity_target, row_target]]
+        conflicts = _conflicts([*written_here, *((src, out / src.name) for src in extras)])
+        if conflicts:
+            raise SessionError(f"{conflicts[0]}: exists already (use --overwrite to replace it)")
     writer = _write_csv if fmt == "csv" else _write_parquet
     written: list[Path] = []
     try:
@@ -186,11 +305,122 @@ def export_session(
             for table, target in zip(TABLES, targets, strict=True):
                 writer(target, table, list(reader.iter_rows(table)))
                 written.append(target)
+            row = session_row(reader)
         _write_validity(validity_target, fmt, validity_rows(_summary_or_none(reader)))
-        written.append(validity_target)
+        write_rows(row_target, [row], fmt)
+        written += [validity_target, row_target]
         for src in extras:
-            shutil.copyfile(src, out / src.name)
-            written.append(out / src.name)
+            dst = out / src.name
+            if not (dst.exists() and filecmp.cmp(src, dst, shallow=False)):
+                shutil.copyfile(src, dst)
+            written.append(dst)
     except OSError as exc:
         raise SessionError(f"{out}: export failed: {exc}") from exc
     return written
+
+
+def write_results_table(
+    root: Path,
+    out: Path,
+    where: dict[str, str | None] | None = None,
+    *,
+    overwrite: bool = False,
+) -> tuple[Path, int]:
+    """Write one row per session of ``root`` (:mod:`.results_table`) to ``out``.
+
+    The format follows ``out``'s suffix (``.csv`` or ``.parquet``); ``where`` keeps the
+    sessions whose metadata equals each given value (unreadable sessions are kept as
+    ``error`` rows). Returns the file and the number of rows.
+
+    Raises
+    ------
+    SessionError
+        ``root`` is not a directory, ``out`` has another suffix, lies in a session, exists
+        without ``overwrite``, or cannot be written.
+    """
+    fmt = table_format(out)
+    check_export_target(out, [root], is_file=True)
+    rows = collect_rows(root, where)
+    if out.exists() and not overwrite:
+        raise SessionError(f"{out}: exists already (use --overwrite to replace it)")
+    try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        write_rows(out, rows, fmt)
+    except OSError as exc:
+        raise SessionError(f"{out}: cannot write the results table: {exc}") from exc
+    return out, len(rows)
+
+
+# ------------------------------------------------------------------------------ MATLAB
+_EXACT_DOUBLE_INT: Final = 2**53
+
+
+def _mat_none(value: Any) -> Any:
+    """A value savemat can store: None becomes an empty matrix (MATLAB ``[]``)."""
+    return np.zeros((0, 0)) if value is None else value
+
+
+def _mat_column(kind: str, values: list[Any]) -> npt.NDArray[Any]:
+    """One column as a vector: numbers as double (NULL as NaN; integers as int64 when one
+    exceeds 2^53 and a double would round it), text as a cell array."""
+    if kind in ("text", "json"):
+        return np.array(["" if v is None else str(v) for v in values] or [], dtype=object)
+    if kind == "int" and any(abs(int(v)) > _EXACT_DOUBLE_INT for v in values):
+        return np.array(values, dtype=np.int64)
+    return np.array([np.nan if v is None else float(v) for v in values], dtype=np.float64)
+
+
+def _mat_table(reader: SessionReader, table: Table) -> dict[str, Any]:
+    rows = list(reader.iter_rows(table))
+    return {c.name: _mat_column(c.kind, [r[i] for r in rows]) for i, c in enumerate(table.columns)}
+
+
+def _mat_results(summary: dict[str, Any] | None) -> dict[str, Any]:
+    """``results.<quantity>`` = struct(value, unit, status, flags, reason), plus verdict."""
+    cells = quantity_cells(summary)
+    out: dict[str, Any] = {}
+    for q, (_, unit) in QUANTITY_PATHS.items():
+        flags = cells[f"{q}_flags"]
+        out[q] = {
+            "value": _mat_none(cells[q]),
+            "unit": unit,
+            "status": cells[f"{q}_status"],
+            "flags": np.array(flags.split(";") if flags else [], dtype=object),
+            "reason": _mat_none(cells[f"{q}_reason"]),
+        }
+    out["severity_grade"] = _mat_none(cells["severity_grade"])
+    out["verdict"] = {"status": cells["verdict"], "line": _mat_none(cells["verdict_line"])}
+    return out
+
+
+def export_mat(reader: SessionReader, path: Path) -> None:
+    """Write a session to a MATLAB file (scipy.io.savemat, format 5, columns as n-by-1).
+
+    Variables: ``format``, ``format_version``, ``session_id``; ``metadata`` (subject,
+    site, operator, note; ``[]`` when not set); one struct per table (``force_samples``,
+    ``frames`` with ``s_k`` [px], ``events``, ``transitions``, ``gaps``, ``clock_probes``,
+    ``live_parameters``, ``video_frames``), each field one column (numbers as double,
+    NULL as NaN, text as a cell array); ``units.<table>.<column>``; ``results.<quantity>``
+    (value, unit, status, flags, reason; an invalid quantity's value is ``[]``) and
+    ``results.verdict``; ``manifest_json`` and ``summary_json`` (the files as text).
+    """
+    import scipy.io
+
+    with reader.snapshot():
+        tables = {t.name: _mat_table(reader, t) for t in TABLES}
+    summary = _summary_or_none(reader)
+    data: dict[str, Any] = {
+        "format": MAT_FORMAT,
+        "format_version": MAT_VERSION,
+        "session_id": reader.session_id,
+        "metadata": {k: _mat_none(v) for k, v in reader.metadata.items()},
+        **tables,
+        "units": {t.name: {c.name: c.unit for c in t.columns} for t in TABLES},
+        "results": _mat_results(summary),
+        "manifest_json": json.dumps(reader.manifest, indent=2),
+        "summary_json": "" if summary is None else json.dumps(summary, indent=2),
+    }
+    try:
+        scipy.io.savemat(path, data, oned_as="column", do_compression=True)
+    except OSError as exc:
+        raise SessionError(f"{path}: cannot write the MATLAB file: {exc}") from exc

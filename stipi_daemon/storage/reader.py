@@ -14,7 +14,10 @@ live writer is ``interrupted``. Writing is :mod:`.writer`; export to CSV/Parquet
 from __future__ import annotations
 
 import json
+import os
+import shutil
 import sqlite3
+import tempfile
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -28,6 +31,7 @@ import numpy.typing as npt
 from stipi_daemon.errors import SessionError
 from stipi_daemon.storage import layout
 from stipi_daemon.storage.lock import read_owner, writer_alive
+from stipi_daemon.storage.metadata import Metadata, matches, metadata_of
 from stipi_daemon.storage.schema import (
     CLOCK_PROBES,
     EVENTS,
@@ -116,25 +120,17 @@ class SessionReader:
             raise SessionError(f"{db}: session database is missing")
         if db.stat().st_size == 0:
             raise SessionError(f"{db}: session database is empty (0 bytes)")
+        #: Private copy of the database and its WAL when it lies on read-only media
+        #: (:func:`_open_read_only`); removed on close.
+        self._copy_dir: Path | None = None
+        self._conn, self._copy_dir = _open_read_only(db)
         try:
-            self._conn = sqlite3.connect(
-                db.resolve().as_uri() + "?mode=ro",
-                uri=True,
-                isolation_level=None,
-                check_same_thread=False,
-            )
-        except sqlite3.Error as exc:
-            raise SessionError(f"{db}: cannot open database: {exc}") from None
-        try:
-            self._conn.execute("PRAGMA busy_timeout=5000")
             problem = self._schema_problem()
         except sqlite3.DatabaseError as exc:
-            self._conn.close()
-            raise SessionError(
-                f"{db}: not a readable SQLite database, truncated or corrupt ({exc})"
-            ) from None
+            self.close()
+            raise SessionError(_unreadable(db, exc)) from None
         if problem is not None:
-            self._conn.close()
+            self.close()
             raise SessionError(f"{db}: {problem}")
 
     # ------------------------------------------------------------------ files
@@ -163,6 +159,18 @@ class SessionReader:
         """Path of the reserved video file if the manifest reserves one, else None."""
         name = self.manifest["files"].get("video")
         return None if name is None else self.directory / str(name)
+
+    @property
+    def metadata(self) -> Metadata:
+        """Subject, site, operator and note (:mod:`.metadata`; all None for a session
+        recorded before metadata existed). Raises :class:`SessionError` naming the manifest
+        and the field when a stored value breaks the rules."""
+        return metadata_of(self.manifest, self.manifest_path)
+
+    @property
+    def label(self) -> str | None:
+        """What tells this session apart at a glance (:func:`session_label`)."""
+        return session_label(self.manifest, self.metadata)
 
     @property
     def summary(self) -> dict[str, Any] | None:
@@ -419,6 +427,9 @@ class SessionReader:
     # ------------------------------------------------------------------ lifetime
     def close(self) -> None:
         self._conn.close()
+        if self._copy_dir is not None:
+            shutil.rmtree(self._copy_dir, ignore_errors=True)
+            self._copy_dir = None
 
     def __enter__(self) -> Self:
         return self
@@ -432,10 +443,37 @@ class SessionReader:
         self.close()
 
 
+#: Longest label shown [characters] (:func:`session_label`).
+LABEL_CHARS: Final = 32
+
+
+def session_label(manifest: dict[str, Any], metadata: Metadata) -> str | None:
+    """A short label of a session: the first line of its note (cut to
+    :data:`LABEL_CHARS` characters, ``…`` marking the cut), else ``scene:<name>`` for a
+    session of simulated devices (the scene file's name), else None."""
+    note = metadata.get("note")
+    if note:
+        line = note.strip().splitlines()[0].strip()
+        return line if len(line) <= LABEL_CHARS else line[: LABEL_CHARS - 1].rstrip() + "…"
+    config = manifest.get("config")
+    for section, key in (("camera", None), ("probe", "transport")):
+        node = config.get(section) if isinstance(config, dict) else None
+        if key is not None and isinstance(node, dict):
+            node = node.get(key)
+        scene = node.get("scene") if isinstance(node, dict) else None
+        if isinstance(scene, str) and scene:
+            return "scene:" + Path(scene).stem
+    return None
+
+
 @dataclass(frozen=True)
 class SessionListing:
     """One line of :func:`list_sessions`; ``error`` is set (and the rest may be None) for a
-    directory that cannot be read."""
+    directory that cannot be read.
+
+    ``metadata`` holds subject, site, operator and note (:mod:`.metadata`), ``label`` the
+    session's short label (:func:`session_label`), ``validity`` the summary's verdict.
+    """
 
     session_id: str
     directory: Path
@@ -447,6 +485,90 @@ class SessionListing:
     severity: str | None = None
     validity: str = "unknown"
     error: str | None = None
+    metadata: Metadata | None = None
+    label: str | None = None
+
+    @property
+    def subject(self) -> str | None:
+        return None if self.metadata is None else self.metadata.get("subject")
+
+    @property
+    def site(self) -> str | None:
+        return None if self.metadata is None else self.metadata.get("site")
+
+    @property
+    def operator(self) -> str | None:
+        return None if self.metadata is None else self.metadata.get("operator")
+
+
+def _connect(uri: str) -> sqlite3.Connection:
+    conn = sqlite3.connect(uri, uri=True, isolation_level=None, check_same_thread=False)
+    conn.execute("PRAGMA busy_timeout=5000")
+    return conn
+
+
+def _is_corrupt(exc: sqlite3.Error) -> bool:
+    """Whether SQLite says the file itself is damaged (not a database, malformed)."""
+    name = getattr(exc, "sqlite_errorname", "") or ""
+    return name.startswith(("SQLITE_NOTADB", "SQLITE_CORRUPT"))
+
+
+def _unreadable(db: Path, exc: sqlite3.Error) -> str:
+    if _is_corrupt(exc):
+        return f"{db}: not a readable SQLite database, truncated or corrupt ({exc})"
+    return f"{db}: cannot read the database ({exc})"
+
+
+def _open_read_only(db: Path) -> tuple[sqlite3.Connection, Path | None]:
+    """Open a session database read-only; also one copied to read-only media.
+
+    ``mode=ro`` reads a WAL database in place, and while a writer records, when SQLite
+    can use (or create) the ``-shm`` index beside it. A session copied to read-only media
+    without its ``-shm`` (a recorder killed before its last checkpoint) cannot get one:
+    without a ``-wal`` (or an empty one) the database file alone is the data, opened with
+    ``immutable=1``; with a ``-wal``, the committed rows still in it would be lost that
+    way, so the database and its WAL are copied to a private temporary directory and
+    read there (the media are never written). Returns the connection and that directory
+    (None: read in place).
+
+    Raises
+    ------
+    SessionError
+        SQLite cannot open or read it; "truncated or corrupt" only when SQLite says the
+        file is not a database or is malformed.
+    """
+    uri = db.resolve().as_uri()
+    conn: sqlite3.Connection | None = None
+    try:
+        conn = _connect(uri + "?mode=ro")
+        conn.execute("SELECT count(*) FROM sqlite_master").fetchone()
+        return conn, None
+    except sqlite3.Error as exc:
+        if conn is not None:
+            conn.close()
+        shm = db.with_name(db.name + "-shm")
+        if _is_corrupt(exc) or shm.exists() or os.access(db.parent, os.W_OK):
+            raise SessionError(_unreadable(db, exc)) from None
+    wal = db.with_name(db.name + "-wal")
+    copy_dir: Path | None = None
+    try:
+        if not wal.exists() or wal.stat().st_size == 0:
+            conn = _connect(uri + "?immutable=1")
+        else:
+            copy_dir = Path(tempfile.mkdtemp(prefix="stipi-read-only-"))
+            shutil.copyfile(db, copy_dir / db.name)
+            shutil.copyfile(wal, copy_dir / wal.name)
+            conn = _connect((copy_dir / db.name).as_uri() + "?mode=ro")
+        conn.execute("SELECT count(*) FROM sqlite_master").fetchone()
+    except (sqlite3.Error, OSError) as exc:
+        if copy_dir is not None:
+            shutil.rmtree(copy_dir, ignore_errors=True)
+        if isinstance(exc, OSError):
+            raise SessionError(
+                f"{db}: read-only media: cannot copy it to read its WAL ({exc})"
+            ) from None
+        raise SessionError(_unreadable(db, exc)) from None
+    return conn, copy_dir
 
 
 def _severity_text(value: Any) -> str | None:
@@ -532,8 +654,8 @@ def _is_session_dir(path: Path) -> bool:
     )
 
 
-def list_sessions(root: Path | str) -> list[SessionListing]:
-    """Every session directory under ``root``, sorted by id; unreadable ones carry ``error``.
+def session_dirs(root: Path | str) -> list[Path]:
+    """The session directories directly under ``root``, sorted by name.
 
     Raises
     ------
@@ -543,10 +665,30 @@ def list_sessions(root: Path | str) -> list[SessionListing]:
     root = Path(root)
     if not root.is_dir():
         raise SessionError(f"{root}: sessions directory does not exist")
+    return sorted(p for p in root.iterdir() if _is_session_dir(p))
+
+
+def list_sessions(
+    root: Path | str, where: dict[str, str | None] | None = None
+) -> list[SessionListing]:
+    """Every session directory under ``root``, sorted by id; unreadable ones carry ``error``.
+
+    ``where`` keeps the sessions whose metadata equals each given (not None) value exactly,
+    e.g. ``{"subject": "P-001"}``; unreadable sessions are always kept (they cannot be
+    matched, and are never hidden).
+
+    Raises
+    ------
+    SessionError
+        ``root`` does not exist or is not a directory.
+    """
     out: list[SessionListing] = []
-    for directory in sorted(p for p in root.iterdir() if _is_session_dir(p)):
+    for directory in session_dirs(root):
         try:
             with SessionReader(directory) as reader:
+                metadata = reader.metadata
+                if where and not matches(metadata, where):
+                    continue
                 counts = reader.counts()
                 try:
                     summary = reader.summary
@@ -564,6 +706,8 @@ def list_sessions(root: Path | str) -> list[SessionListing]:
                         n_samples=counts[FORCE_SAMPLES.name],
                         severity=severity,
                         validity=validity,
+                        metadata=metadata,
+                        label=session_label(reader.manifest, metadata),
                     )
                 )
         except SessionError as exc:

@@ -33,6 +33,10 @@ def test_list(root: Path, capsys: pytest.CaptureFixture[str]) -> None:
         "CREATED",
         "(UTC)",
         "STATUS",
+        "SUBJECT",
+        "SITE",
+        "OPERATOR",
+        "LABEL",
         "VALIDITY",
         "DURATION",
         "FRAMES",
@@ -40,9 +44,23 @@ def test_list(root: Path, capsys: pytest.CaptureFixture[str]) -> None:
         "SEVERITY",
     ]
     a = lines[1].split()
-    # An old summary (no validity recorded) reads as "unknown", never as a verdict.
+    # An old summary (no validity recorded) reads as "unknown", never as a verdict; a
+    # session without metadata shows "-".
     assert a[0] == "a-complete"
-    assert a[2:] == ["complete", "unknown", "0.1", "s", "3", "6", "severe", "(3+)"]
+    assert a[2:] == [
+        "complete",
+        "-",
+        "-",
+        "-",
+        "-",
+        "unknown",
+        "0.1",
+        "s",
+        "3",
+        "6",
+        "severe",
+        "(3+)",
+    ]
     assert lines[2].split()[2] == "interrupted"
     assert lines[3].split()[:3] == ["c-bad", "-", "error"]
     assert lines[4].startswith("c-bad: ") and "file is not a database" in lines[4]
@@ -61,7 +79,7 @@ def test_list_shows_the_verdict_and_the_daemons_severity(
     write_full_session(root, "a", summary=summary)
     assert main(["sessions", "list", "--root", str(root)]) == 0
     row = capsys.readouterr().out.splitlines()[1].split()
-    assert row[2:4] == ["complete", "flagged"]
+    assert row[2:8] == ["complete", "-", "-", "-", "-", "flagged"]
     assert row[-2:] == ["mild", "(1+)"]
 
 
@@ -103,7 +121,8 @@ def test_export(root: Path, tmp_path: Path, fmt: str, capsys: pytest.CaptureFixt
     args = ["sessions", "export", "a-complete", "--root", str(root), "--format", fmt]
     assert main([*args, "--out", str(out)]) == 0
     printed = capsys.readouterr().out.splitlines()
-    assert len(printed) == len(TABLES) + 4  # tables, validity, manifest, summary, video
+    # tables, validity, the session's results row, manifest, summary, video
+    assert len(printed) == len(TABLES) + 5
     assert printed[-1].endswith("video.mkv")
     read = read_csv_table if fmt == "csv" else read_parquet_table
     with SessionReader(root / "a-complete") as reader:

@@ -71,6 +71,7 @@ def test_export_reads_back_equal(recorded: Recorded, tmp_path: Path, fmt: str) -
         written = export_session(reader, out, fmt)  # type: ignore[arg-type]
         assert [p.name for p in written] == [f"{t.name}.{fmt}" for t in TABLES] + [
             f"validity.{fmt}",
+            f"session.{fmt}",
             "manifest.json",
             "summary.json",
             "video.mkv",
@@ -99,9 +100,9 @@ def test_export_of_an_empty_session(tmp_path: Path) -> None:
     from stipi_daemon.storage import SessionWriter, StorageOptions
 
     options = StorageOptions(min_free_bytes=0)
-    with SessionWriter.create(tmp_path, {}, {}, session_id="e", options=options) as w:
+    with SessionWriter.create(tmp_path / "sessions", {}, {}, session_id="e", options=options) as w:
         w.finish("aborted")
-    with SessionReader(tmp_path / "e") as reader:
+    with SessionReader(tmp_path / "sessions" / "e") as reader:
         export_session(reader, tmp_path / "csv", "csv")
         export_session(reader, tmp_path / "parquet", "parquet")
     assert (tmp_path / "csv" / "frames.csv").read_text() == (
@@ -132,9 +133,9 @@ def test_export_carries_the_validity_of_each_quantity(tmp_path: Path, fmt: str) 
     from stipi_daemon.storage import SessionWriter, StorageOptions
 
     options = StorageOptions(min_free_bytes=0)
-    with SessionWriter.create(tmp_path, {}, {}, session_id="v", options=options) as w:
+    with SessionWriter.create(tmp_path / "sessions", {}, {}, session_id="v", options=options) as w:
         w.finish("complete", _VALID_SUMMARY)
-    with SessionReader(tmp_path / "v") as reader:
+    with SessionReader(tmp_path / "sessions" / "v") as reader:
         export_session(reader, tmp_path / "out", fmt)  # type: ignore[arg-type]
     path = tmp_path / "out" / f"validity.{fmt}"
     if fmt == "csv":
