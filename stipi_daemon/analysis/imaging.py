@@ -12,8 +12,13 @@ S-to-mm/N conversion is :mod:`~stipi_daemon.analysis.calibration`'s.
 Pixel and ROI conventions
 -------------------------
 Frames are numpy arrays in OpenCV layout: ``frame[y, x]`` (row y, column x), origin at the
-top-left corner, 8-bit (``uint8``) gray ``(H, W)``, ``(H, W, 1)``, BGR ``(H, W, 3)`` or BGRA
-``(H, W, 4)``. Pixel (x, y) has its centre at integer coordinates (x, y). 16-bit frames are
+top-left corner, 8-bit (``uint8``) gray ``(H, W)``, ``(H, W, 1)``, YUYV ``(H, W, 2)``, BGR
+``(H, W, 3)`` or BGRA ``(H, W, 4)``. YUYV (YUY2, packed 4:2:2, bytes Y0 U0 Y1 V0 ...) is the
+layout OpenCV's V4L2 backend delivers with ``CAP_PROP_CONVERT_RGB`` off: channel 0 of each
+pixel is its luma Y, which is its gray value (``cv2.COLOR_YUV2GRAY_YUYV``). The gray value
+of a BGR(A) pixel is ``cv2.cvtColor``'s (``COLOR_BGR2GRAY``, ``Y = 0.299 R + 0.587 G +
+0.114 B`` in the fixed point of the OpenCV build, see :func:`bgr_gray_formula`). Pixel
+(x, y) has its centre at integer coordinates (x, y). 16-bit frames are
 rejected: the threshold p of Eq. (1) is on the 8-bit scale (0 = black, 255 = white), and
 only the caller knows the sensor's bit depth (10, 12 or 16 bit) needed to rescale.
 
@@ -57,11 +62,13 @@ __all__ = [
     "DEFAULT_SATURATION_LIMIT_FRACTION",
     "ROI",
     "SATURATION_LEVEL",
+    "BgrGrayFormula",
     "CircleROI",
     "Frame",
     "FrameMeasurement",
     "FrameProcessor",
     "RectROI",
+    "bgr_gray_formula",
     "occluded_area_subpixel",
     "occluded_pixel_count",
     "otsu_threshold",
@@ -106,11 +113,94 @@ def sk_kernel() -> str:
 
     ``"avx2"``, ``"sse2"`` or ``"c"``: the compiled single-pass kernel of
     ``stipi_daemon/analysis/_skcount.c`` (the best one the CPU runs), which reads each pixel
-    once. ``"opencv"``: the extension was not built (no C compiler at install time), and
-    S_k is counted with ``cv2.threshold`` + ``cv2.countNonZero`` (two passes, about 2x
-    slower on raw frames). All give identical counts.
+    once, computing the gray value of YUYV and BGR pixels on the fly. ``"opencv"``: the
+    extension was not built (no C compiler at install time), and S_k is counted with
+    ``cv2.cvtColor`` (colour frames) + ``cv2.threshold`` + ``cv2.countNonZero`` (two or
+    three passes, about 2-3x slower on raw frames). All give identical counts.
     """
     return "opencv" if _skcount is None else str(_skcount.kernel())
+
+
+@dataclass(frozen=True)
+class BgrGrayFormula:
+    """The fixed-point BGR -> gray formula of ``cv2.cvtColor(COLOR_BGR2GRAY)`` on 8-bit pixels.
+
+    ``Y = (cb * B + cg * G + cr * R + d) >> s`` (integers; ``cb + cg + cr == 2**s``, so
+    white stays 255).
+
+    Attributes
+    ----------
+    name : str
+        Which implementation uses it: ``"opencv"`` (OpenCV's own code, ``cv::RGB2Gray<uchar>``
+        in ``imgproc/src/color_rgb.simd.hpp``: weights 1868, 9617, 4899 = 0.114, 0.587,
+        0.299 x 2**14, rounding term 2**13) or ``"ipp"`` (builds with the Intel IPP HAL, whose
+        ``ippiColorToGray_8u_C3C1R`` computes 3735, 19235, 9798 = 0.114, 0.587, 0.299 x
+        2**15 with the blue weight rounded down so that they sum to 2**15, rounding term
+        2**14; identified on all 2**24 BGR values against ``cv2.cvtColor``).
+    weights : tuple of int
+        ``(cb, cg, cr, d, s)`` as the compiled kernel takes them (``bgr_weights``).
+    """
+
+    name: str
+    weights: tuple[int, int, int, int, int]
+
+
+_BGR_GRAY_FORMULAS: Final = (
+    BgrGrayFormula("ipp", (3735, 19235, 9798, 16384, 15)),
+    BgrGrayFormula("opencv", (1868, 9617, 4899, 8192, 14)),
+)
+_bgr_formula_cache: dict[bool, BgrGrayFormula | None] = {}
+
+
+def bgr_gray_formula() -> BgrGrayFormula | None:
+    """The formula ``cv2.cvtColor(COLOR_BGR2GRAY)`` computes on this OpenCV build, or None.
+
+    S_k of a BGR frame counts pixels by their gray value, so the compiled kernel, which
+    computes that value on the fly, must round exactly as ``cv2.cvtColor`` does; which
+    fixed point that is depends on how OpenCV was built (its own code, or the Intel IPP HAL
+    on x86 builds with IPP; an ARM HAL may differ again). This checks each known formula
+    (:class:`BgrGrayFormula`) against ``cv2.cvtColor`` on all 2**24 BGR values (in 256
+    blocks of 256 x 256 pixels, about 0.1 s once per process and IPP setting) and on a few
+    narrow images, and returns the one that equals it on every value. None when no known
+    formula does: :class:`FrameProcessor` then converts BGR frames with ``cv2.cvtColor``
+    before counting (slower, never different).
+    """
+    key = bool(cv2.ipp.useIPP())
+    if key not in _bgr_formula_cache:
+        _bgr_formula_cache[key] = _identify_bgr_formula()
+    return _bgr_formula_cache[key]
+
+
+def _identify_bgr_formula() -> BgrGrayFormula | None:
+    bg = np.empty((256, 256, 3), dtype=np.uint8)
+    bg[:, :, 0] = np.arange(256, dtype=np.uint8)[None, :]
+    bg[:, :, 1] = np.arange(256, dtype=np.uint8)[:, None]
+    b, g = bg[:, :, 0].astype(np.int32), bg[:, :, 1].astype(np.int32)
+    alive = {f.name: f for f in _BGR_GRAY_FORMULAS}
+    partial = {f.name: f.weights[0] * b + f.weights[1] * g for f in _BGR_GRAY_FORMULAS}
+    for r in range(256):
+        bg[:, :, 2] = r
+        got = cv2.cvtColor(bg, cv2.COLOR_BGR2GRAY)
+        for name, f in list(alive.items()):
+            cb, cg, cr, d, s = f.weights
+            if not np.array_equal(got, (partial[name] + (cr * r + d)) >> s):
+                del alive[name]
+        if not alive:
+            return None
+    # Narrow images and crops (OpenCV may take another code path for them), on the values
+    # where the known formulas disagree.
+    rng = np.random.default_rng(0)
+    probe = rng.integers(0, 256, size=(4096, 3), dtype=np.uint8)
+    for f in list(alive.values()):
+        for h, w in ((1, 1), (1, 7), (3, 33), (5, 17)):
+            img = probe[: h * (w + 2)].reshape(h, w + 2, 3)[:, 1 : w + 1]
+            px = img.astype(np.int32)
+            cb, cg, cr, d, s = f.weights
+            want = (cb * px[:, :, 0] + cg * px[:, :, 1] + cr * px[:, :, 2] + d) >> s
+            if not np.array_equal(cv2.cvtColor(img, cv2.COLOR_BGR2GRAY), want):
+                del alive[f.name]
+                break
+    return next(iter(alive.values()), None)
 
 
 # --------------------------------------------------------------------------------------------
@@ -170,7 +260,9 @@ ROI = Annotated[RectROI | CircleROI, Field(discriminator="kind")]
 # Frame validation and grayscale conversion
 # --------------------------------------------------------------------------------------------
 
-_SUPPORTED_LAYOUTS = "uint8 gray (H, W) or (H, W, 1), BGR (H, W, 3) or BGRA (H, W, 4)"
+_SUPPORTED_LAYOUTS = (
+    "uint8 gray (H, W) or (H, W, 1), YUYV (H, W, 2), BGR (H, W, 3) or BGRA (H, W, 4)"
+)
 
 
 def _check_frame_layout(shape: tuple[int, ...], dtype: np.dtype[np.generic]) -> int | None:
@@ -180,7 +272,7 @@ def _check_frame_layout(shape: tuple[int, ...], dtype: np.dtype[np.generic]) -> 
     ------
     AnalysisError
         For any dtype other than uint8, a dimension other than 2 or 3, a channel count other
-        than 1, 3 or 4, or an empty frame.
+        than 1, 2, 3 or 4, or an empty frame.
     """
     if dtype != np.uint8:
         if dtype == np.uint16:
@@ -194,6 +286,8 @@ def _check_frame_layout(shape: tuple[int, ...], dtype: np.dtype[np.generic]) -> 
         code = None
     elif len(shape) == 3 and shape[2] == 1:
         code = None
+    elif len(shape) == 3 and shape[2] == 2:
+        code = cv2.COLOR_YUV2GRAY_YUYV
     elif len(shape) == 3 and shape[2] == 3:
         code = cv2.COLOR_BGR2GRAY
     elif len(shape) == 3 and shape[2] == 4:
@@ -218,8 +312,8 @@ def to_gray(frame: Frame) -> GrayImage:
     ----------
     frame : numpy.ndarray
         uint8 gray ``(H, W)`` or ``(H, W, 1)`` (returned as a 2-D view, not copied),
-        BGR ``(H, W, 3)`` or BGRA ``(H, W, 4)`` (converted with OpenCV's
-        ``Y = 0.299 R + 0.587 G + 0.114 B``, alpha ignored).
+        YUYV ``(H, W, 2)`` (its Y bytes), BGR ``(H, W, 3)`` or BGRA ``(H, W, 4)``
+        (converted with OpenCV's ``Y = 0.299 R + 0.587 G + 0.114 B``, alpha ignored).
 
     Returns
     -------
@@ -466,20 +560,23 @@ class FrameProcessor:
 
     Everything that does not depend on the pixel values (ROI clipping, bounding box, the
     circle's per-row column spans, scratch buffers) is computed once here, so :meth:`count`
-    only crops (a view), converts the crop to gray when the frame is colour, and counts the
-    pixels ``<= p`` of each ROI row in one read-only pass (the compiled kernel named by
-    :func:`sk_kernel`); :meth:`measure` counts the saturated pixels in the same pass. Where
-    the kernel is not built, the processor thresholds with
-    ``cv2.threshold(THRESH_BINARY_INV, maxval=1)`` into a preallocated buffer, masks a
-    circular ROI (``cv2.bitwise_and``) and counts with ``cv2.countNonZero``; the saturation
-    check then first reads the crop's maximum (``cv2.minMaxLoc``). Both give identical
-    results.
+    only crops (a view) and counts the pixels ``<= p`` of each ROI row in one read-only pass
+    (the compiled kernel named by :func:`sk_kernel`); :meth:`measure` counts the saturated
+    pixels in the same pass. The kernel computes the gray value of YUYV and BGR pixels on the
+    fly in that pass (BGR with :func:`bgr_gray_formula`, bit for bit ``cv2.cvtColor``'s);
+    BGRA frames, and BGR frames on an OpenCV build whose formula is not known, are first
+    converted with ``cv2.cvtColor`` into a preallocated buffer (:attr:`counts_on_the_fly`
+    tells which). Where the kernel is not built, the processor converts colour crops with
+    ``cv2.cvtColor``, thresholds with ``cv2.threshold(THRESH_BINARY_INV, maxval=1)`` into a
+    preallocated buffer, masks a circular ROI (``cv2.bitwise_and``) and counts with
+    ``cv2.countNonZero``; the saturation check then first reads the crop's maximum
+    (``cv2.minMaxLoc``). All routes give identical results.
 
     Parameters
     ----------
     frame_shape : tuple of int
-        Shape of every frame to be processed: ``(H, W)``, ``(H, W, 1)``, ``(H, W, 3)`` (BGR)
-        or ``(H, W, 4)`` (BGRA); frames must be uint8.
+        Shape of every frame to be processed: ``(H, W)``, ``(H, W, 1)``, ``(H, W, 2)``
+        (YUYV), ``(H, W, 3)`` (BGR) or ``(H, W, 4)`` (BGRA); frames must be uint8.
     p : int
         Threshold of Eq. (1) [8-bit intensity], 0..255.
     roi : RectROI or CircleROI or None
@@ -534,6 +631,16 @@ class FrameProcessor:
         self._mask = self._geo.mask
         self._sk: ModuleType | None = _skcount
         self._spans = None if self._mask is None else _row_spans(self._mask)
+        # The kernel counts gray and YUYV crops as they are, BGR with the gray formula of
+        # this OpenCV build; everything else is converted to gray first (self._code).
+        self._bgr_weights: tuple[int, int, int, int, int] | None = None
+        channels = shape[2] if len(shape) == 3 else 1
+        self._on_the_fly = self._sk is not None and channels in (1, 2)
+        if self._sk is not None and channels == 3:
+            formula = bgr_gray_formula()
+            if formula is not None:
+                self._bgr_weights = formula.weights
+                self._on_the_fly = True
         # An empty ROI is reported as EMPTY_ROI alone; ROI_CLIPPED means "partly outside".
         if self._geo.empty:
             self._static_flags = frozenset({Flag.EMPTY_ROI})
@@ -551,6 +658,13 @@ class FrameProcessor:
     def p(self) -> int:
         """Threshold of Eq. (1) [8-bit intensity]."""
         return self._p
+
+    @property
+    def counts_on_the_fly(self) -> bool:
+        """True when :meth:`count` and :meth:`measure` read the frame's pixels once, gray
+        values computed in the counting pass; False when the crop is first converted to gray
+        (``cv2.cvtColor``: BGRA, BGR without a known formula, or no compiled kernel)."""
+        return self._on_the_fly
 
     @property
     def roi(self) -> RectROI | CircleROI | None:
@@ -578,7 +692,19 @@ class FrameProcessor:
         g = self._geo
         return g.y0, g.y1, g.x0, g.x1
 
-    def _gray_crop(self, frame: Frame) -> GrayImage:
+    def _count_crop(self, frame: Frame) -> npt.NDArray[np.uint8]:
+        """The ROI crop as the counting routine takes it: the frame's own pixels (a view)
+        when the kernel counts this layout on the fly, else the crop converted to gray."""
+        if self._on_the_fly:
+            self._check_frame(frame)
+            g = self._geo
+            if g.empty:
+                return self._gray_buf
+            crop = frame[g.y0 : g.y1, g.x0 : g.x1]
+            return crop[:, :, 0] if crop.ndim == 3 and crop.shape[2] == 1 else crop
+        return self._gray_crop(frame)
+
+    def _check_frame(self, frame: Frame) -> None:
         if not isinstance(frame, np.ndarray):
             raise AnalysisError(f"frame must be a numpy array, got {type(frame).__name__}")
         if frame.shape != self._shape or frame.dtype != np.uint8:
@@ -586,6 +712,9 @@ class FrameProcessor:
                 f"frame has shape {frame.shape} and dtype {frame.dtype}; this processor was "
                 f"built for shape {self._shape} and dtype uint8"
             )
+
+    def _gray_crop(self, frame: Frame) -> GrayImage:
+        self._check_frame(frame)
         g = self._geo
         if g.empty:
             return self._gray_buf
@@ -595,20 +724,25 @@ class FrameProcessor:
         cv2.cvtColor(crop, self._code, dst=self._gray_buf)
         return self._gray_buf
 
-    def _count_le(self, gray: GrayImage) -> int:
-        """Pixels of the ROI crop ``gray`` with value <= p, Eqs. (1)-(2) [px]."""
+    def _count_le(self, crop: npt.NDArray[np.uint8]) -> int:
+        """Pixels of the ROI crop (see :meth:`_count_crop`) with gray value <= p,
+        Eqs. (1)-(2) [px]."""
         if self._sk is not None:
-            return int(self._sk.count_le(_row_contiguous(gray), self._p, self._spans))
-        return self._count_where(gray, self._p, cv2.THRESH_BINARY_INV)
+            return int(
+                self._sk.count_le(
+                    _row_contiguous(crop), self._p, self._spans, bgr_weights=self._bgr_weights
+                )
+            )
+        return self._count_where(crop, self._p, cv2.THRESH_BINARY_INV)
 
-    def _count_le_and_saturated(self, gray: GrayImage) -> tuple[int, int]:
-        """(pixels <= p, pixels == 255) of the ROI crop ``gray`` [px], in one pass."""
+    def _count_le_and_saturated(self, crop: npt.NDArray[np.uint8]) -> tuple[int, int]:
+        """(gray <= p, gray == 255) pixels of the ROI crop [px], in one pass."""
         if self._sk is not None:
             s_k, n_sat = self._sk.count_le_and_saturated(
-                _row_contiguous(gray), self._p, self._spans
+                _row_contiguous(crop), self._p, self._spans, bgr_weights=self._bgr_weights
             )
             return int(s_k), int(n_sat)
-        return self._count_where(gray, self._p, cv2.THRESH_BINARY_INV), self._saturated_count(gray)
+        return self._count_where(crop, self._p, cv2.THRESH_BINARY_INV), self._saturated_count(crop)
 
     def _count_where(self, gray: GrayImage, thresh: int, kind: int) -> int:
         cv2.threshold(gray, thresh, 1, kind, dst=self._bin_buf)
@@ -616,9 +750,10 @@ class FrameProcessor:
             cv2.bitwise_and(self._bin_buf, self._mask, dst=self._bin_buf)
         return int(cv2.countNonZero(self._bin_buf))
 
-    def _saturated_count(self, gray: GrayImage) -> int:
+    def _saturated_count(self, crop: npt.NDArray[np.uint8]) -> int:
         if self._sk is not None:
-            return self._count_le_and_saturated(gray)[1]
+            return self._count_le_and_saturated(crop)[1]
+        gray = crop
         # OpenCV route, read-only early exit: with no 255 anywhere in the ROI's bounding box
         # (the usual, correctly exposed frame) no ROI pixel is saturated; this skips a
         # threshold pass that writes a buffer and a count that re-reads it.
@@ -644,10 +779,10 @@ class FrameProcessor:
         AnalysisError
             If the frame's shape or dtype differs from the processor's.
         """
-        gray = self._gray_crop(frame)
+        crop = self._count_crop(frame)
         if self._geo.empty:
             return 0
-        return self._count_le(gray)
+        return self._count_le(crop)
 
     def occluded_area_subpixel(self, frame: Frame) -> float:
         """Occluded area with sub-pixel edges [px]: the sum of soft memberships over the ROI.
@@ -694,10 +829,10 @@ class FrameProcessor:
 
     def saturated_pixel_count(self, frame: Frame) -> int:
         """Number of ROI pixels whose gray value is :data:`SATURATION_LEVEL` (255) [px]."""
-        gray = self._gray_crop(frame)
+        crop = self._count_crop(frame)
         if self._geo.empty:
             return 0
-        return self._saturated_count(gray)
+        return self._saturated_count(crop)
 
     def saturation_fraction(self, frame: Frame) -> float:
         """Fraction of ROI pixels at gray value 255 [1]; 0.0 for an empty ROI.
@@ -707,7 +842,7 @@ class FrameProcessor:
         the dark, light-occluded area, so S_k may be biased low.
         """
         if self._geo.empty:
-            self._gray_crop(frame)  # still validates the frame
+            self._check_frame(frame)
             return 0.0
         return self.saturated_pixel_count(frame) / self._geo.pixel_count
 
@@ -718,10 +853,10 @@ class FrameProcessor:
         processor's ``saturation_limit_fraction``; :attr:`~Flag.EMPTY_ROI` and
         :attr:`~Flag.ROI_CLIPPED` from the ROI geometry.
         """
-        gray = self._gray_crop(frame)
+        crop = self._count_crop(frame)
         if self._geo.empty:
             return FrameMeasurement(0, 0.0, self._static_flags)
-        s_k, n_sat = self._count_le_and_saturated(gray)
+        s_k, n_sat = self._count_le_and_saturated(crop)
         fraction = n_sat / self._geo.pixel_count
         flags = self._static_flags
         if fraction > self._saturation_limit:
@@ -745,12 +880,18 @@ def _row_spans(mask: npt.NDArray[np.uint8]) -> npt.NDArray[np.int32]:
     return spans
 
 
-def _row_contiguous(gray: GrayImage) -> GrayImage:
-    """``gray`` itself when its rows are contiguous in memory, else a contiguous copy."""
-    rows, cols = gray.strides
-    if cols == 1 and (gray.shape[0] == 1 or rows >= gray.shape[1]):
-        return gray
-    return np.ascontiguousarray(gray)
+def _row_contiguous(image: npt.NDArray[np.uint8]) -> npt.NDArray[np.uint8]:
+    """``image`` (2-D gray or 3-D ``(H, W, C)``) itself when its pixels and rows are
+    contiguous in memory (what the compiled kernel takes), else a contiguous copy."""
+    pixel = image.shape[2] if image.ndim == 3 else 1
+    if image.ndim == 3 and pixel > 1 and image.strides[2] != 1:
+        return np.ascontiguousarray(image)
+    rows, cols = image.strides[0], image.strides[1]
+    if (cols == pixel or image.shape[1] == 1) and (
+        image.shape[0] == 1 or rows >= image.shape[1] * pixel
+    ):
+        return image
+    return np.ascontiguousarray(image)
 
 
 def occluded_pixel_count(frame: Frame, p: int, roi: RectROI | CircleROI | None = None) -> int:
@@ -763,7 +904,7 @@ def occluded_pixel_count(frame: Frame, p: int, roi: RectROI | CircleROI | None =
     Parameters
     ----------
     frame : numpy.ndarray
-        uint8 gray, BGR or BGRA frame (see :func:`to_gray`).
+        uint8 gray, YUYV, BGR or BGRA frame (see :func:`to_gray`).
     p : int
         Threshold of Eq. (1) [8-bit intensity], 0..255.
     roi : RectROI or CircleROI or None
@@ -802,7 +943,7 @@ def occluded_area_subpixel(
     Parameters
     ----------
     frame : numpy.ndarray
-        uint8 gray, BGR or BGRA frame (see :func:`to_gray`).
+        uint8 gray, YUYV, BGR or BGRA frame (see :func:`to_gray`).
     p : int
         Threshold of Eq. (1) [8-bit intensity], 0..255.
     roi : RectROI or CircleROI or None
@@ -852,7 +993,7 @@ def otsu_threshold(
     Parameters
     ----------
     reference_frame : numpy.ndarray
-        uint8 gray, BGR or BGRA frame (see :func:`to_gray`).
+        uint8 gray, YUYV, BGR or BGRA frame (see :func:`to_gray`).
     roi : RectROI or CircleROI or None
         Region whose pixels form the histogram (clipped to the frame); None = whole frame.
     min_separability : float
