@@ -329,7 +329,7 @@ def test_saturation_uses_gray_value_of_colour_frames() -> None:
         (np.zeros((4, 4), np.float32), "dtype float32 is not supported"),
         (np.zeros((4, 4), np.bool_), "dtype bool is not supported"),
         (np.zeros((4,), np.uint8), r"shape \(4,\) is not supported"),
-        (np.zeros((4, 4, 2), np.uint8), r"shape \(4, 4, 2\) is not supported"),
+        (np.zeros((4, 4, 5), np.uint8), r"shape \(4, 4, 5\) is not supported"),
         (np.zeros((2, 4, 4, 3), np.uint8), "is not supported"),
         (np.zeros((0, 4), np.uint8), "empty"),
     ],
@@ -355,7 +355,7 @@ def test_processor_rejects_frame_of_other_shape() -> None:
     with pytest.raises(AnalysisError, match="threshold p"):
         FrameProcessor((10, 10), 300)
     with pytest.raises(AnalysisError, match="is not supported"):
-        FrameProcessor((10, 10, 2), 10)
+        FrameProcessor((10, 10, 5), 10)
 
 
 # ---------------------------------------------------------------------------- Otsu
