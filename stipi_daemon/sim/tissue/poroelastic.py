@@ -60,27 +60,38 @@ def _ierfc(x: FloatArray) -> FloatArray:
     return np.where(np.isfinite(out), out, 0.0)
 
 
-def degree_of_consolidation(t_dimensionless: ArrayLike) -> FloatArray:
-    """Terzaghi's degree of consolidation U(T) [-] for T >= 0 (module docstring)."""
-    t = np.asarray(t_dimensionless, dtype=np.float64)
-    early = t <= SWITCH_T
-    out = np.empty_like(t)
-    te = t[early]
-    root = np.sqrt(te)
-    u = 2.0 * root / _SQRT_PI
+def _consolidation(big_t: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """(U, 1 - U) at T >= 0, each from the series that gives it without cancellation."""
+    with np.errstate(under="ignore", over="ignore"):  # terms flush to 0 (T up to inf)
+        return _consolidation_series(big_t)
+
+
+def _consolidation_series(big_t: FloatArray) -> tuple[FloatArray, FloatArray]:
+    early = big_t <= SWITCH_T
+    u = np.empty_like(big_t)
+    rest = np.empty_like(big_t)
+    root = np.sqrt(big_t[early])
+    ue = 2.0 * root / _SQRT_PI
     safe = np.where(root > 0.0, root, 1.0)
     for m in range(1, _IMAGE_TERMS + 1):
-        term = _ierfc(m / safe)
-        u = u + (4.0 * root) * ((-1.0) ** m) * np.where(root > 0.0, term, 0.0)
-    out[early] = u
-    tl = t[~early]
-    rest = np.zeros_like(tl)
+        term = np.where(root > 0.0, _ierfc(m / safe), 0.0)
+        ue = ue + (4.0 * root) * ((-1.0) ** m) * term
+    u[early] = ue
+    rest[early] = 1.0 - ue
+    tl = big_t[~early]
+    rl = np.zeros_like(tl)
     with np.errstate(under="ignore"):
         for m in range(_FOURIER_TERMS):
             big_m2 = (math.pi * (2 * m + 1) / 2.0) ** 2
-            rest = rest + (2.0 / big_m2) * np.exp(-big_m2 * tl)
-    out[~early] = 1.0 - rest
-    return np.clip(out, 0.0, 1.0)
+            rl = rl + (2.0 / big_m2) * np.exp(-big_m2 * tl)
+    rest[~early] = rl
+    u[~early] = 1.0 - rl
+    return np.clip(u, 0.0, 1.0), np.clip(rest, 0.0, 1.0)
+
+
+def degree_of_consolidation(t_dimensionless: ArrayLike) -> FloatArray:
+    """Terzaghi's degree of consolidation U(T) [-] for T >= 0 (module docstring)."""
+    return _consolidation(np.asarray(t_dimensionless, dtype=np.float64))[0]
 
 
 class Poroelastic(RecoveryModel):
@@ -105,10 +116,9 @@ class Poroelastic(RecoveryModel):
     def remaining(self, t_s: ArrayLike) -> FloatArray:
         """1 - U(t / tau_p) [-]."""
         t = as_times(t_s)
-        with np.errstate(over="ignore"):
+        with np.errstate(over="ignore", under="ignore"):
             big_t = t / self.parameters["tau_p_s"]
-        result: FloatArray = 1.0 - degree_of_consolidation(big_t)
-        return result
+        return _consolidation(big_t)[1]
 
     def time_scale_s(self) -> float:
         """tau_p [s]."""

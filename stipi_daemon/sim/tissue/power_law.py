@@ -33,10 +33,12 @@ J. Appl. Mech. 33 (1966) 845-854 (viscoelastic indentation); M. L. Oyen, J. Mate
 from __future__ import annotations
 
 import math
+import sys
 
 import numpy as np
 from numpy.typing import ArrayLike
 
+from stipi_daemon.errors import ConfigError
 from stipi_daemon.sim.tissue.base import (
     FloatArray,
     Parameter,
@@ -46,6 +48,9 @@ from stipi_daemon.sim.tissue.base import (
 )
 
 __all__ = ["PowerLaw"]
+
+#: Largest argument of exp() that stays finite (ln of the largest float).
+_MAX_EXP = math.log(sys.float_info.max)
 
 
 class PowerLaw(RecoveryModel):
@@ -79,8 +84,22 @@ class PowerLaw(RecoveryModel):
         return self.parameters["tau_s"]
 
     def time_to_recover(self, fraction: float) -> float:
-        """n tau expm1(-ln(1 - fraction) / n) [s] (closed form)."""
+        """n tau expm1(-ln(1 - fraction) / n) [s] (closed form).
+
+        Raises
+        ------
+        ConfigError
+            ``fraction`` outside [0, 1), or the time exceeds what a float holds (a small
+            exponent and a fraction near 1: e.g. 99.999 % at n = 0.01 takes e^1151 tau).
+        """
         if not (math.isfinite(fraction) and 0.0 <= fraction < 1.0):
             return super().time_to_recover(fraction)
         n, tau = self.parameters["exponent_n"], self.parameters["tau_s"]
-        return n * tau * math.expm1(-math.log1p(-fraction) / n)
+        power = -math.log1p(-fraction) / n
+        t = n * tau * math.expm1(power) if power < _MAX_EXP else math.inf
+        if not math.isfinite(t):
+            raise ConfigError(
+                f"{self.NAME}: {fraction:g} of the recovery is reached only after more than "
+                f"{sys.float_info.max:.3g} s (exponent_n = {n:g}, tau_s = {tau:g} s)"
+            )
+        return t
