@@ -60,15 +60,16 @@ def metadata_problem(field: str, value: object) -> str | None:
         return f"is empty ({shape}; leave it out instead)"
     if len(value) > limit:
         return f"is {len(value)} characters long ({shape})"
-    if not multiline and value != value.strip():
-        return f"has leading or trailing spaces ({shape})"
     for ch in value:
         if multiline and ch in "\n\t":
             continue
-        if ch in "\r\n":
+        category = unicodedata.category(ch)
+        if ch in "\r\n" or category in ("Zl", "Zp"):
             return f"contains a line break ({shape})"
-        if unicodedata.category(ch).startswith("C"):
+        if category.startswith("C"):
             return f"contains control character U+{ord(ch):04X} ({shape})"
+    if not multiline and value != value.strip():
+        return f"has leading or trailing spaces ({shape})"
     return None
 
 
