@@ -104,6 +104,8 @@ the gray-level change across one pixel at the disc edge. 64 levels suits an edge
 intensity ramps by about 64 levels per pixel (the simulator's 130-level contrast over a 2 px
 ramp); for an edge sharper than a pixel, use the dark-to-bright contrast instead."""
 
+_UINT8: Final = np.dtype(np.uint8)
+
 _SUBPIXEL_SCALE: Final = 65535
 """Fixed-point scale of the membership look-up table (uint16; 1/65535 per pixel)."""
 
@@ -635,6 +637,10 @@ class FrameProcessor:
         # this OpenCV build; everything else is converted to gray first (self._code).
         self._bgr_weights: tuple[int, int, int, int, int] | None = None
         channels = shape[2] if len(shape) == 3 else 1
+        g = self._geo
+        self._crop_index: tuple[slice | int, ...] = (slice(g.y0, g.y1), slice(g.x0, g.x1))
+        if len(shape) == 3 and channels == 1:
+            self._crop_index += (0,)
         self._on_the_fly = self._sk is not None and channels in (1, 2)
         if self._sk is not None and channels == 3:
             formula = bgr_gray_formula()
@@ -658,6 +664,13 @@ class FrameProcessor:
     def p(self) -> int:
         """Threshold of Eq. (1) [8-bit intensity]."""
         return self._p
+
+    @property
+    def row_spans(self) -> npt.NDArray[np.int32] | None:
+        """Column span ``[x0, x1)`` of each row of the bounding box that the ROI covers
+        (int32, shape ``(rows, 2)``, relative to the box; a copy), or None when the ROI is
+        the whole box. The bytes of these pixels are all that :meth:`count` reads."""
+        return None if self._spans is None else self._spans.copy()
 
     @property
     def counts_on_the_fly(self) -> bool:
@@ -695,14 +708,18 @@ class FrameProcessor:
     def _count_crop(self, frame: Frame) -> npt.NDArray[np.uint8]:
         """The ROI crop as the counting routine takes it: the frame's own pixels (a view)
         when the kernel counts this layout on the fly, else the crop converted to gray."""
-        if self._on_the_fly:
-            self._check_frame(frame)
-            g = self._geo
-            if g.empty:
+        if self._on_the_fly:  # the hot path: checks and a view, nothing else
+            if not (
+                isinstance(frame, np.ndarray)
+                and frame.shape == self._shape
+                and frame.dtype == _UINT8
+            ):
+                self._check_frame(frame)
+            if self._geo.empty:
                 return self._gray_buf
-            crop = frame[g.y0 : g.y1, g.x0 : g.x1]
-            return crop[:, :, 0] if crop.ndim == 3 and crop.shape[2] == 1 else crop
-        return self._gray_crop(frame)
+            crop: npt.NDArray[np.uint8] = frame[self._crop_index]
+            return crop if frame.flags.c_contiguous else _row_contiguous(crop)
+        return _row_contiguous(self._gray_crop(frame))
 
     def _check_frame(self, frame: Frame) -> None:
         if not isinstance(frame, np.ndarray):
@@ -728,18 +745,14 @@ class FrameProcessor:
         """Pixels of the ROI crop (see :meth:`_count_crop`) with gray value <= p,
         Eqs. (1)-(2) [px]."""
         if self._sk is not None:
-            return int(
-                self._sk.count_le(
-                    _row_contiguous(crop), self._p, self._spans, bgr_weights=self._bgr_weights
-                )
-            )
+            return int(self._sk.count_le(crop, self._p, self._spans, self._bgr_weights))
         return self._count_where(crop, self._p, cv2.THRESH_BINARY_INV)
 
     def _count_le_and_saturated(self, crop: npt.NDArray[np.uint8]) -> tuple[int, int]:
         """(gray <= p, gray == 255) pixels of the ROI crop [px], in one pass."""
         if self._sk is not None:
             s_k, n_sat = self._sk.count_le_and_saturated(
-                _row_contiguous(crop), self._p, self._spans, bgr_weights=self._bgr_weights
+                crop, self._p, self._spans, self._bgr_weights
             )
             return int(s_k), int(n_sat)
         return self._count_where(crop, self._p, cv2.THRESH_BINARY_INV), self._saturated_count(crop)
