@@ -8,8 +8,9 @@ replays a 120 s scene in 30 s of wall time. Frames the scene's effects drop (for
 ``dropped_frames``) are missing from the stream and show as ``seq`` gaps. A Motion-JPEG
 scene (``camera.pixel_format: mjpg`` or the ``jpeg_compression`` effect) delivers each frame
 as an MJPG camera does: the JPEG (``CameraFrame.packet``, which the session video stores as
-it is, passthrough) with its decode as the image the daemon measures; other scenes deliver
-raw frames (stored losslessly). It behaves as a live camera across a stall: a reopen
+it is, passthrough) with its decode straight to gray (the V4L2 camera's default ``gray:
+true``) as the image the daemon measures; other scenes deliver raw frames as rendered
+(stored losslessly). It behaves as a live camera across a stall: a reopen
 resumes at the current scene time, frames missed meanwhile are lost. It does not model the
 probe (that is the simulated transport's job) and adds no effects of its own;
 :meth:`~.threaded.ThreadedCamera.stall` injects freezes.
@@ -101,12 +102,13 @@ class SimulatorCamera(ThreadedCamera[Iterator[SimFrame]]):
             "size": [cam.width, cam.height],
             "pixel_format": cam.pixel_format,
             "jpeg_quality": self._encoding.jpeg_quality,
+            "decoder": "imdecode to gray (JPEG packets)" if self._encoding.is_jpeg else None,
             "t0_s": self._t0_s,
         }
 
     def _open_source(self) -> Iterator[SimFrame]:
         if self._pipeline is None:
-            self._pipeline = Pipeline(self.scene, self.seed)
+            self._pipeline = Pipeline(self.scene, self.seed, gray_decode=True)
         if self._t0_s is None:
             self._t0_s = self._clock.now()
         # A live camera: resume at the current scene time (a frame due less than half a

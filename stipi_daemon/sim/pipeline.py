@@ -142,9 +142,20 @@ class Pipeline:
         Random seed (default: the scene's ``seed``).
     renderer : Renderer, optional
         Reuse an existing renderer of the same scene.
+    gray_decode : bool
+        Decode a Motion-JPEG scene's frames straight to gray (``cv2.IMREAD_GRAYSCALE``, the
+        JPEG's luma), as the daemon's MJPG cameras do with ``gray: true``; default: to the
+        rendered layout. Raw frames are not affected.
     """
 
-    def __init__(self, scene: Scene, seed: int | None = None, renderer: Renderer | None = None):
+    def __init__(
+        self,
+        scene: Scene,
+        seed: int | None = None,
+        renderer: Renderer | None = None,
+        *,
+        gray_decode: bool = False,
+    ):
         self.scene = scene
         self.seed = scene.seed if seed is None else seed
         self.renderer = renderer if renderer is not None else Renderer(scene)
@@ -166,7 +177,7 @@ class Pipeline:
         self.effects: list[object] = [effect_module(p.name).Effect(p, ctx) for p in params]
         #: The camera's encoding: JPEG quality or raw (``jpeg_compression`` is applied as it).
         self.encoding: Encoding = scene_encoding(scene)
-        self._channels = self.renderer.channels
+        self._channels = 1 if gray_decode else self.renderer.channels
         children = np.random.SeedSequence(self.seed).spawn(len(self.effects))
         self._seeds = [c.spawn(2) for c in children]
 

@@ -2,8 +2,9 @@
 camera replays both kinds of ``simulate`` output (docs/simulator.md, "Video").
 
 An MJPG scene's frame carries the JPEG the simulator encoded (``CameraFrame.packet``) and
-its image is ``cv2.imdecode`` of exactly that packet, as the V4L2 and file cameras decode
-an MJPG frame; a raw scene's frame carries no packet. The video-file camera (OpenCV's
+its image is ``cv2.imdecode`` of exactly that packet straight to gray, as the V4L2 and file
+cameras decode an MJPG frame with ``gray: true``; a raw scene's frame carries no packet and
+its image is the rendered frame. The video-file camera (OpenCV's
 FFmpeg backend) replays the lossless file bit for bit and the MJPG file's packets byte for
 byte, with the frame times of ``frames.csv``.
 """
@@ -52,13 +53,14 @@ async def test_simulated_camera_delivers_the_jpeg_it_encoded(mjpg: bool) -> None
     assert cam.metadata()["jpeg_quality"] == (85 if mjpg else None)
     for f, r in zip(got, ref, strict=True):
         assert f.packet == r.packet
-        np.testing.assert_array_equal(f.image, r.image)
         if f.packet is None:
             assert not mjpg
+            np.testing.assert_array_equal(f.image, r.image)  # raw BGR, as rendered
             continue
         # The image the daemon measures is the decode of the very packet it stores.
-        assert f.packet.startswith(b"\xff\xd8") and f.packet.rstrip(b"\x00").endswith(b"\xff\xd9")
-        decoded = cv2.imdecode(np.frombuffer(f.packet, np.uint8), cv2.IMREAD_COLOR)
+        assert f.packet.startswith(b"\xff\xd8") and f.packet.endswith(b"\xff\xd9")
+        decoded = cv2.imdecode(np.frombuffer(f.packet, np.uint8), cv2.IMREAD_GRAYSCALE)
+        assert f.image.ndim == 2
         np.testing.assert_array_equal(f.image, decoded)
 
 
