@@ -26,7 +26,6 @@ from stipi_daemon.storage.export import (
     default_table_path,
     write_results_table,
 )
-from stipi_daemon.storage.metadata import FIELD_DOCS
 
 #: Metadata fields ``list`` and ``table`` select on (exact match).
 _SEARCHABLE = ("subject", "site", "operator")
@@ -67,7 +66,7 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
             p.add_argument(
                 f"--{field}",
                 metavar="TEXT",
-                help=f"only sessions whose {field} ({FIELD_DOCS[field]}) is TEXT, exactly",
+                help=f"only sessions whose {field} is TEXT, exactly",
             )
 
     p_list = sub.add_parser(
