@@ -132,7 +132,8 @@ def roi_read_floor(
     in_place = best_ms({"spans": lambda c: sk.read_sum(c, spans)}, crops, repeats)["spans"]
     rng = np.random.default_rng(0)
     n_blocks = max(8, (POOL_BYTES // (8 if quick else 1)) // n_bytes)
-    blocks = [rng.integers(0, 256, (1, n_bytes), dtype=np.uint8) for _ in range(n_blocks)]
+    block = -(-n_bytes // 64) * 64  # whole cache lines (the uint64 view needs a multiple of 8)
+    blocks = [rng.integers(0, 256, (1, block), dtype=np.uint8) for _ in range(n_blocks)]
     contiguous, _ = read_floor(blocks, repeats)
     return in_place, contiguous, n_bytes
 

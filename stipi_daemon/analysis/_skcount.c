@@ -423,8 +423,10 @@ SK_AVX2 static inline __m256i bgr8_sums(const uint8_t *q, __m256i sh_bg, __m256i
     return _mm256_add_epi32(bg, _mm256_madd_epi16(_mm256_shuffle_epi8(x, sh_r), w_r));
 }
 
-/* 32 pixels (96 bytes) per step: four 8-pixel sums, compared with the thresholds as int32,
- * the masks packed to 32 bytes and subtracted into 8-bit lanes (255 steps at most). */
+/* 32 pixels (96 bytes) per step: four 8-pixel sums compared with the thresholds as int32,
+ * each all-ones mask subtracted (1 added) into 32-bit lane counters (no packing: the byte
+ * shuffles are this loop's bottleneck, the adds are not); a lane gains at most 4 per step,
+ * and the counters are widened to 64 bits every 2^24 steps. */
 SK_AVX2 static inline void bgr_counts_avx2_impl(const uint8_t *s, Py_ssize_t n,
                                                 const sk_params *k, const int want_sat,
                                                 sk_counts *c)
@@ -439,12 +441,12 @@ SK_AVX2 static inline void bgr_counts_avx2_impl(const uint8_t *s, Py_ssize_t n,
     const __m256i t_le = _mm256_set1_epi32(k->t_le);
     const __m256i t_sat = _mm256_set1_epi32(k->t_sat - 1);
     const __m256i zero = _mm256_setzero_si256();
-    __m256i tot_le = zero, tot_sat = zero;
+    uint32_t lanes[8];
     Py_ssize_t i = 0;
     while (n - i >= 32) {
         Py_ssize_t steps = (n - i) / 32;
-        if (steps > 255)
-            steps = 255;
+        if (steps > ((Py_ssize_t)1 << 24))
+            steps = (Py_ssize_t)1 << 24;
         __m256i a_le = zero, a_sat = zero;
         for (Py_ssize_t b = 0; b < steps; b++, i += 32) {
             const uint8_t *q = s + 3 * i;
@@ -452,26 +454,23 @@ SK_AVX2 static inline void bgr_counts_avx2_impl(const uint8_t *s, Py_ssize_t n,
             __m256i v1 = bgr8_sums(q + 24, sh_bg, sh_r, w_bg, w_r);
             __m256i v2 = bgr8_sums(q + 48, sh_bg, sh_r, w_bg, w_r);
             __m256i v3 = bgr8_sums(q + 72, sh_bg, sh_r, w_bg, w_r);
-            __m256i m = _mm256_packs_epi16(
-                _mm256_packs_epi32(_mm256_cmpgt_epi32(t_le, v0), _mm256_cmpgt_epi32(t_le, v1)),
-                _mm256_packs_epi32(_mm256_cmpgt_epi32(t_le, v2), _mm256_cmpgt_epi32(t_le, v3)));
-            a_le = _mm256_sub_epi8(a_le, m);
-            if (want_sat) {
-                __m256i q8 = _mm256_packs_epi16(
-                    _mm256_packs_epi32(_mm256_cmpgt_epi32(v0, t_sat),
-                                       _mm256_cmpgt_epi32(v1, t_sat)),
-                    _mm256_packs_epi32(_mm256_cmpgt_epi32(v2, t_sat),
-                                       _mm256_cmpgt_epi32(v3, t_sat)));
-                a_sat = _mm256_sub_epi8(a_sat, q8);
-            }
+            a_le = _mm256_sub_epi32(a_le, _mm256_add_epi32(
+                _mm256_add_epi32(_mm256_cmpgt_epi32(t_le, v0), _mm256_cmpgt_epi32(t_le, v1)),
+                _mm256_add_epi32(_mm256_cmpgt_epi32(t_le, v2), _mm256_cmpgt_epi32(t_le, v3))));
+            if (want_sat)
+                a_sat = _mm256_sub_epi32(a_sat, _mm256_add_epi32(
+                    _mm256_add_epi32(_mm256_cmpgt_epi32(v0, t_sat), _mm256_cmpgt_epi32(v1, t_sat)),
+                    _mm256_add_epi32(_mm256_cmpgt_epi32(v2, t_sat), _mm256_cmpgt_epi32(v3, t_sat))));
         }
-        tot_le = _mm256_add_epi64(tot_le, _mm256_sad_epu8(a_le, zero));
-        if (want_sat)
-            tot_sat = _mm256_add_epi64(tot_sat, _mm256_sad_epu8(a_sat, zero));
+        _mm256_storeu_si256((__m256i *)lanes, a_le);
+        for (int l = 0; l < 8; l++)
+            c->le += lanes[l];
+        if (want_sat) {
+            _mm256_storeu_si256((__m256i *)lanes, a_sat);
+            for (int l = 0; l < 8; l++)
+                c->sat += lanes[l];
+        }
     }
-    c->le += hsum_epi64_256(tot_le);
-    if (want_sat)
-        c->sat += hsum_epi64_256(tot_sat);
     bgr_counts_c(s + 3 * i, n - i, k, want_sat, c);
 }
 
