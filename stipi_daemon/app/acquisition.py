@@ -12,8 +12,10 @@ with four asyncio tasks until the state machine finishes:
   :class:`LateFrame` for a frame too late to measure);
 * a ticker, so timeouts fire when nothing else arrives;
 * the loop itself, which takes each event to its handler (one per event type, in a table),
-  streams every row into the session (:mod:`stipi_daemon.storage`) as it arrives (each
-  frame's row committed at once, with whatever else is buffered), feeds samples and frames
+  streams every row into the session (:mod:`stipi_daemon.storage`) as it arrives (frame
+  rows are committed as soon as the queue is empty, at most every
+  :data:`COMMIT_SPACING_WALL_S` of wall time: one commit per frame in real time, one per
+  batch of frames when the loop runs behind or the clock is accelerated), feeds samples and frames
   in time order (:class:`~stipi_daemon.measurement.merge.TimeOrderedMerger`, as an offline
   replay does) into the pure :class:`~stipi_daemon.measurement.pipeline.MeasurementPipeline`,
   stores live parameters and keeps the operator console current.
@@ -43,6 +45,9 @@ from collections.abc import AsyncIterator, Callable, Coroutine
 from dataclasses import dataclass
 from typing import Any
 
+import numpy as np
+import numpy.typing as npt
+
 from stipi_daemon.analysis.imaging import CircleROI, FrameProcessor, RectROI
 from stipi_daemon.app.config import DaemonConfig
 from stipi_daemon.app.console import OperatorConsole
@@ -70,6 +75,7 @@ from stipi_daemon.probe.link import ClockProbe, ForceRows, Gap, LinkDown, LinkUp
 from stipi_daemon.storage.video import VideoRecorder
 
 __all__ = [
+    "COMMIT_SPACING_WALL_S",
     "LIVE_INTERVAL_S",
     "MERGE_HOLD_S",
     "QUEUE_MAX_EVENTS",
@@ -90,6 +96,13 @@ MERGE_HOLD_S = 0.5
 QUEUE_MAX_EVENTS = 2048
 #: Gap reason of frames that arrived too late to be measured.
 LATE_GAP_REASON = "processing_behind"
+#: Shortest wall time between two commits the loop makes for frame rows [s]. In real time
+#: (60 fps: a frame every 16.7 ms) each frame's row is committed as soon as it is handled;
+#: faster (an accelerated demo, a backlog) the frames of up to this long share one commit.
+#: The writer's own commit interval (``storage.commit_interval_s``) bounds every row anyway.
+COMMIT_SPACING_WALL_S = 0.005
+#: Shortest wall time between two frames' S_k shown on the console [s] (it redraws at 4 Hz).
+CONSOLE_FRAME_INTERVAL_WALL_S = 0.05
 
 OnRunning = Callable[[DaemonHandles], Coroutine[Any, Any, None]]
 """An async callback run as a task while the daemon records (see :class:`DaemonHandles`)."""
@@ -194,6 +207,27 @@ class FrameMeasurer:
         self._pipeline = pipeline
         self._skip_late_s = skip_late_s
         self._processor: FrameProcessor | None = None
+        self._thread_processor: FrameProcessor | None = None
+        self._thread_shape: tuple[int, ...] = ()
+
+    def _new_processor(self, shape: tuple[int, ...]) -> FrameProcessor:
+        return FrameProcessor(
+            shape,
+            self._threshold_p,
+            self._roi,
+            saturation_limit_fraction=self._saturation_limit_fraction,
+        )
+
+    def measure_image(self, image: npt.NDArray[np.uint8]) -> tuple[int, tuple[str, ...]]:
+        """S_k [px] and the sorted imaging flags of one frame: the camera's ``frame_hook``,
+        run in its capture thread (with a processor of its own: processors keep scratch
+        buffers), so that counting runs beside the event loop."""
+        proc = self._thread_processor
+        if proc is None or self._thread_shape != image.shape:
+            proc = self._thread_processor = self._new_processor(image.shape)
+            self._thread_shape = image.shape
+        m = proc.measure(image)
+        return int(m.s_k_px), tuple(sorted(m.flags))
 
     def __call__(self, ev: object) -> object:
         """A :class:`FrameResult` for a camera frame (a :class:`LateFrame` when it is too
@@ -203,23 +237,17 @@ class FrameMeasurer:
         lag_s = self._clock.now() - ev.t_capture_s
         if self._skip_late_s is not None and lag_s > self._skip_late_s:
             return LateFrame(ev.seq, ev.t_capture_s, lag_s, ev.dropped_before)
-        if self._processor is None:
-            self._processor = FrameProcessor(
-                ev.image.shape,
-                self._threshold_p,
-                self._roi,
-                saturation_limit_fraction=self._saturation_limit_fraction,
-            )
-        m = self._processor.measure(ev.image)
+        measured = ev.measured
+        if not isinstance(measured, tuple):  # not measured in the capture thread
+            if self._processor is None:
+                self._processor = self._new_processor(ev.image.shape)
+            m = self._processor.measure(ev.image)
+            measured = (int(m.s_k_px), tuple(sorted(m.flags)))
+        s_k, flags = measured
         if self.recorder is not None:  # the session video: the frame S_k was counted on
             self.recorder.record(ev.seq, ev.t_capture_s, ev.image, ev.packet)
         result = FrameResult(
-            ev.seq,
-            ev.t_capture_s,
-            self._clock.now(),
-            int(m.s_k_px),
-            tuple(sorted(m.flags)),
-            ev.dropped_before,
+            ev.seq, ev.t_capture_s, self._clock.now(), s_k, flags, ev.dropped_before
         )
         st = self._pipeline.state
         self._keeper.offer(
@@ -294,6 +322,9 @@ class Acquisition:
         self.latencies_s: list[float] = []
         self.lag_s: list[float] = []
         self._lag_now_s = 0.0
+        self._frames_uncommitted = False
+        self._last_commit_wall_s = float("-inf")
+        self._next_console_wall_s = float("-inf")
         self.fault_line: str | None = None
         # Samples and frames reach the pipeline in time order (as on replay), each held at
         # most MERGE_HOLD_S for the other stream.
@@ -345,15 +376,16 @@ class Acquisition:
         )
         await self._devices.probe.start_stream()
         self._start_tasks(on_running)
+        queue, handlers, merger = self._queue, self._handlers, self.merger
         while True:
-            ev = await self._queue.get()
-            handler = self._handlers.get(type(ev))
-            outputs: list[Output] = []
-            if handler is not None:
-                outputs += handler(ev)
+            if self._frames_uncommitted and queue.empty():
+                self._commit_frames()
+            ev = await queue.get()
+            handler = handlers.get(type(ev))
+            outputs: list[Output] = handler(ev) if handler is not None else []
             # The merger's clock runs the camera's lag behind: nothing is fed ahead of frames
             # that are still on their way.
-            for kind, value in self.merger.pop_ready(clock.now() - self._lag_now_s):
+            for kind, value in merger.pop_ready(clock.now() - self._lag_now_s):
                 if pipeline.finished:
                     break
                 outputs += _feed(pipeline, kind, value)
@@ -362,6 +394,17 @@ class Acquisition:
             if pipeline.finished:
                 return
             self._store_live()
+
+    def _commit_frames(self) -> None:
+        """Commit the buffered frame rows (and whatever else is buffered) when the queue is
+        empty, at most every :data:`COMMIT_SPACING_WALL_S`: a frame is on disk about a
+        millisecond after it is handled in real time, and a backlog costs one commit per
+        batch rather than one per frame."""
+        now = time.monotonic()
+        if now - self._last_commit_wall_s >= COMMIT_SPACING_WALL_S:
+            self._writer.commit()
+            self._last_commit_wall_s = now
+            self._frames_uncommitted = False
 
     def _start_tasks(self, on_running: OnRunning | None) -> None:
         devices = self._devices
@@ -483,6 +526,7 @@ class Acquisition:
 
     def _on_late_frame(self, ev: LateFrame) -> list[Output]:
         self.counts["late_frames"] += 1
+        self._frames_uncommitted = True
         self._camera_gaps(ev.seq, ev.t_capture_s, ev.dropped_before)
         self._writer.add_gap("frames", ev.seq, 1, ev.t_capture_s, LATE_GAP_REASON)
         return self._lag(ev.t_capture_s)
@@ -497,19 +541,21 @@ class Acquisition:
     def _on_frame(self, ev: FrameResult) -> list[Output]:
         writer = self._writer
         writer.add_frames([(ev.seq, ev.t_capture_s, ev.t_processed_s, ev.s_k, ev.flags)])
-        self.latencies_s.append(self._clock.now() - ev.t_capture_s)
+        now = self._clock.now()
+        self.latencies_s.append(now - ev.t_capture_s)
         self.counts["frames"] += 1
-        self._camera_gaps(ev.seq, ev.t_capture_s, ev.dropped_before)
-        # Each frame is on disk before the next is due (with it, whatever else is buffered):
-        # a WAL commit at synchronous=NORMAL costs ~15 us, against up to 3/4 of
-        # storage.commit_interval_s of waiting for the commit thread (docs/performance.md,
-        # "Live daemon latency").
-        writer.commit()
-        self.merger.push(
-            "frame", ev.t_capture_s, (ev.t_capture_s, float(ev.s_k)), self._clock.now()
-        )
-        fps = self._devices.camera.stats.fps()
-        self._console.update(self._pipeline.state.now_s, s_k=ev.s_k, fps=fps)
+        if ev.dropped_before:
+            self._camera_gaps(ev.seq, ev.t_capture_s, ev.dropped_before)
+        # Committed by the loop as soon as the queue is empty (run()): a frame is on disk
+        # before the next is due, against up to 3/4 of storage.commit_interval_s of waiting
+        # for the commit thread (docs/performance.md, "Live daemon latency").
+        self._frames_uncommitted = True
+        self.merger.push("frame", ev.t_capture_s, (ev.t_capture_s, float(ev.s_k)), now)
+        wall_s = time.monotonic()
+        if wall_s >= self._next_console_wall_s:  # the console shows a few frames a second
+            self._next_console_wall_s = wall_s + CONSOLE_FRAME_INTERVAL_WALL_S
+            fps = self._devices.camera.stats.fps()
+            self._console.update(self._pipeline.state.now_s, s_k=ev.s_k, fps=fps)
         return self._lag(ev.t_capture_s)
 
     def _on_gap(self, ev: Gap) -> list[Output]:

@@ -46,6 +46,7 @@ from stipi_daemon.app.finish import (
     storage_failure,
 )
 from stipi_daemon.app.imaging import resolve_imaging
+from stipi_daemon.cameras.threaded import ThreadedCamera
 from stipi_daemon.clock import ScaledClock
 from stipi_daemon.errors import SessionError
 from stipi_daemon.measurement.pipeline import MeasurementPipeline
@@ -193,6 +194,10 @@ async def run_daemon(
     skip_late_s = config.run.max_lag_s / 2.0
     measurer = FrameMeasurer(clock, threshold, roi, saturation, keeper, pipeline, skip_late_s)
     measurer.recorder = devices.recorder  # the session video (storage.video)
+    # S_k is counted in the camera's capture thread, beside the event loop (frames that
+    # come before this is set are measured on the loop).
+    if isinstance(devices.camera.camera, ThreadedCamera):
+        devices.camera.camera.frame_hook = measurer.measure_image
     acquisition = Acquisition(config, devices, pipeline, console, measurer)
     status = "aborted"
     # Until the measurement ends: an interruption (Ctrl-C) or an unexpected error leaves

@@ -71,6 +71,9 @@ class CameraFrame:
         The frame as the source encoded it (an MJPG camera's or file's complete JPEG),
         which ``image`` was decoded from; None for raw sources. The session video stores
         it as it is (:mod:`stipi_daemon.storage.video`, passthrough).
+    measured : object
+        What the camera's ``frame_hook`` computed from ``image`` in the capture thread
+        (the daemon's S_k), or None.
     """
 
     seq: int
@@ -78,6 +81,7 @@ class CameraFrame:
     image: npt.NDArray[np.uint8]
     dropped_before: int
     packet: bytes | None = None
+    measured: object = None
 
 
 @dataclass(frozen=True, slots=True)

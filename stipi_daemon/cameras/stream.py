@@ -13,7 +13,9 @@ time. Real cameras run at speed 1, so their stall timeout is wall time, as it mu
 driver; simulated cameras pace themselves on the session clock, so at speed 4 their
 timeout shrinks with their frame period and a stall is detected after the same number of
 missed frames as in real time. The stall timeout is never shorter than three nominal frame
-periods (a 2 fps camera is not "stalled" after 0.5 s).
+periods (a 2 fps camera is not "stalled" after 0.5 s), nor than
+:data:`STALL_MIN_WALL_S` of wall time: a host's scheduling hiccup does not shrink with the
+clock's speed, so a simulation accelerated past 4x is not "stalled" by one.
 """
 
 from __future__ import annotations
@@ -35,7 +37,11 @@ from stipi_daemon.cameras.base import (
 from stipi_daemon.clock import SessionClock
 from stipi_daemon.errors import CameraError
 
-__all__ = ["CameraStream"]
+__all__ = ["STALL_MIN_WALL_S", "CameraStream"]
+
+#: Shortest stall timeout in wall time [s] (at speed 1-4 the default 0.5 s of session time
+#: is longer; at speed 10 it becomes 1.25 s of session time).
+STALL_MIN_WALL_S = 0.125
 
 _log = logging.getLogger(__name__)
 
@@ -101,10 +107,11 @@ class CameraStream:
         return self.camera.stats
 
     def effective_stall_timeout_s(self) -> float:
-        """The stall timeout in use [s]: the configured one or three frame periods."""
+        """The stall timeout in use [s of session time]: the configured one, three frame
+        periods or :data:`STALL_MIN_WALL_S` of wall time, whichever is longest."""
         fps = self.camera.nominal_fps
         periods = 3.0 / fps if fps > 0.0 and math.isfinite(fps) else 0.0
-        return max(self.stall_timeout_s, periods)
+        return max(self.stall_timeout_s, periods, STALL_MIN_WALL_S * self.clock.speed)
 
     async def open(self) -> None:
         """Open the camera (raises :class:`CameraError` naming it if it cannot be used)."""
@@ -134,7 +141,9 @@ class CameraStream:
         """The next frame, None at the source's end; TimeoutError after ``timeout_s``."""
         wall_s = timeout_s / self.clock.speed
         try:
-            return await asyncio.wait_for(anext(frames), wall_s)
+            # asyncio.timeout: a timer on this task, no task of its own per frame (wait_for)
+            async with asyncio.timeout(wall_s):
+                return await anext(frames)
         except StopAsyncIteration:
             return None
 

@@ -13,11 +13,13 @@ particular source: subclasses implement ``_open_source``, ``_read`` and ``_close
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import logging
 import threading
+import time
 from abc import ABC, abstractmethod
 from collections import deque
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Callable
 from dataclasses import dataclass
 from typing import Any, Generic, TypeVar
 
@@ -48,6 +50,7 @@ class RawFrame:
     t_capture_s: float
     image: npt.NDArray[np.uint8]
     packet: bytes | None = None
+    measured: object = None
 
 
 @dataclass(frozen=True, slots=True)
@@ -128,7 +131,10 @@ class FrameHandoff(Generic[T]):
             with self._cond:
                 if self._items:
                     item = self._items.popleft()
-                    self._cond.notify()
+                    if len(self._items) <= self._capacity // 2:
+                        # a blocked producer refills from half full: one wake-up per few
+                        # items rather than per item
+                        self._cond.notify()
                     return item
                 if self._closed:
                     return None
@@ -182,6 +188,7 @@ class ThreadedCamera(ABC, Generic[H]):
         self._queue_dropped_closed = 0
         self._last_seq: int | None = None
         self._stall_from_s = self._stall_until_s = float("-inf")
+        self._thread_state = threading.local()  # the capture thread's own stop event
 
     # -- hooks ------------------------------------------------------------------------------
 
@@ -202,6 +209,11 @@ class ThreadedCamera(ABC, Generic[H]):
     @abstractmethod
     def _close_source(self, handle: H) -> None: ...
 
+    #: Called in the capture thread with each frame's image; what it returns travels with
+    #: the frame (:attr:`~.base.CameraFrame.measured`). The daemon measures S_k there, beside
+    #: the event loop rather than on it. None: nothing is computed.
+    frame_hook: Callable[[npt.NDArray[np.uint8]], object] | None = None
+
     def _first_seq(self) -> int:
         """``seq`` the very first frame would have (gaps before it count as dropped)."""
         return 0
@@ -211,6 +223,21 @@ class ThreadedCamera(ABC, Generic[H]):
         return {}
 
     # -- public API -------------------------------------------------------------------------
+
+    def _wait_until(self, t_s: float) -> bool:
+        """Capture thread: block until session time ``t_s`` (a source that paces itself
+        before decoding, as a camera delivers a frame when it is captured); False when the
+        camera is being closed meanwhile."""
+        stop: threading.Event | None = getattr(self._thread_state, "stop", None)
+        clock = self._clock
+        while True:
+            wall_s = (t_s - clock.now()) / clock.speed
+            if wall_s <= 0.0:
+                return stop is None or not stop.is_set()
+            if stop is None:
+                time.sleep(wall_s)
+            elif stop.wait(wall_s):
+                return False
 
     @property
     def stats(self) -> CameraStats:
@@ -306,6 +333,7 @@ class ThreadedCamera(ABC, Generic[H]):
                 image=item.image,
                 dropped_before=max(0, item.seq - last - 1),
                 packet=item.packet,
+                measured=item.measured,
             )
             self._last_seq = item.seq
             self._stats.record(frame, now)
@@ -317,11 +345,19 @@ class ThreadedCamera(ABC, Generic[H]):
         self, handle: H, handoff: FrameHandoff[RawFrame | _End], stop: threading.Event
     ) -> None:
         end = _End(None)
+        self._thread_state.stop = stop
         try:
             while not stop.is_set():
                 raw = self._read(handle)
                 if raw is None:
                     break
+                hook = self.frame_hook
+                if hook is not None:
+                    try:
+                        measured = hook(raw.image)
+                    except Exception:  # the consumer computes it again and sees the error
+                        measured = None
+                    raw = dataclasses.replace(raw, measured=measured)
                 if not handoff.put(raw):
                     return
         except CameraError as exc:

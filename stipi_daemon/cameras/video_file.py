@@ -5,6 +5,12 @@ timestamping frame k at ``t0 + (k - k0) / fps`` on the session clock (k0 the fir
 read, t0 the session time of the first open), pacing delivery at the file's frame rate or
 not at all, looping, and the end of a truncated file. It does not analyse frames.
 
+Capture time. A paced replay behaves as a camera: the capture thread reads frame k's
+encoded packet ahead, waits until its capture time ``t0 + (k - k0) / fps`` on the session
+clock and only then decodes it, so the time from capture to a stored row includes the
+decode, as with a real MJPG camera (whose JPEG is available when the frame is captured).
+Unpaced, frames are decoded as fast as they can be.
+
 Decoding. For Motion-JPEG files (``MJPG``: every frame an independent JPEG) the capture is
 switched to raw packets (``CAP_PROP_FORMAT = -1``) and each JPEG is decoded with
 ``cv2.imdecode``: straight to gray with ``IMREAD_GRAYSCALE`` when ``gray`` is set (the
@@ -46,7 +52,8 @@ from stipi_daemon.errors import CameraError
 
 __all__ = ["VideoFileCamera", "fourcc_string", "not_a_video", "quiet_opencv"]
 
-#: Frames the capture thread decodes ahead of delivery [-].
+#: Decoded frames the capture thread holds ahead of the consumer [-] (paced: frames are
+#: decoded at their capture time, so these only absorb the consumer's jitter).
 PREFETCH_FRAMES = 8
 
 _JPEG_FOURCCS = frozenset({"MJPG", "JPEG", "AVRN", "LJPG", "MJLS"})
@@ -270,7 +277,10 @@ class VideoFileCamera(ThreadedCamera[_Handle]):
 
     def _read(self, h: _Handle) -> RawFrame | None:
         while True:
-            image = self._read_image(h)
+            image = self._read_image(h, self._seq_next)
+            stop = getattr(self._thread_state, "stop", None)
+            if stop is not None and stop.is_set():
+                return None  # closed while waiting for the capture time
             if image is None:
                 if self.loop and h.pos > self._k0 and self._seq_next > self._pass_base_seq[-1]:
                     h.cap.release()
@@ -284,9 +294,13 @@ class VideoFileCamera(ThreadedCamera[_Handle]):
                 continue
             seq = self._seq_next
             self._seq_next += 1
-            t0 = self._t0_s if self._t0_s is not None else 0.0
             img, packet = image
-            return RawFrame(seq, t0 + (seq - self._k0) / self._fps, img, packet)
+            return RawFrame(seq, self._t_capture(seq), img, packet)
+
+    def _t_capture(self, seq: int) -> float:
+        """Capture time of frame ``seq`` on the session clock [s]."""
+        t0 = self._t0_s if self._t0_s is not None else 0.0
+        return t0 + (seq - self._k0) / self._fps
 
     def _reopen_for_loop(self) -> _Handle:
         cap = cv2.VideoCapture(str(self.path), cv2.CAP_FFMPEG)
@@ -297,10 +311,15 @@ class VideoFileCamera(ThreadedCamera[_Handle]):
         self._skip_to(h, self._k0)
         return h
 
-    def _read_image(self, h: _Handle) -> tuple[npt.NDArray[np.uint8], bytes | None] | int | None:
-        """The next frame's image and its JPEG packet (raw MJPG reading, else None); an int
+    def _read_image(
+        self, h: _Handle, seq: int
+    ) -> tuple[npt.NDArray[np.uint8], bytes | None] | int | None:
+        """Frame ``seq``'s image and its JPEG packet (raw MJPG reading, else None); an int
         (its file index) for a damaged frame that is followed by more; None at the end
-        (after noting a truncated last frame)."""
+        (after noting a truncated last frame) or when the camera is closed while waiting.
+
+        Paced, a JPEG packet is decoded once its capture time has come (see the module
+        docstring); FFmpeg-decoded codecs are decoded on reading, then wait."""
         ok, data = h.cap.read()
         if not ok or data is None:
             self._note_short_end(h)
@@ -310,6 +329,8 @@ class VideoFileCamera(ThreadedCamera[_Handle]):
         for k in h.bad_frames:  # followed by more data: damaged, not the truncated end
             self._note(f"video file {self.path}: frame {k} is damaged and was skipped")
         h.bad_frames.clear()
+        if self.pace and not self._wait_until(self._t_capture(seq)):
+            return None
         if not h.raw_jpeg:
             img = np.asarray(data, dtype=np.uint8)
             if self.gray and img.ndim == 3:

@@ -111,11 +111,33 @@ class LiveParameters:
 
 @dataclass
 class _Series:
+    """A time series, appended in time order; :meth:`arrays` costs one copy of the points
+    added since its previous call (the live parameters ask for it every second)."""
+
     t: list[float] = field(default_factory=list)
     v: list[float] = field(default_factory=list)
+    _buf: np.ndarray = field(default_factory=lambda: np.empty((2, 0)), repr=False)
+    _n: int = 0
+
+    def append(self, t_s: float, value: float) -> None:
+        self.t.append(t_s)
+        self.v.append(value)
 
     def arrays(self) -> tuple[np.ndarray, np.ndarray]:
-        return np.asarray(self.t, dtype=np.float64), np.asarray(self.v, dtype=np.float64)
+        """Times and values as float64 arrays (read-only views, valid after more appends)."""
+        n = len(self.t)
+        if n > self._buf.shape[1]:
+            grown = np.empty((2, max(n, 2 * self._buf.shape[1], 1024)), dtype=np.float64)
+            grown[:, : self._n] = self._buf[:, : self._n]
+            self._buf = grown
+        if n > self._n:
+            self._buf[0, self._n : n] = self.t[self._n : n]
+            self._buf[1, self._n : n] = self.v[self._n : n]
+            self._n = n
+        t, v = self._buf[0, :n], self._buf[1, :n]
+        t.flags.writeable = False
+        v.flags.writeable = False
+        return t, v
 
 
 class MeasurementPipeline:
@@ -200,12 +222,10 @@ class MeasurementPipeline:
         """
         if isinstance(event, ForceSample):
             if not self._force.t or event.t_s > self._force.t[-1]:
-                self._force.t.append(event.t_s)
-                self._force.v.append(event.force_n)
+                self._force.append(event.t_s, event.force_n)
         elif isinstance(event, FrameSample):
             if not self._frames.t or event.t_s > self._frames.t[-1]:
-                self._frames.t.append(event.t_s)
-                self._frames.v.append(event.s_k)
+                self._frames.append(event.t_s, event.s_k)
         self.state, outputs = transition(self.state, event, self.config)
         return self._run_requested_analysis(outputs)
 

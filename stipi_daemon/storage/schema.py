@@ -378,6 +378,19 @@ def coerce_row(table: Table, row: object, index: int = 0) -> tuple[Any, ...]:
         )
     out: list[Any] = []
     for column, value in zip(table.columns, row, strict=True):
+        # Fast path for the common exact types (the same result as the checks below).
+        kind, tv = column.kind, type(value)
+        if tv is int and kind == "int" and _INT64_MIN <= value <= _INT64_MAX:
+            out.append(value)
+            continue
+        if tv is float and (
+            (kind == "real" and math.isfinite(value)) or (kind == "real_null" and value == value)
+        ):
+            out.append(value)
+            continue
+        if tv is str and kind == "text":
+            out.append(value)
+            continue
         where = _where(table, index, column)
         if column.kind == "int":
             out.append(_int(value, where))

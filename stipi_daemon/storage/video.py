@@ -155,6 +155,8 @@ class VideoRecorder:
     ) -> None:
         if mode not in ("passthrough", "lossless"):
             raise ValueError(f"video mode {mode!r}: a recorder records passthrough or lossless")
+        import av  # noqa: F401  (loaded now, not at the first frame in the daemon's loop)
+
         self.path = Path(path)
         self.mode = mode
         self._writer = writer
@@ -300,8 +302,10 @@ class VideoRecorder:
 
     def _mux(self, pts: int, image: Image, packet: bytes | None) -> None:
         if self._codec != "mjpeg" and self._crop is not None:
-            x0, y0, x1, y1 = self._crop
-            image = (image if self._to_gray is None else self._to_gray(image))[y0:y1, x0:x1]
+            x0, y0, x1, y1 = self._crop  # crop, then convert the crop (per pixel: the same)
+            image = image[y0:y1, x0:x1]
+            if self._to_gray is not None:
+                image = self._to_gray(image)
         write_video_frame(self._container, self._stream, pts, image, packet)
 
     def _stop(self, reason: str, error: SessionError | None = None, *, join: bool = True) -> None:

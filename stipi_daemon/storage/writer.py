@@ -150,6 +150,7 @@ class SessionWriter:
         self._state: SessionState = SessionState.RECORDING
         self._closed = False
         self._commit_after_s = COMMIT_LEAD_FRACTION * options.commit_interval_s
+        self._timer_idle = False  # the commit thread waits for a first pending row
         self._thread: threading.Thread | None = None
         if options.background_commit:
             self._thread = threading.Thread(
@@ -378,7 +379,8 @@ class SessionWriter:
             now = time.monotonic()
             if self._pending_since is None:
                 self._pending_since = now
-                self._cond.notify_all()
+                if self._timer_idle:  # wake the commit thread only when it waits untimed
+                    self._cond.notify_all()
             elif now - self._pending_since >= self._commit_after_s:
                 try:
                     self._commit_locked()
@@ -437,7 +439,9 @@ class SessionWriter:
         with self._cond:
             while not self._closed:
                 if self._pending_since is None:
+                    self._timer_idle = True
                     self._cond.wait()
+                    self._timer_idle = False
                     continue
                 remaining = self._pending_since + commit_after_s - time.monotonic()
                 if remaining > 0:

@@ -115,7 +115,7 @@ async def test_source_end_ends_the_stream_without_stall(tmp_path: Path) -> None:
 async def test_stall_timeout_covers_three_frame_periods(tmp_path: Path) -> None:
     p = tmp_path / "slow.avi"
     write_avi(p, 3, fps=2.0)
-    clock = ScaledClock(speed=20.0)
+    clock = ScaledClock(speed=10.0)  # the wall-time floor (STALL_MIN_WALL_S) is 1.25 s here
     cam = VideoFileCamera(p, clock)
     async with CameraStream(cam, clock, stall_timeout_s=0.5) as stream:
         assert stream.effective_stall_timeout_s() == pytest.approx(1.5)
