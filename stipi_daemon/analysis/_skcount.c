@@ -330,6 +330,17 @@ static uint64_t row_sum_sse2(const uint8_t *s, Py_ssize_t n)
 #ifdef SK_HAVE_AVX2
 #define SK_AVX2 __attribute__((target("avx2")))
 
+/* Tail masks: 32 bytes loaded at sk_tail8 + r have their last r bytes set; 8 int32 loaded
+ * at sk_tail32 + r their last r lanes. A row's last partial vector is read overlapping the
+ * previous one (never outside the span's row) and masked, instead of a scalar loop: a
+ * circle ROI is hundreds of short rows, and scalar tails cost more than the vectors. */
+static const uint8_t sk_tail8[64] = {
+    0,    0,    0,    0,    0,    0,    0,    0,    0,    0,    0,    0,    0,    0,    0,    0,
+    0,    0,    0,    0,    0,    0,    0,    0,    0,    0,    0,    0,    0,    0,    0,    0,
+    0xFF, 0xFF, 0xFF, 0xFF, 0xFF, 0xFF, 0xFF, 0xFF, 0xFF, 0xFF, 0xFF, 0xFF, 0xFF, 0xFF, 0xFF, 0xFF,
+    0xFF, 0xFF, 0xFF, 0xFF, 0xFF, 0xFF, 0xFF, 0xFF, 0xFF, 0xFF, 0xFF, 0xFF, 0xFF, 0xFF, 0xFF, 0xFF};
+static const int32_t sk_tail32[16] = {0, 0, 0, 0, 0, 0, 0, 0, -1, -1, -1, -1, -1, -1, -1, -1};
+
 SK_AVX2 static inline uint64_t hsum_epi64_256(__m256i v)
 {
     uint64_t lanes[4];
@@ -384,10 +395,30 @@ SK_AVX2 static inline void byte_counts_avx2_impl(const uint8_t *s, Py_ssize_t n,
             tot_sat = _mm256_add_epi64(tot_sat, _mm256_sad_epu8(s1, zero));
         }
     }
+    /* The rest (< 64 bytes): whole 32-byte vectors, then the last r bytes as a masked
+     * vector overlapping the previous one (needs n >= 32); shorter spans go to SSE2. */
+    if (n >= 32 && n - i > 0) {
+        __m256i a_le = zero, a_sat = zero;
+        while (n - i > 0) {
+            const Py_ssize_t r = n - i >= 32 ? 32 : n - i;
+            __m256i x = _mm256_loadu_si256((const __m256i *)(s + i + r - 32));
+            __m256i keep = _mm256_loadu_si256((const __m256i *)(sk_tail8 + r));
+            if (yuyv)
+                keep = _mm256_and_si256(keep, even);
+            a_le = _mm256_sub_epi8(a_le, _mm256_and_si256(keep, _mm256_cmpeq_epi8(_mm256_min_epu8(x, vp), x)));
+            if (want_sat)
+                a_sat = _mm256_sub_epi8(a_sat, _mm256_and_si256(keep, _mm256_cmpeq_epi8(x, vmax)));
+            i += r;
+        }
+        tot_le = _mm256_add_epi64(tot_le, _mm256_sad_epu8(a_le, zero));
+        if (want_sat)
+            tot_sat = _mm256_add_epi64(tot_sat, _mm256_sad_epu8(a_sat, zero));
+    }
     c->le += hsum_epi64_256(tot_le);
     if (want_sat)
         c->sat += hsum_epi64_256(tot_sat);
-    byte_counts_sse2_impl(s + i, n - i, p, want_sat, yuyv, c);
+    if (n - i > 0)
+        byte_counts_sse2_impl(s + i, n - i, p, want_sat, yuyv, c);
 }
 
 SK_AVX2 static void gray_counts_avx2(const uint8_t *s, Py_ssize_t n, const sk_params *k,
@@ -471,7 +502,30 @@ SK_AVX2 static inline void bgr_counts_avx2_impl(const uint8_t *s, Py_ssize_t n,
                 c->sat += lanes[l];
         }
     }
-    bgr_counts_c(s + 3 * i, n - i, k, want_sat, c);
+    /* The rest (< 32 pixels): groups of 8, the last r pixels as a group overlapping the
+     * previous one with its first 8 - r lanes masked off (needs n >= 8). */
+    if (n >= 8 && n - i > 0) {
+        __m256i a_le = zero, a_sat = zero;
+        while (n - i > 0) {
+            const Py_ssize_t r = n - i >= 8 ? 8 : n - i;
+            __m256i v = bgr8_sums(s + 3 * (i + r - 8), sh_bg, sh_r, w_bg, w_r);
+            __m256i keep = _mm256_loadu_si256((const __m256i *)(sk_tail32 + r));
+            a_le = _mm256_sub_epi32(a_le, _mm256_and_si256(keep, _mm256_cmpgt_epi32(t_le, v)));
+            if (want_sat)
+                a_sat = _mm256_sub_epi32(a_sat, _mm256_and_si256(keep, _mm256_cmpgt_epi32(v, t_sat)));
+            i += r;
+        }
+        _mm256_storeu_si256((__m256i *)lanes, a_le);
+        for (int l = 0; l < 8; l++)
+            c->le += lanes[l];
+        if (want_sat) {
+            _mm256_storeu_si256((__m256i *)lanes, a_sat);
+            for (int l = 0; l < 8; l++)
+                c->sat += lanes[l];
+        }
+    }
+    if (n - i > 0)
+        bgr_counts_c(s + 3 * i, n - i, k, want_sat, c);
 }
 
 SK_AVX2 static void bgr_counts_avx2(const uint8_t *s, Py_ssize_t n, const sk_params *k,
@@ -493,6 +547,15 @@ SK_AVX2 static uint64_t row_sum_avx2(const uint8_t *s, Py_ssize_t n)
             t0, _mm256_sad_epu8(_mm256_loadu_si256((const __m256i *)(s + i)), zero));
         t1 = _mm256_add_epi64(
             t1, _mm256_sad_epu8(_mm256_loadu_si256((const __m256i *)(s + i + 32)), zero));
+    }
+    if (n >= 32) { /* the last < 64 bytes: vectors, the last one overlapping and masked */
+        while (n - i > 0) {
+            const Py_ssize_t r = n - i >= 32 ? 32 : n - i;
+            __m256i x = _mm256_loadu_si256((const __m256i *)(s + i + r - 32));
+            __m256i keep = _mm256_loadu_si256((const __m256i *)(sk_tail8 + r));
+            t0 = _mm256_add_epi64(t0, _mm256_sad_epu8(_mm256_and_si256(x, keep), zero));
+            i += r;
+        }
     }
     return hsum_epi64_256(_mm256_add_epi64(t0, t1)) + row_sum_sse2(s + i, n - i);
 }
