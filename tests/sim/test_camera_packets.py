@@ -82,8 +82,8 @@ async def test_video_file_camera_replays_the_lossless_file_exactly(
     ref = list(Pipeline(scene).frames())
     assert len(got) == len(ref) == out.frames_written
     assert cam.nominal_fps == pytest.approx(20.0)
-    with out.frames_csv.open() as f:
-        times = [float(r["t_s"]) for r in csv.DictReader(f)]
+    with out.frames_csv.open() as fcsv:
+        times = [float(r["t_s"]) for r in csv.DictReader(fcsv)]
     np.testing.assert_allclose([f.t_capture_s for f in got], times, atol=1e-9)
     for f, r in zip(got, ref, strict=True):
         assert f.packet is None

@@ -117,7 +117,7 @@ def _pyav_frames(path: Path, fmt: str) -> tuple[str, list[np.ndarray]]:
 
 def _opencv_frames(path: Path) -> list[np.ndarray]:
     cap = cv2.VideoCapture(str(path), cv2.CAP_FFMPEG)
-    out = []
+    out: list[np.ndarray] = []
     try:
         while True:
             ok, frame = cap.read()
@@ -132,7 +132,11 @@ def _pyav_packets(path: Path) -> tuple[str, list[bytes], list[int]]:
     with av.open(str(path)) as container:
         stream = container.streams.video[0]
         pkts = [p for p in container.demux(stream) if p.size]
-        return str(stream.codec_context.name), [bytes(p) for p in pkts], [p.pts for p in pkts]
+        return (
+            str(stream.codec_context.name),
+            [bytes(p) for p in pkts],
+            [int(p.pts) for p in pkts if p.pts is not None],
+        )
 
 
 def _s_k(scene: Scene, images: list[np.ndarray]) -> list[int]:
