@@ -55,6 +55,7 @@ from stipi_daemon.app.devices import DaemonHandles, Devices
 from stipi_daemon.cameras import CameraFrame
 from stipi_daemon.cameras import CameraRecovered as CamRecovered
 from stipi_daemon.cameras import CameraStalled as CamStalled
+from stipi_daemon.cameras.threaded import ThreadedCamera
 from stipi_daemon.clock import ScaledClock
 from stipi_daemon.measurement.merge import TimeOrderedMerger
 from stipi_daemon.measurement.pipeline import MeasurementPipeline
@@ -309,6 +310,10 @@ class Acquisition:
         self._pipeline = pipeline
         self._console = console
         self._measurer = measurer
+        # S_k is counted in the camera's capture thread, beside the event loop (frames that
+        # come before this is set are measured on the loop).
+        if isinstance(devices.camera.camera, ThreadedCamera):
+            devices.camera.camera.frame_hook = measurer.measure_image
         self._queue: asyncio.Queue[object] = asyncio.Queue(maxsize=QUEUE_MAX_EVENTS)
         self._tasks: list[asyncio.Task[None]] = []
         self._next_live_s = 0.0

@@ -25,6 +25,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, TextIO
 
+from threadpoolctl import threadpool_limits
+
 from stipi_daemon.analysis.severity import load_reference
 from stipi_daemon.analysis.validity import assess_validity
 from stipi_daemon.app.acquisition import Acquisition, FrameMeasurer, OnRunning
@@ -46,7 +48,6 @@ from stipi_daemon.app.finish import (
     storage_failure,
 )
 from stipi_daemon.app.imaging import resolve_imaging
-from stipi_daemon.cameras.threaded import ThreadedCamera
 from stipi_daemon.clock import ScaledClock
 from stipi_daemon.errors import SessionError
 from stipi_daemon.measurement.pipeline import MeasurementPipeline
@@ -114,10 +115,16 @@ def run_measurement(
     live: bool | None = None,
     on_session: Callable[[SessionWriter], None] | None = None,
 ) -> RunOutcome:
-    """Run one measurement (blocking); see :func:`run_daemon`."""
-    return asyncio.run(
-        run_daemon(config, speed=speed, out=out, quiet=quiet, live=live, on_session=on_session)
-    )
+    """Run one measurement (blocking); see :func:`run_daemon`.
+
+    BLAS runs single-threaded meanwhile: its only work is the live fits' small solves, and
+    OpenBLAS's worker threads spin between calls, taking CPU the capture thread, the event
+    loop and the video encoder need (2.5 s of CPU in a 125 s demo at speed 10).
+    """
+    with threadpool_limits(limits=1, user_api="blas"):
+        return asyncio.run(
+            run_daemon(config, speed=speed, out=out, quiet=quiet, live=live, on_session=on_session)
+        )
 
 
 async def run_daemon(
@@ -194,10 +201,6 @@ async def run_daemon(
     skip_late_s = config.run.max_lag_s / 2.0
     measurer = FrameMeasurer(clock, threshold, roi, saturation, keeper, pipeline, skip_late_s)
     measurer.recorder = devices.recorder  # the session video (storage.video)
-    # S_k is counted in the camera's capture thread, beside the event loop (frames that
-    # come before this is set are measured on the loop).
-    if isinstance(devices.camera.camera, ThreadedCamera):
-        devices.camera.camera.frame_hook = measurer.measure_image
     acquisition = Acquisition(config, devices, pipeline, console, measurer)
     status = "aborted"
     # Until the measurement ends: an interruption (Ctrl-C) or an unexpected error leaves

@@ -13,7 +13,8 @@ one video stream in one of two ways:
   to 32 bits); optionally only a rectangle of it (the gray bounding box of the ROI).
 
 FFV1 frames are encoded in a thread of their own (PyAV releases the GIL while FFmpeg
-encodes) at the lowest CPU priority, at most :data:`ENCODER_QUEUE_FRAMES` behind; a frame
+encodes) at a lower CPU priority (:data:`ENCODER_NICE`), at most
+:data:`ENCODER_QUEUE_FRAMES` behind; a frame
 arriving when the encoder lags further is left out of the video and counted, so recording
 never slows the measurement. Every stored frame is tied to its ``frames`` row by a
 ``video_frames`` row (``seq, frame_index, pts_ms, t_capture_host_s``) added to the session
@@ -77,8 +78,10 @@ MUXER_OPTIONS: Final = {"flush_packets": "1"}
 #: than the default commit interval. When it is full the frame is left out of the video
 #: (counted): recording never slows the measurement down.
 ENCODER_QUEUE_FRAMES: Final = 8
-#: Nice value of the encoder thread (the lowest priority).
-ENCODER_NICE: Final = 19
+#: Niceness of the encoder thread above the process's own [-] (capped at 19): the
+#: measurement's threads weigh about 9x as much, and the encoder still gets its share against
+#: other programs' ordinary (nice 0) load, which at nice 19 starved it (frames left out).
+ENCODER_NICE: Final = 10
 #: Matroska tag naming the pixel layout the daemon counted on (``gray`` or ``bgr``).
 TAG_IMAGE: Final = "STIPI_IMAGE"
 #: Matroska tag holding the stored rectangle ``x0,y0,x1,y1`` of the camera frame [px].
@@ -245,11 +248,12 @@ class VideoRecorder:
         self.frames += 1
 
     def _encode_loop(self, q: queue.Queue[tuple[int, float, Image] | None]) -> None:
-        """The FFV1 encoder thread (PyAV releases the GIL while FFmpeg encodes), at the lowest
-        CPU priority (Linux: nice 19 for this thread), so it takes only CPU the measurement
-        leaves idle."""
+        """The FFV1 encoder thread (PyAV releases the GIL while FFmpeg encodes), at a lower CPU
+        priority (Linux: the process's niceness + :data:`ENCODER_NICE` for this thread), so
+        the measurement's threads come first."""
         with contextlib.suppress(OSError, AttributeError):
-            os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), ENCODER_NICE)
+            base = os.getpriority(os.PRIO_PROCESS, 0)
+            os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), min(19, base + ENCODER_NICE))
         while (item := q.get()) is not None:
             if self._failed is not None:
                 continue  # drain, so that record() never blocks on a dead encoder

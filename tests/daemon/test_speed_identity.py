@@ -57,7 +57,12 @@ async def _measure(tmp_path: Path, scene: Path, speed: float) -> dict[str, Any]:
         {
             "probe": {"transport": {"kind": "emulated", "scene": str(scene)}},
             "camera": {"kind": "simulator", "scene": str(scene)},
-            "measurement": {"pitting_duration_s": 2.5, "recovery_max_s": 6.0},
+            "measurement": {
+                "pitting_duration_s": 2.5,
+                "recovery_max_s": 6.0,
+                "settle_hold_s": 3.0,
+                "stop_when_settled": False,
+            },
             # accelerated on a loaded machine: a late frame must not become a gap
             "run": {"speed": speed, "max_lag_s": 60.0},
             "storage": {"root": str(tmp_path / f"sessions{speed:g}"), "min_free_mb": 0},
