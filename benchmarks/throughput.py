@@ -164,7 +164,7 @@ def opencv_processor(*args: Any) -> FrameProcessor:
 
 
 def measure_size(label: str, width: int, height: int, quick: bool) -> list[dict[str, Any]]:
-    repeats = 3 if quick else 7
+    repeats = 3 if quick else 11
     bgr, roi, p = scene_frames(width, height, 8)
     gray = [np.ascontiguousarray(cv2.cvtColor(f, cv2.COLOR_BGR2GRAY)) for f in bgr]
     rows: list[dict[str, Any]] = []

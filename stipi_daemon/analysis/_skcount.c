@@ -458,6 +458,14 @@ SK_AVX2 static inline __m256i bgr8_sums(const uint8_t *q, __m256i sh_bg, __m256i
  * each all-ones mask subtracted (1 added) into 32-bit lane counters (no packing: the byte
  * shuffles are this loop's bottleneck, the adds are not); a lane gains at most 4 per step,
  * and the counters are widened to 64 bits every 2^24 steps. */
+SK_AVX2 static inline uint64_t hsum_epi32_256(__m256i v)
+{
+    __m128i s = _mm_add_epi32(_mm256_castsi256_si128(v), _mm256_extracti128_si256(v, 1));
+    s = _mm_add_epi32(s, _mm_shuffle_epi32(s, 0x4E));
+    s = _mm_add_epi32(s, _mm_shuffle_epi32(s, 0xB1));
+    return (uint32_t)_mm_cvtsi128_si32(s);
+}
+
 SK_AVX2 static inline void bgr_counts_avx2_impl(const uint8_t *s, Py_ssize_t n,
                                                 const sk_params *k, const int want_sat,
                                                 sk_counts *c)
@@ -472,14 +480,12 @@ SK_AVX2 static inline void bgr_counts_avx2_impl(const uint8_t *s, Py_ssize_t n,
     const __m256i t_le = _mm256_set1_epi32(k->t_le);
     const __m256i t_sat = _mm256_set1_epi32(k->t_sat - 1);
     const __m256i zero = _mm256_setzero_si256();
-    uint32_t lanes[8];
     Py_ssize_t i = 0;
-    while (n - i >= 32) {
-        Py_ssize_t steps = (n - i) / 32;
-        if (steps > ((Py_ssize_t)1 << 24))
-            steps = (Py_ssize_t)1 << 24;
+    /* A lane gains at most 4 per 32 pixels: blocks of at most 2^29 pixels keep it < 2^26. */
+    while (n - i >= 8) {
+        const Py_ssize_t end = n - i > ((Py_ssize_t)1 << 29) ? i + ((Py_ssize_t)1 << 29) : n;
         __m256i a_le = zero, a_sat = zero;
-        for (Py_ssize_t b = 0; b < steps; b++, i += 32) {
+        for (; end - i >= 32; i += 32) {
             const uint8_t *q = s + 3 * i;
             __m256i v0 = bgr8_sums(q, sh_bg, sh_r, w_bg, w_r);
             __m256i v1 = bgr8_sums(q + 24, sh_bg, sh_r, w_bg, w_r);
@@ -493,21 +499,11 @@ SK_AVX2 static inline void bgr_counts_avx2_impl(const uint8_t *s, Py_ssize_t n,
                     _mm256_add_epi32(_mm256_cmpgt_epi32(v0, t_sat), _mm256_cmpgt_epi32(v1, t_sat)),
                     _mm256_add_epi32(_mm256_cmpgt_epi32(v2, t_sat), _mm256_cmpgt_epi32(v3, t_sat))));
         }
-        _mm256_storeu_si256((__m256i *)lanes, a_le);
-        for (int l = 0; l < 8; l++)
-            c->le += lanes[l];
-        if (want_sat) {
-            _mm256_storeu_si256((__m256i *)lanes, a_sat);
-            for (int l = 0; l < 8; l++)
-                c->sat += lanes[l];
-        }
-    }
-    /* The rest (< 32 pixels): groups of 8, the last r pixels as a group overlapping the
-     * previous one with its first 8 - r lanes masked off (needs n >= 8). */
-    if (n >= 8 && n - i > 0) {
-        __m256i a_le = zero, a_sat = zero;
-        while (n - i > 0) {
-            const Py_ssize_t r = n - i >= 8 ? 8 : n - i;
+        /* The block's rest (< 32 pixels, only in the last block): groups of 8, the last r
+         * pixels as a group overlapping the previous one, its first 8 - r lanes masked off
+         * (n >= 8 here, so the group starts inside the row). */
+        while (end == n && end - i > 0) {
+            const Py_ssize_t r = end - i >= 8 ? 8 : end - i;
             __m256i v = bgr8_sums(s + 3 * (i + r - 8), sh_bg, sh_r, w_bg, w_r);
             __m256i keep = _mm256_loadu_si256((const __m256i *)(sk_tail32 + r));
             a_le = _mm256_sub_epi32(a_le, _mm256_and_si256(keep, _mm256_cmpgt_epi32(t_le, v)));
@@ -515,14 +511,9 @@ SK_AVX2 static inline void bgr_counts_avx2_impl(const uint8_t *s, Py_ssize_t n,
                 a_sat = _mm256_sub_epi32(a_sat, _mm256_and_si256(keep, _mm256_cmpgt_epi32(v, t_sat)));
             i += r;
         }
-        _mm256_storeu_si256((__m256i *)lanes, a_le);
-        for (int l = 0; l < 8; l++)
-            c->le += lanes[l];
-        if (want_sat) {
-            _mm256_storeu_si256((__m256i *)lanes, a_sat);
-            for (int l = 0; l < 8; l++)
-                c->sat += lanes[l];
-        }
+        c->le += hsum_epi32_256(a_le);
+        if (want_sat)
+            c->sat += hsum_epi32_256(a_sat);
     }
     if (n - i > 0)
         bgr_counts_c(s + 3 * i, n - i, k, want_sat, c);
