@@ -312,8 +312,9 @@ class Acquisition:
         self._measurer = measurer
         # S_k is counted in the camera's capture thread, beside the event loop (frames that
         # come before this is set are measured on the loop).
-        if isinstance(devices.camera.camera, ThreadedCamera):
-            devices.camera.camera.frame_hook = measurer.measure_image
+        source = getattr(devices.camera, "camera", None)
+        if isinstance(source, ThreadedCamera):
+            source.frame_hook = measurer.measure_image
         self._queue: asyncio.Queue[object] = asyncio.Queue(maxsize=QUEUE_MAX_EVENTS)
         self._tasks: list[asyncio.Task[None]] = []
         self._next_live_s = 0.0
