@@ -73,6 +73,7 @@ def worker(config_path: Path, cpu: int, result_path: Path, nice: int) -> None:
     import time
 
     import numpy as np
+    from threadpoolctl import threadpool_limits
 
     from stipi_daemon.app.config import load_config
     from stipi_daemon.app.daemon import run_daemon
@@ -89,7 +90,8 @@ def worker(config_path: Path, cpu: int, result_path: Path, nice: int) -> None:
     clock = ScaledClock(1.0)
     wall0, cpu0 = time.monotonic(), time.process_time()
     ru0 = resource.getrusage(resource.RUSAGE_SELF)
-    outcome = asyncio.run(run_daemon(config, clock=clock, quiet=True, on_session=on_session))
+    with threadpool_limits(limits=1, user_api="blas"):  # as run_measurement (the CLI) does
+        outcome = asyncio.run(run_daemon(config, clock=clock, quiet=True, on_session=on_session))
     wall_s, cpu_s = time.monotonic() - wall0, time.process_time() - cpu0
     ru1 = resource.getrusage(resource.RUSAGE_SELF)
     session_minus_mono = clock.now() - time.monotonic()
