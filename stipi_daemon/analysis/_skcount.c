@@ -454,6 +454,17 @@ SK_AVX2 static inline __m256i bgr8_sums(const uint8_t *q, __m256i sh_bg, __m256i
     return _mm256_add_epi32(bg, _mm256_madd_epi16(_mm256_shuffle_epi8(x, sh_r), w_r));
 }
 
+/* The same from one plain 32-byte load at q - 4: lane 0 then holds pixels 0-3 in bytes 4-15,
+ * lane 1 pixels 4-7 in bytes 0-11 (no lane insert). Reads 4 bytes before q and 4 after the
+ * 24: the caller keeps those inside the row. */
+SK_AVX2 static inline __m256i bgr8_sums_shifted(const uint8_t *q, __m256i sh_bg, __m256i sh_r,
+                                                __m256i w_bg, __m256i w_r)
+{
+    __m256i x = _mm256_loadu_si256((const __m256i *)(q - 4));
+    __m256i bg = _mm256_madd_epi16(_mm256_shuffle_epi8(x, sh_bg), w_bg);
+    return _mm256_add_epi32(bg, _mm256_madd_epi16(_mm256_shuffle_epi8(x, sh_r), w_r));
+}
+
 /* 32 pixels (96 bytes) per step: four 8-pixel sums compared with the thresholds as int32,
  * each all-ones mask subtracted (1 added) into 32-bit lane counters (no packing: the byte
  * shuffles are this loop's bottleneck, the adds are not); a lane gains at most 4 per step,
@@ -475,6 +486,11 @@ SK_AVX2 static inline void bgr_counts_avx2_impl(const uint8_t *s, Py_ssize_t n,
                                            4, Z, 5, Z, 7, Z, 8, Z, 10, Z, 11, Z, 13, Z, 14, Z);
     const __m256i sh_r = _mm256_setr_epi8(2, Z, Z, Z, 5, Z, Z, Z, 8, Z, Z, Z, 11, Z, Z, Z, /**/
                                           6, Z, Z, Z, 9, Z, Z, Z, 12, Z, Z, Z, 15, Z, Z, Z);
+    /* The same shuffles for bgr8_sums_shifted (lane 0 four bytes later, lane 1 four earlier). */
+    const __m256i sh_bg4 = _mm256_setr_epi8(4, Z, 5, Z, 7, Z, 8, Z, 10, Z, 11, Z, 13, Z, 14, Z, /**/
+                                            0, Z, 1, Z, 3, Z, 4, Z, 6, Z, 7, Z, 9, Z, 10, Z);
+    const __m256i sh_r4 = _mm256_setr_epi8(6, Z, Z, Z, 9, Z, Z, Z, 12, Z, Z, Z, 15, Z, Z, Z, /**/
+                                           2, Z, Z, Z, 5, Z, Z, Z, 8, Z, Z, Z, 11, Z, Z, Z);
     const __m256i w_bg = _mm256_set1_epi32((int32_t)((uint32_t)k->cb | ((uint32_t)k->cg << 16)));
     const __m256i w_r = _mm256_set1_epi32(k->cr);
     const __m256i t_le = _mm256_set1_epi32(k->t_le);
@@ -485,6 +501,29 @@ SK_AVX2 static inline void bgr_counts_avx2_impl(const uint8_t *s, Py_ssize_t n,
     while (n - i >= 8) {
         const Py_ssize_t end = n - i > ((Py_ssize_t)1 << 29) ? i + ((Py_ssize_t)1 << 29) : n;
         __m256i a_le = zero, a_sat = zero;
+        if (i == 0 && end - i >= 40) { /* the first 8 pixels: no byte before them to read */
+            __m256i v = bgr8_sums(s, sh_bg, sh_r, w_bg, w_r);
+            a_le = _mm256_sub_epi32(a_le, _mm256_cmpgt_epi32(t_le, v));
+            if (want_sat)
+                a_sat = _mm256_sub_epi32(a_sat, _mm256_cmpgt_epi32(v, t_sat));
+            i = 8;
+        }
+        /* 32 pixels with one plain load per 8 (bytes q - 4 .. q + 99: i >= 8 before, and at
+         * least 2 more pixels after the 32) */
+        for (; i >= 8 && end - i >= 34; i += 32) {
+            const uint8_t *q = s + 3 * i;
+            __m256i v0 = bgr8_sums_shifted(q, sh_bg4, sh_r4, w_bg, w_r);
+            __m256i v1 = bgr8_sums_shifted(q + 24, sh_bg4, sh_r4, w_bg, w_r);
+            __m256i v2 = bgr8_sums_shifted(q + 48, sh_bg4, sh_r4, w_bg, w_r);
+            __m256i v3 = bgr8_sums_shifted(q + 72, sh_bg4, sh_r4, w_bg, w_r);
+            a_le = _mm256_sub_epi32(a_le, _mm256_add_epi32(
+                _mm256_add_epi32(_mm256_cmpgt_epi32(t_le, v0), _mm256_cmpgt_epi32(t_le, v1)),
+                _mm256_add_epi32(_mm256_cmpgt_epi32(t_le, v2), _mm256_cmpgt_epi32(t_le, v3))));
+            if (want_sat)
+                a_sat = _mm256_sub_epi32(a_sat, _mm256_add_epi32(
+                    _mm256_add_epi32(_mm256_cmpgt_epi32(v0, t_sat), _mm256_cmpgt_epi32(v1, t_sat)),
+                    _mm256_add_epi32(_mm256_cmpgt_epi32(v2, t_sat), _mm256_cmpgt_epi32(v3, t_sat))));
+        }
         for (; end - i >= 32; i += 32) {
             const uint8_t *q = s + 3 * i;
             __m256i v0 = bgr8_sums(q, sh_bg, sh_r, w_bg, w_r);
