@@ -203,6 +203,26 @@ def test_random_crops_and_spans(kernel: str, frame: U8, p: int, data: st.DataObj
 
 
 @pytest.mark.parametrize("channels", [1, 2, 3])
+def test_every_span_start_and_length(kernel: str, channels: int) -> None:
+    """Spans starting at each of the first 13 columns with every length up to the row (the
+    kernels switch between whole vectors, the first group, overlapping masked last vectors
+    and scalar code at 8, 16, 32, 34, 40 and 64 pixels or bytes)."""
+    rng = np.random.default_rng(12)
+    width = 150
+    shape = (2, width) if channels == 1 else (2, width, channels)
+    frame = rng.integers(0, 256, shape, dtype=np.uint8)
+    frame[rng.random((2, width)) < 0.2] = 255
+    gray = opencv_gray(frame)
+    for x0 in range(13):
+        for x1 in range(x0, width + 1):
+            spans = np.array([[x0, x1], [width - x1 + x0, width]], dtype=np.int32)
+            part = np.concatenate([gray[0, x0:x1], gray[1, width - x1 + x0 :]])
+            for p in (0, 130):
+                want = (int(np.count_nonzero(part <= p)), int(np.count_nonzero(part == 255)))
+                assert kernel_counts(frame, p, spans) == want, (x0, x1, p)
+
+
+@pytest.mark.parametrize("channels", [1, 2, 3])
 def test_read_sum_reads_the_span_bytes(channels: int) -> None:
     """read_sum (the benchmarks' floor) sums exactly the bytes of the pixels in the spans."""
     assert _skcount is not None
