@@ -50,6 +50,12 @@ class Flag(StrEnum):
     NON_FINITE_INPUT = "non_finite_input"
     FRAME_GAPS_IN_FIT = "frame_gaps_in_fit"
     POOR_FIT = "poor_fit"
+    # recovery models side by side (recovery_models/)
+    KELVIN_VOIGT_REJECTED = "kelvin_voigt_rejected"
+    MODEL_SELECTION_UNAVAILABLE = "model_selection_unavailable"
+    TOO_FEW_POINTS = "too_few_points"
+    PARAMETER_AT_BOUND = "parameter_at_bound"
+    NO_CONFIDENCE_INTERVALS = "no_confidence_intervals"
     # severity (Section IV.C)
     OUTSIDE_REFERENCE_RANGE = "outside_reference_range"
     ESTIMATORS_DISAGREE = "estimators_disagree"
@@ -131,6 +137,30 @@ FLAG_DESCRIPTIONS: Final[Mapping[Flag, str]] = MappingProxyType(
         Flag.POOR_FIT: (
             "The Kelvin-Voigt model explains the recovery poorly (R^2 below 0.99 and residuals "
             "beyond 3x the frame noise): the fitted tau is not reported as a result."
+        ),
+        # recovery models side by side
+        Flag.KELVIN_VOIGT_REJECTED: (
+            "A recovery model with two time constants or a power-law tail explains the recovery "
+            "far better than one exponential (QAICc lower by more than 10): the tissue is not "
+            "Kelvin-Voigt, so the fitted tau and the VPR curve describe a shape it does not "
+            "follow; read tau, T_r and eta of the best model."
+        ),
+        Flag.MODEL_SELECTION_UNAVAILABLE: (
+            "No recovery model could be weighed (too few samples for AICc, or a constant "
+            "series): Kelvin-Voigt is neither confirmed nor rejected."
+        ),
+        Flag.TOO_FEW_POINTS: (
+            "The window holds fewer samples than this recovery model has parameters plus one: "
+            "it was not fitted."
+        ),
+        Flag.PARAMETER_AT_BOUND: (
+            "A shape parameter of this recovery model ended at its search bound (a time "
+            "constant of 1 ms, i.e. a jump between frames, or 10^4 s; a power-law exponent "
+            "of 0.01 or 1000, i.e. an exponential)."
+        ),
+        Flag.NO_CONFIDENCE_INTERVALS: (
+            "This recovery model's 95 % intervals were not computed: fewer than 12 samples, or "
+            "more than 10 % of the bootstrap refits failed."
         ),
         # severity (Section IV.C)
         Flag.OUTSIDE_REFERENCE_RANGE: (

@@ -7,7 +7,10 @@ standard errors, so that eta = E * tau can be compared with the paper's eta = E 
 It also converts between the two: for a recovery that starts at S_0 and settles at S_inf,
 the paper's T_r = tau * ln((S_inf - S_0) / ((1 - f) S_inf)) with f = 0.98, i.e.
 tau * ln(50 (1 - S_0/S_inf)) (about 3.9 tau when S_0 << S_inf): T_r is not a time constant.
-It does not own T_r itself (see ``pitting``) nor Eq. (7) (see ``vpr``).
+It does not own T_r itself (see ``pitting``) nor Eq. (7) (see ``vpr``). The same fit is the
+Kelvin-Voigt entry of the side-by-side model comparison
+(:mod:`~stipi_daemon.analysis.recovery_models`), which starts and solves it with
+:func:`grid_start` and :func:`solve_scaled`.
 """
 
 from __future__ import annotations
@@ -29,8 +32,11 @@ __all__ = [
     "TAU_SEARCH_RANGE_S",
     "RecoveryFit",
     "fit_recovery",
+    "fit_window",
+    "grid_start",
     "kelvin_voigt_recovery",
     "settling_time_from_time_constant",
+    "solve_scaled",
     "time_constant_from_settling_time",
 ]
 
@@ -254,7 +260,7 @@ def _check_conversion(
         raise AnalysisError(f"settle_fraction must be in (0, 1), got {settle_fraction}")
 
 
-def _grid_start(x: NDArray[np.float64], z: NDArray[np.float64]) -> tuple[float, float, float]:
+def grid_start(x: NDArray[np.float64], z: NDArray[np.float64]) -> tuple[float, float, float]:
     """Best (offset, amplitude, log tau) on a log tau grid; linear least squares per tau."""
     log_taus = np.linspace(
         math.log(TAU_SEARCH_RANGE_S[0]), math.log(TAU_SEARCH_RANGE_S[1]), _GRID_POINTS
@@ -319,7 +325,7 @@ def fit_recovery(
         Bad shapes, non-finite or non-increasing times, non-finite T_0 or window, fewer than
         :data:`MIN_FIT_POINTS` finite samples in the window, or values whose range overflows.
     """
-    tw, yw, flags = _fit_window(times_s, values, t0_s, window_s)
+    tw, yw, flags = fit_window(times_s, values, t0_s, window_s)
     n = int(tw.size)
     x = tw - t0_s
     y_lo = float(np.min(yw))
@@ -352,7 +358,7 @@ def fit_recovery(
         return replace(base, offset=mean, amplitude=0.0, rmse=rmse, flags=frozenset(flags))
 
     z = (yw - y_lo) / y_span
-    p = _solve_scaled(x, z)
+    p = solve_scaled(x, z)
     if p is None:
         flags.add(Flag.FIT_NOT_CONVERGED)
         return replace(base, flags=frozenset(flags))
@@ -381,7 +387,7 @@ def fit_recovery(
     )
 
 
-def _fit_window(
+def fit_window(
     times_s: ArrayLike, values: ArrayLike, t0_s: float, window_s: float
 ) -> tuple[NDArray[np.float64], NDArray[np.float64], set[Flag]]:
     """Check :func:`fit_recovery`'s inputs; return the window's times [s], values and flags.
@@ -454,13 +460,13 @@ def _jacobian(
     return jac
 
 
-def _solve_scaled(x: NDArray[np.float64], z: NDArray[np.float64]) -> NDArray[np.float64] | None:
+def solve_scaled(x: NDArray[np.float64], z: NDArray[np.float64]) -> NDArray[np.float64] | None:
     """Least-squares (offset, amplitude, ln tau) of the scaled values z; None if not converged.
 
-    Starts at the best point of :func:`_grid_start` (ln tau clipped to
+    Starts at the best point of :func:`grid_start` (ln tau clipped to
     :data:`TAU_SEARCH_RANGE_S`) and runs the trust-region reflective solver within it.
     """
-    start = _grid_start(x, z)
+    start = grid_start(x, z)
     lo_u, hi_u = math.log(TAU_SEARCH_RANGE_S[0]), math.log(TAU_SEARCH_RANGE_S[1])
     x_start = np.array([start[0], start[1], min(max(start[2], lo_u), hi_u)])
     sol = least_squares(

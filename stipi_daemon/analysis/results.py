@@ -4,7 +4,10 @@ This module composes the analysis core for one measurement: the pitting paramete
 (Eqs. 3-6, :mod:`~stipi_daemon.analysis.pitting`), the paper's VPR model (Eqs. 7-10,
 :mod:`~stipi_daemon.analysis.vpr`), the fitted Kelvin-Voigt recovery
 (:mod:`~stipi_daemon.analysis.recovery_fit`) and the severity classification (Section
-IV.C, :mod:`~stipi_daemon.analysis.severity`), for both estimators side by side. It also
+IV.C, :mod:`~stipi_daemon.analysis.severity`), for both estimators side by side; and every
+recovery model of :mod:`~stipi_daemon.analysis.recovery_models` fitted to the same frames
+as the Kelvin-Voigt fit, with AICc weights, bootstrap 95 % intervals on tau, T_r, F_r and
+eta, and the ``KELVIN_VOIGT_REJECTED`` flag when the data reject the single exponential. It also
 owns the applied force F_a of Eq. (7) measured from the load cell during the pitting hold.
 It does not own how T_0 is found (the state machine or
 :func:`~stipi_daemon.analysis.pitting.detect_recovery_start` decide it), nor any I/O.
@@ -35,8 +38,14 @@ from stipi_daemon.analysis.pitting import (
     DEFAULT_WINDOW_S,
     PittingParameters,
     compute_pitting_parameters,
+    rebound_force_n,
 )
 from stipi_daemon.analysis.recovery_fit import RecoveryFit, fit_recovery
+from stipi_daemon.analysis.recovery_models import (
+    DEFAULT_REPLICATES,
+    RecoveryModelComparison,
+    fit_recovery_models,
+)
 from stipi_daemon.analysis.severity import (
     SeverityReference,
     SeverityResult,
@@ -86,6 +95,11 @@ class AnalysisSettings(BaseModel):
         Recovery window after T_0 analysed [s] (the paper's 105 s).
     persist_frames : int
         Frames a 98 % crossing must persist to count (rejects a single noisy frame).
+    bootstrap_replicates : int
+        Moving-block bootstrap replicates per recovery model for the 95 % intervals
+        (0: none) [-].
+    bootstrap_seed : int
+        Seed of the bootstrap: the same session gives the same intervals [-].
     """
 
     model_config = ConfigDict(extra="forbid", frozen=True)
@@ -95,6 +109,8 @@ class AnalysisSettings(BaseModel):
     settle_fraction: float = Field(DEFAULT_SETTLE_FRACTION, gt=0.0, lt=1.0)
     recovery_window_s: float = Field(DEFAULT_WINDOW_S, gt=0.0, allow_inf_nan=False)
     persist_frames: int = Field(DEFAULT_PERSIST_FRAMES, ge=1)
+    bootstrap_replicates: int = Field(DEFAULT_REPLICATES, ge=0, le=100_000)
+    bootstrap_seed: int = Field(0, ge=0)
 
 
 @dataclass(frozen=True)
@@ -119,6 +135,9 @@ class MeasurementResult:
         Section IV.C classification from each estimator.
     notes : tuple[str, ...]
         Why a part is ``None``, in words.
+    models : RecoveryModelComparison or None
+        Every recovery model fitted to the frames of ``fit``, with AICc weights and 95 %
+        intervals; None when the comparison could not run (the reason is in ``notes``).
     """
 
     pitting: PittingParameters
@@ -130,11 +149,14 @@ class MeasurementResult:
     severity_paper: SeverityResult | None
     severity_fit: SeverityResult | None
     notes: tuple[str, ...]
+    models: RecoveryModelComparison | None = None
 
     @property
     def flags(self) -> frozenset[Flag]:
-        """Union of every part's flags."""
+        """Union of every part's flags (of the model comparison: ``KELVIN_VOIGT_REJECTED``)."""
         out = set(self.pitting.flags) | set(self.fit.flags)
+        if self.models is not None and self.models.kelvin_voigt_rejected:
+            out.add(Flag.KELVIN_VOIGT_REJECTED)
         for sev in (self.severity_paper, self.severity_fit):
             if sev is not None:
                 out |= sev.flags
@@ -202,6 +224,7 @@ class MeasurementResult:
                 "paper_estimator": severity(self.severity_paper),
                 "fitted_recovery": severity(self.severity_fit),
             },
+            "recovery_models": None if self.models is None else self.models.to_dict("px"),
             "flags": sorted(self.flags),
             "notes": list(self.notes),
         }
@@ -296,6 +319,15 @@ def analyze_recovery(
 
     fit, pitting, cross_notes = _checked_fit(times_s, s_k, pitting, settings.recovery_window_s)
     notes.extend(cross_notes)
+    models = _compared_models(
+        times_s,
+        s_k,
+        pitting,
+        calibration,
+        settings,
+        None if paper_model is None else paper_model.elasticity_kpa,
+        notes,
+    )
     fit_model: VPRModel | None = None
     if fit.tau_s is not None:
         try:
@@ -345,6 +377,7 @@ def analyze_recovery(
         severity_paper=severity_paper,
         severity_fit=severity_fit,
         notes=tuple(notes),
+        models=models,
     )
 
 
@@ -367,12 +400,8 @@ def _checked_fit(
     tuple
         The judged fit, the pitting parameters (flags updated) and notes.
     """
-    t = np.asarray(times_s, dtype=np.float64)
-    s = np.asarray(s_k, dtype=np.float64)
+    t, s = _usable_frames(times_s, s_k, pitting)
     obs = pitting.observed
-    if obs.outlier_times_s:
-        keep = ~np.isin(t, np.asarray(obs.outlier_times_s, dtype=np.float64))
-        t, s = t[keep], s[keep]
     fit = fit_recovery(t, s, pitting.t0_s, window_s)
     flags = set(fit.flags)
     notes: list[str] = []
@@ -411,3 +440,62 @@ def _checked_fit(
         )
         pitting = replace(pitting, flags=pitting.flags | {Flag.NOT_SETTLED})
     return fit, pitting, notes
+
+
+def _usable_frames(
+    times_s: ArrayLike, s_k: ArrayLike, pitting: PittingParameters
+) -> tuple[np.ndarray, np.ndarray]:
+    """Frame times [s] and S_k [px] without the outlier frames (what the fits use)."""
+    t = np.asarray(times_s, dtype=np.float64)
+    s = np.asarray(s_k, dtype=np.float64)
+    obs = pitting.observed
+    if obs.outlier_times_s:
+        keep = ~np.isin(t, np.asarray(obs.outlier_times_s, dtype=np.float64))
+        t, s = t[keep], s[keep]
+    return t, s
+
+
+def _compared_models(
+    times_s: ArrayLike,
+    s_k: ArrayLike,
+    pitting: PittingParameters,
+    calibration: Calibration,
+    settings: AnalysisSettings,
+    elasticity_kpa: float | None,
+    notes: list[str],
+) -> RecoveryModelComparison | None:
+    """Every recovery model on the Kelvin-Voigt fit's frames; F_r by Eq. (5), eta = E T_r.
+
+    None (with a note) when the comparison refuses the series.
+    """
+    t, s = _usable_frames(times_s, s_k, pitting)
+
+    def force(s_max_px: float) -> float | None:
+        try:
+            return rebound_force_n(s_max_px, calibration).value
+        except AnalysisError:
+            return None
+
+    try:
+        models = fit_recovery_models(
+            t,
+            s,
+            pitting.t0_s,
+            settings.recovery_window_s,
+            settle_fraction=settings.settle_fraction,
+            replicates=settings.bootstrap_replicates,
+            seed=settings.bootstrap_seed,
+            rebound_force=force,
+            elasticity_kpa=elasticity_kpa,
+        )
+    except AnalysisError as exc:
+        notes.append(f"recovery models not compared: {exc}")
+        return None
+    if models.kelvin_voigt_rejected and models.best_model is not None:
+        best = models.fit(models.best_model)
+        notes.append(
+            f"the recovery is not one exponential: {best.model} explains it best "
+            f"(QAICc lower than Kelvin-Voigt's by {models.kelvin_voigt_delta_qaicc:.0f}); "
+            f"its tau = {best.quantities['tau_s']} s, T_r = {best.quantities['recovery_time_s']} s"
+        )
+    return models

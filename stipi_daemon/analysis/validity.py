@@ -198,6 +198,18 @@ FLAG_RULES: Final[Mapping[Flag, FlagRule]] = MappingProxyType(
         Flag.POOR_FIT: FlagRule(
             ("tau_s",), ("tau_s",), "the Kelvin-Voigt model fits the recovery poorly"
         ),
+        Flag.KELVIN_VOIGT_REJECTED: FlagRule(
+            ("tau_s",),
+            (),
+            "the recovery is not one exponential: the Kelvin-Voigt tau describes a curve the "
+            "tissue does not follow (see the recovery models)",
+        ),
+        # Informational: they concern one model of the side-by-side comparison, whose entry
+        # in summary.json's recovery_models carries them.
+        Flag.MODEL_SELECTION_UNAVAILABLE: FlagRule((), (), "no recovery model could be weighed"),
+        Flag.TOO_FEW_POINTS: FlagRule((), (), "a recovery model had too few samples to fit"),
+        Flag.PARAMETER_AT_BOUND: FlagRule((), (), "a model parameter is at its search bound"),
+        Flag.NO_CONFIDENCE_INTERVALS: FlagRule((), (), "a model has no bootstrap intervals"),
         Flag.ESTIMATORS_DISAGREE: FlagRule(
             ("severity",), (), "the paper's estimator and the fitted recovery disagree"
         ),
