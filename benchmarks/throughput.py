@@ -13,7 +13,8 @@ pinned CPU, it measures:
   ahead), and for comparison the same number of bytes read as one contiguous block;
 * ``FrameProcessor.count`` (S_k) and ``FrameProcessor.measure`` (S_k + saturation, what the
   daemon calls) with the whole frame as ROI and with the scene's circular ROI, and their
-  ratio to the matching read floor (goals: gray within 2x; YUYV and BGR, gray values
+  ratio to the matching read floor, measured in the same interleaved passes (goals: gray
+  within 2x; YUYV and BGR, gray values
   computed on the fly, within 1.3x; the circle ROI within 1.3x of its span bytes); the
   same through the OpenCV route the processor falls back to when the compiled kernel is
   not built (``cv2.cvtColor`` for colour, ``cv2.threshold`` + ``cv2.countNonZero``);
@@ -117,40 +118,42 @@ def yuyv_frames(bgr: list[np.ndarray]) -> list[np.ndarray]:
     return out
 
 
-def roi_read_floor(
-    frames: list[np.ndarray], fp: FrameProcessor, repeats: int, quick: bool
-) -> tuple[float, float, int]:
-    """Read floors of the circle ROI [ms per frame]: its span bytes read in place, the same
-    number of bytes read as one contiguous block; and that number of bytes."""
+FLOOR = "floor: "
+
+
+def roi_floor_kernel(fp: FrameProcessor) -> tuple[Callable[[Any], Any], int]:
+    """The circle ROI's read floor as a kernel over whole frames (its span bytes read in
+    place, nothing else) and that number of bytes."""
     y0, y1, x0, x1 = fp.bounding_box
     spans = fp.row_spans
     assert spans is not None and imaging._skcount is not None
     sk = imaging._skcount
-    pixel = frames[0].shape[2] if frames[0].ndim == 3 else 1
+    pixel = fp.frame_shape[2] if len(fp.frame_shape) == 3 else 1
     n_bytes = int((spans[:, 1] - spans[:, 0]).sum()) * pixel
-    crops = [f[y0:y1, x0:x1] for f in frames]
-    in_place = best_ms({"spans": lambda c: sk.read_sum(c, spans)}, crops, repeats)["spans"]
+    return (lambda f: sk.read_sum(f[y0:y1, x0:x1], spans)), n_bytes
+
+
+def contiguous_floor(n_bytes: int, repeats: int, quick: bool) -> float:
+    """Time to read n_bytes as one contiguous block, cold [ms] (for comparison)."""
     rng = np.random.default_rng(0)
     n_blocks = max(8, (POOL_BYTES // (8 if quick else 1)) // n_bytes)
     block = -(-n_bytes // 64) * 64  # whole cache lines (the uint64 view needs a multiple of 8)
     blocks = [rng.integers(0, 256, (1, block), dtype=np.uint8) for _ in range(n_blocks)]
-    contiguous, _ = read_floor(blocks, repeats)
-    return in_place, contiguous, n_bytes
+    t = best_ms(read_kernels(blocks[0]), blocks, repeats)
+    return min(t.values())
 
 
-def read_floor(frames: list[np.ndarray], repeats: int) -> tuple[float, str]:
-    """Fastest read-only pass over the frames [ms per frame] and its kernel."""
+def read_kernels(frame: np.ndarray) -> dict[str, Callable[[Any], Any]]:
+    """Read-only passes over a whole frame, the candidates for its read floor."""
     kernels: dict[str, Callable[[Any], Any]] = {
         "cv2.sumElems": cv2.sumElems,
         "numpy sum (uint64 view)": lambda f: f.reshape(-1).view(np.uint64).sum(),
     }
-    if frames[0].ndim == 2:
+    if frame.ndim == 2:
         kernels["cv2.countNonZero"] = cv2.countNonZero
     if imaging._skcount is not None:
         kernels["_skcount.read_sum"] = lambda f: imaging._skcount.read_sum(f.reshape(len(f), -1))
-    t = best_ms(kernels, frames, repeats)
-    name = min(t, key=lambda k: t[k])
-    return t[name], name
+    return kernels
 
 
 def opencv_processor(*args: Any) -> FrameProcessor:
@@ -170,16 +173,15 @@ def measure_size(label: str, width: int, height: int, quick: bool) -> list[dict[
     rows: list[dict[str, Any]] = []
     for layout, base in (("gray", gray), ("YUYV", yuyv_frames(bgr)), ("BGR", bgr)):
         frames = pool(base, quick)
-        floor, kernel = read_floor(frames, repeats)
         procs = {
             "whole frame": FrameProcessor(base[0].shape, p, None),
             "circle ROI": FrameProcessor(base[0].shape, p, roi),
         }
         assert all(fp.counts_on_the_fly for fp in procs.values()) or imaging._skcount is None
-        roi_floor, roi_contiguous, roi_bytes = roi_read_floor(
-            frames, procs["circle ROI"], repeats, quick
-        )
-        fns: dict[str, Callable[[Any], Any]] = {}
+        # The floors run interleaved with the routines they bound, in the same passes.
+        fns = {FLOOR + k: fn for k, fn in read_kernels(base[0]).items()}
+        roi_read, roi_bytes = roi_floor_kernel(procs["circle ROI"])
+        fns[FLOOR + "ROI"] = roi_read
         for roi_name, fp in procs.items():
             fns[f"count, {roi_name}"] = fp.count
             fns[f"measure, {roi_name}"] = fp.measure
@@ -188,6 +190,11 @@ def measure_size(label: str, width: int, height: int, quick: bool) -> list[dict[
             fns[f"OpenCV route: count, {roi_name}"] = fp_cv.count
             fns[f"OpenCV route: measure, {roi_name}"] = fp_cv.measure
         t = best_ms(fns, frames, repeats)
+        roi_floor = t.pop(FLOOR + "ROI")
+        floors = {k.removeprefix(FLOOR): t.pop(k) for k in list(t) if k.startswith(FLOOR)}
+        kernel = min(floors, key=lambda k: floors[k])
+        floor = floors[kernel]
+        roi_contiguous = contiguous_floor(roi_bytes, repeats, quick)
         for name, ms in t.items():
             circle = "circle" in name
             f_ms = roi_floor if circle else floor
