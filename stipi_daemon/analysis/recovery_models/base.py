@@ -294,8 +294,9 @@ def solve_scaled(
     x0 = np.clip(x0, lo + 1e-10 * span, hi - 1e-10 * span)
 
     def fun(p: FloatArray) -> FloatArray:
-        r: FloatArray = model.residuals_batch(p[None, :], x, z[None, :], with_jacobian=False)[0]
-        return r[0]
+        r, _ = model.residuals_batch(p[None, :], x, z[None, :], with_jacobian=False)
+        out: FloatArray = r[0]
+        return out
 
     def jac(p: FloatArray) -> FloatArray:
         j = model.residuals_batch(p[None, :], x, z[None, :])[1]
