@@ -46,7 +46,10 @@ def realistic_noise(n: int, rng: np.random.Generator) -> np.ndarray:
     for i in range(1, n):
         ar[i] = rho * ar[i - 1] + e[i]
     k = np.arange(n)
-    return ar + 15.0 * np.sin(2.0 * math.pi * 3.3 * k / FPS + rng.uniform(0, 2 * math.pi))
+    out: np.ndarray = ar + 15.0 * np.sin(
+        2.0 * math.pi * 3.3 * k / FPS + rng.uniform(0, 2 * math.pi)
+    )
+    return out
 
 
 def series(

@@ -57,7 +57,9 @@ def test_curve_is_finite_at_every_corner_of_the_bounds(name: str) -> None:
         y = model.curve(t, 10.0, **params)
         assert np.all(np.isfinite(y)) and np.all(y >= -1e-12) and np.all(y <= 1.0 + 1e-12)
         assert y[0] == pytest.approx(0.0, abs=1e-12)  # g(0) = 1
-        u = np.array([p.to_solver(float(v)) for p, v in zip(model.SHAPE_PARAMETERS, c)])
+        u = np.array(
+            [p.to_solver(float(v)) for p, v in zip(model.SHAPE_PARAMETERS, c, strict=True)]
+        )
         tau = model.time_to_remaining(u, math.exp(-1.0))
         assert tau > 0.0 and not math.isnan(tau)
 
