@@ -15,8 +15,9 @@ pinned CPU, it measures:
   daemon calls) with the whole frame as ROI and with the scene's circular ROI, and their
   ratio to the matching read floor, measured in the same interleaved passes (goals: gray
   within 2x; YUYV and BGR, gray values computed on the fly, within 1.3x; the circle ROI
-  within 1.3x of its span bytes); the same through the OpenCV route the processor falls back to when the compiled kernel is
-  not built (``cv2.cvtColor`` for colour, ``cv2.threshold`` + ``cv2.countNonZero``);
+  within 1.3x of its span bytes); the same through the OpenCV route the processor falls
+  back to when the compiled kernel is not built (``cv2.cvtColor`` for colour,
+  ``cv2.threshold`` + ``cv2.countNonZero``);
 * MJPG: ``cv2.imdecode(IMREAD_GRAYSCALE)`` alone, and decode + ``measure``; their ratio
   (goal: within 1.2x of decoding alone);
 * the real-time factor of a 120 s, 60 FPS recording (7200 frames) and how many 60 FPS
