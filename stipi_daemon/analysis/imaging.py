@@ -167,7 +167,8 @@ def bgr_gray_formula() -> BgrGrayFormula | None:
     formula does: :class:`FrameProcessor` then converts BGR frames with ``cv2.cvtColor``
     before counting (slower, never different).
     """
-    key = bool(cv2.ipp.useIPP())
+    ipp = getattr(cv2, "ipp", None)  # switching IPP off may change the formula
+    key = bool(ipp.useIPP()) if ipp is not None else False
     if key not in _bgr_formula_cache:
         _bgr_formula_cache[key] = _identify_bgr_formula()
     return _bgr_formula_cache[key]
