@@ -525,6 +525,7 @@ class ProbeLink:
         info = self.info
         out: dict[str, Any] = {
             "transport": self.name,
+            "probe_id": probe_id_of(self.transport),
             "rate_hz": self.rate_hz,
             "led_level": self.led_level,
             "calibration_source": self.calibration_source,
@@ -800,3 +801,17 @@ class ProbeLink:
                 self._reported[name] = value
         if delta:
             self._queue.put_nowait(DecoderErrors(now, delta))
+
+
+def probe_id_of(transport: Transport) -> str:
+    """Which probe a transport reaches, for telling probes apart across sessions.
+
+    The transport's own ``probe_id`` when it has one (the serial port's USB serial
+    number, the BLE device's address), else the transport kind for an emulated probe
+    (``emulated``), else the transport's name (``serial:/dev/ttyACM0``: a port, not a probe).
+    """
+    given = getattr(transport, "probe_id", None)
+    if isinstance(given, str) and given:
+        return given
+    kind, _, _ = transport.name.partition(":")
+    return "emulated" if kind == "emulated" else transport.name

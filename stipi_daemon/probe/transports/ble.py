@@ -189,6 +189,13 @@ class BleTransport:
         return f"ble:{self.config.target}"
 
     @property
+    def probe_id(self) -> str:
+        """The probe: ``ble:<address>`` of the device connected to (else of the config)."""
+        client = self._client
+        address = client.address if client is not None else self.config.address
+        return f"ble:{address}" if address else self.name
+
+    @property
     def emulator(self) -> Any:
         """The emulated probe (``emulate`` set), for fault injection; after the first open.
 

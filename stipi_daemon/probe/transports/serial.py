@@ -95,6 +95,18 @@ class SerialTransport:
         return f"serial:{self.config.port}"
 
     @property
+    def probe_id(self) -> str:
+        """The probe behind the port: ``usb:<serial number>`` of its USB device when the
+        system lists one for the port (pyserial's ``list_ports``), else ``serial:<port>``."""
+        from serial.tools import list_ports
+
+        port = os.path.realpath(self.config.port)
+        for info in list_ports.comports():
+            if os.path.realpath(info.device) == port and info.serial_number:
+                return f"usb:{info.serial_number}"
+        return self.name
+
+    @property
     def is_open(self) -> bool:
         """Whether the port is open and has not failed."""
         return self._serial is not None and self._error is None

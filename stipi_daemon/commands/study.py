@@ -1,0 +1,111 @@
+"""``stipi-daemon study``: many sessions as one dataset.
+
+``study index ROOT... --out DATASET`` writes (or brings up to date) a Parquet dataset of
+every session under the roots (:func:`stipi_daemon.study.index.index_sessions`); ``study
+query DATASET "SQL"`` runs one SQL query over it with DuckDB and prints the result or
+writes it to CSV/Parquet (:mod:`stipi_daemon.study.query`). Each sub-subcommand is one
+``_add_*`` function in :data:`_SUBCOMMANDS`; the layout and schema are in docs/study.md.
+The study modules are imported when a subcommand runs, not when the parser is built.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections.abc import Callable
+from pathlib import Path
+from typing import TypeAlias
+
+_Sub: TypeAlias = "argparse._SubParsersAction[argparse.ArgumentParser]"
+
+
+def register(subparsers: _Sub) -> None:
+    parser = subparsers.add_parser(
+        "study",
+        help="many sessions as one dataset: index them, query them with SQL",
+        description="A study: the sessions of many probes and sites as one Parquet dataset "
+        "(hive-partitioned by site, probe and date; docs/study.md), queried with SQL.",
+    )
+
+    def show_help(_args: argparse.Namespace) -> int:
+        parser.print_help()
+        return 0
+
+    parser.set_defaults(handler=show_help)
+    sub = parser.add_subparsers(title="subcommands", metavar="SUBCOMMAND")
+    for add in _SUBCOMMANDS:
+        add(sub)
+
+
+def _add_index(sub: _Sub) -> None:
+    p = sub.add_parser(
+        "index",
+        help="write or update a study dataset from sessions directories",
+        description="Index every session under each ROOT into DATASET: tables sessions, "
+        "force_samples, frames and results (analysis 'recorded': each session's own "
+        "summary, with its data hash, settings hash and package version). Indexing again "
+        "adds new and changed sessions only and removes nothing it did not write. "
+        "Unreadable sessions are reported (one line each) and skipped; sessions still "
+        "being recorded are skipped with a note.",
+    )
+    p.add_argument("roots", nargs="+", type=Path, metavar="ROOT", help="sessions directory")
+    p.add_argument(
+        "--out", type=Path, required=True, metavar="DATASET", help="the dataset directory"
+    )
+    p.add_argument("--quiet", action="store_true", help="print only the summary line")
+    p.set_defaults(handler=_cmd_index)
+
+
+def _add_query(sub: _Sub) -> None:
+    p = sub.add_parser(
+        "query",
+        help="run one SQL query over a study dataset (DuckDB)",
+        description="Run one SQL query with DuckDB. The tables sessions, force_samples, "
+        "frames and results are views over the dataset's Parquet files; the partition "
+        "keys site, probe, date (and analysis for results) are text columns. Example: "
+        "SELECT site, severity_grade, avg(viscosity_n_s_per_mm2) FROM results WHERE "
+        "analysis = 'recorded' GROUP BY ALL",
+    )
+    p.add_argument("dataset", type=Path, metavar="DATASET", help="the dataset directory")
+    p.add_argument("sql", metavar="SQL", help="one query (SELECT, WITH ... SELECT, EXPLAIN)")
+    p.add_argument(
+        "--out",
+        type=Path,
+        metavar="FILE",
+        help="write the whole result to FILE.csv or FILE.parquet instead of printing it",
+    )
+    p.add_argument(
+        "--max-rows", type=int, default=200, metavar="N", help="rows printed (default 200)"
+    )
+    p.set_defaults(handler=_cmd_query)
+
+
+#: The ``study`` sub-subcommands, in the order ``--help`` shows them.
+_SUBCOMMANDS: tuple[Callable[[_Sub], None], ...] = (_add_index, _add_query)
+
+
+def _cmd_index(args: argparse.Namespace) -> int:
+    from stipi_daemon.study.index import index_sessions
+
+    report = index_sessions(args.roots, args.out)
+    if not args.quiet:
+        for line in report.skipped:
+            print(f"stipi-daemon: skipped {line}", file=sys.stderr)
+        for line in report.notes:
+            print(f"stipi-daemon: note: {line}", file=sys.stderr)
+    print(report.line())
+    return 0
+
+
+def _cmd_query(args: argparse.Namespace) -> int:
+    from stipi_daemon.study.query import format_result, result_format, run_query, write_result
+
+    if args.out is not None:
+        result_format(args.out)  # a bad suffix is refused before the query runs
+    result = run_query(args.dataset, args.sql)
+    if args.out is not None:
+        write_result(result, args.out)
+        print(f"{args.out}: {result.num_rows} rows")
+    else:
+        print(format_result(result, max(0, args.max_rows)))
+    return 0
