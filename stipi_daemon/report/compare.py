@@ -1,31 +1,35 @@
 """Comparison of several sessions (``report --compare``): values, mean and spread.
 
-Each session's parameters side by side, their mean, sample standard deviation and
-coefficient of variation per group of sessions sharing a label (repeated trials of one
-phantom) and over all of them, as the paper's Tables I and II; and each session's S_k and
-force against the time since its own T_0, for the overlay figures. It is pure: the sessions
-come as :class:`~.inputs.ReportInput`.
+Each session's parameters side by side with their validity and flags, and the mean, sample
+standard deviation and coefficient of variation per grade (the sessions sharing a label,
+i.e. repeated trials of one phantom, or without labels the nearest grade found), as the
+paper's Tables I and II; and each session's S_k and force against the time since its own
+T_0, for the overlay figures. Nothing of different grades, nor of a session whose verdict
+is not ``complete``, is averaged: such sessions are listed one by one with the reason. It
+is pure: the sessions come as :class:`~.inputs.ReportInput`.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Final
+from typing import Final, Literal
 
 import numpy as np
 
 from stipi_daemon.errors import AnalysisError
-from stipi_daemon.report.inputs import FloatArray, ReportInput, number_at, value_at
+from stipi_daemon.report.inputs import FloatArray, ReportInput, flags_at, number_at, value_at
 from stipi_daemon.report.verdict import VerdictView, combined, read_validity, session_verdict
 
 __all__ = [
     "COMPARE_PARAMETERS",
     "COMPARE_VALIDITY",
     "CompareGroup",
+    "CompareSession",
     "CompareStat",
     "CompareTable",
     "OverlaySeries",
+    "SessionValue",
     "compare_table",
     "overlay_force",
     "overlay_s_k",
@@ -63,28 +67,80 @@ COMPARE_VALIDITY: Final[dict[str, tuple[str, ...]]] = {
 
 
 @dataclass(frozen=True)
+class SessionValue:
+    """One session's value of one parameter, with its validity in that session.
+
+    Attributes
+    ----------
+    value : float or None
+        The value (None: the session has none).
+    status : str
+        ``valid``, ``flagged``, ``invalid`` or ``unknown`` (recorded before validity was
+        kept).
+    flags : tuple of str
+        The flags that concern it.
+    reason : str or None
+        Why it is flagged or invalid.
+    """
+
+    value: float | None
+    status: str
+    flags: tuple[str, ...] = ()
+    reason: str | None = None
+
+
+@dataclass(frozen=True)
+class CompareSession:
+    """One session of a comparison.
+
+    Attributes
+    ----------
+    session_id, label : str
+        The session and the label it was given (its id without one).
+    group : str
+        The grade it is grouped under: its label, or without labels the nearest grade its
+        analysis found (``"grade II (nearest)"``); ``""`` when it has neither.
+    verdict : VerdictView
+        Its verdict.
+    severity : str or None
+        The paper estimator's class and nearest grade (``"severe (III)"``), None without
+        one or when it is invalid.
+    flags : tuple of str
+        Every flag of its results and its measurement.
+    subject : str or None
+        The ``subject`` of its metadata.
+    values : dict of str to SessionValue
+        Parameter key (:data:`COMPARE_PARAMETERS`) -> its value.
+    left_out : str or None
+        Why the session enters no mean (None: it does).
+    """
+
+    session_id: str
+    label: str
+    group: str
+    verdict: VerdictView
+    severity: str | None
+    flags: tuple[str, ...]
+    subject: str | None
+    values: dict[str, SessionValue]
+    left_out: str | None
+
+
+@dataclass(frozen=True)
 class CompareStat:
-    """Mean and spread of one parameter over a group of sessions.
+    """Mean and spread of one parameter over the sessions a group averages.
 
     Attributes
     ----------
     key, symbol, unit : str
         The parameter.
-    values : tuple of float or None
-        Each session's value, in the group's order (None: the session has none).
-    statuses : tuple of str
-        Each value's validity (``valid``, ``flagged``, ``invalid``, ``unknown``: recorded
-        before validity was kept).
     n : int
-        Sessions whose value enters the mean (a value that is not invalid).
+        Values that enter the mean (valid ones).
     n_excluded : int
-        Values left out of the mean because they are invalid.
-    n_flagged : int
-        Flagged values included in the mean.
-    n_unknown : int
-        Values of unknown validity included in the mean.
+        Values of averaged sessions left out because they are not valid (a flagged or
+        invalid secondary quantity of a complete session).
     mean : float or None
-        Mean over the values that are not invalid.
+        Mean over the valid values.
     sd : float or None
         Sample standard deviation (n - 1), None for n < 2.
     cv_percent : float or None
@@ -94,12 +150,8 @@ class CompareStat:
     key: str
     symbol: str
     unit: str
-    values: tuple[float | None, ...]
-    statuses: tuple[str, ...]
     n: int
     n_excluded: int
-    n_flagged: int
-    n_unknown: int
     mean: float | None
     sd: float | None
     cv_percent: float | None
@@ -107,10 +159,26 @@ class CompareStat:
 
 @dataclass(frozen=True)
 class CompareGroup:
-    """Sessions sharing a label (e.g. repeated trials of one phantom) and their statistics."""
+    """The sessions of one grade: the mean and spread of those that may be averaged.
+
+    Attributes
+    ----------
+    label : str
+        The grade (a label given, or the nearest grade found).
+    session_ids : tuple of str
+        The sessions averaged: those whose verdict is ``complete``.
+    left_out : tuple of (str, str)
+        (session id, why) of the group's other sessions: flagged, invalid, incomplete or
+        of unknown validity. They are shown one by one, never averaged.
+    stats : tuple of CompareStat
+        One per parameter of :data:`COMPARE_PARAMETERS`, over :attr:`session_ids`.
+    severe_count, classified_count : int
+        Averaged sessions classified severe, and classified at all.
+    """
 
     label: str
     session_ids: tuple[str, ...]
+    left_out: tuple[tuple[str, str], ...]
     stats: tuple[CompareStat, ...]
     severe_count: int
     classified_count: int
@@ -118,59 +186,59 @@ class CompareGroup:
 
 @dataclass(frozen=True)
 class CompareTable:
-    """Per-session values and per-group and overall mean and spread (Tables I and II).
+    """Each session's values and, per grade, the mean and spread (Tables I and II).
 
     Attributes
     ----------
-    session_ids, labels : tuple of str
-        The sessions and their labels, in the order given.
-    severities : tuple of str or None
-        Each session's class and nearest grade from the paper estimator (``"severe
-        (III)"``), None without one or when it is invalid.
-    verdicts : tuple of VerdictView
-        Each session's verdict.
+    sessions : tuple of CompareSession
+        The sessions in the order given.
     groups : tuple of CompareGroup
-        One per distinct label, in first-appearance order.
-    overall : CompareGroup
-        All sessions together.
+        One per grade, in first-appearance order. Sessions of different grades are never
+        averaged together, and no mean is taken over all sessions.
+    grouped_by : {"label", "nearest grade"}
+        Whether the grades are the labels given or the grades the analysis found.
+    ungrouped : tuple of (str, str)
+        (session id, why) of sessions in no group (no label and no valid class).
     """
 
-    session_ids: tuple[str, ...]
-    labels: tuple[str, ...]
-    severities: tuple[str | None, ...]
-    verdicts: tuple[VerdictView, ...]
+    sessions: tuple[CompareSession, ...]
     groups: tuple[CompareGroup, ...]
-    overall: CompareGroup
+    grouped_by: Literal["label", "nearest grade"]
+    ungrouped: tuple[tuple[str, str], ...] = ()
+
+    @property
+    def session_ids(self) -> tuple[str, ...]:
+        """The sessions' ids, in the order given."""
+        return tuple(s.session_id for s in self.sessions)
+
+    @property
+    def labels(self) -> tuple[str, ...]:
+        """The sessions' labels, in the order given."""
+        return tuple(s.label for s in self.sessions)
+
+    @property
+    def verdicts(self) -> tuple[VerdictView, ...]:
+        """The sessions' verdicts, in the order given."""
+        return tuple(s.verdict for s in self.sessions)
 
 
-def _stat(
-    key: str,
-    symbol: str,
-    unit: str,
-    values: tuple[float | None, ...],
-    statuses: tuple[str, ...],
-) -> CompareStat:
-    """Mean and spread of the values that are not invalid (invalid ones are counted)."""
-    kept = [x for x, st in zip(values, statuses, strict=True) if x is not None and st != "invalid"]
-    v = np.asarray(kept, dtype=np.float64)
-    mean = float(np.mean(v)) if v.size else None
-    sd = float(np.std(v, ddof=1)) if v.size >= 2 else None
+def _stat(key: str, symbol: str, unit: str, values: Sequence[SessionValue]) -> CompareStat:
+    """Mean and spread of the valid values (the others are counted, never averaged)."""
+    kept = [v.value for v in values if v.value is not None and v.status == "valid"]
+    x = np.asarray(kept, dtype=np.float64)
+    mean = float(np.mean(x)) if x.size else None
+    sd = float(np.std(x, ddof=1)) if x.size >= 2 else None
     cv = None if sd is None or mean is None or mean == 0.0 else 100.0 * sd / abs(mean)
-    present = [st for x, st in zip(values, statuses, strict=True) if x is not None]
-    return CompareStat(
-        key,
-        symbol,
-        unit,
-        values,
-        statuses,
-        int(v.size),
-        present.count("invalid"),
-        present.count("flagged"),
-        present.count("unknown"),
-        mean,
-        sd,
-        cv,
-    )
+    excluded = sum(v.value is not None and v.status != "valid" for v in values)
+    return CompareStat(key, symbol, unit, int(x.size), excluded, mean, sd, cv)
+
+
+def _session_value(inp: ReportInput, key: str, path: tuple[str, ...]) -> SessionValue:
+    v = combined(read_validity(inp.summary), COMPARE_VALIDITY[key])
+    value = number_at(inp.results, *path)
+    if v is None:
+        return SessionValue(value, "unknown")
+    return SessionValue(value, v.status, v.flags, v.reason)
 
 
 def value_status(inp: ReportInput, key: str) -> str:
@@ -188,21 +256,70 @@ def _severity_class(inp: ReportInput) -> str | None:
     return None if cls is None else str(cls)
 
 
-def _group(label: str, members: Sequence[ReportInput]) -> CompareGroup:
-    stats = tuple(
-        _stat(
-            key,
-            symbol,
-            unit,
-            tuple(number_at(m.results, *path) for m in members),
-            tuple(value_status(m, key) for m in members),
-        )
-        for key, symbol, unit, path in COMPARE_PARAMETERS
+def _session_flags(inp: ReportInput) -> tuple[str, ...]:
+    """Every flag of the session's results and measurement, sorted, without repeats."""
+    found = [*flags_at(inp.results), *flags_at(value_at(inp.results, "pitting"))]
+    found += flags_at(value_at(inp.results, "fitted_recovery"))
+    for est in ("paper_estimator", "fitted_recovery"):
+        found += flags_at(value_at(inp.results, "severity", est))
+    measured = value_at(inp.summary, "measurement_flags")
+    if isinstance(measured, list):
+        found += [str(f) for f in measured]
+    return tuple(sorted(set(found)))
+
+
+def _left_out(verdict: VerdictView) -> str | None:
+    """Why a session with this verdict enters no mean (None: it does)."""
+    if verdict.status == "complete":
+        return None
+    named = "; ".join(
+        f"{p.symbol} {p.status}" + (f" ({', '.join(p.flags)})" if p.flags else "")
+        for p in verdict.problems
     )
-    classes = [_severity_class(m) for m in members]
+    return f"verdict {verdict.status}" + (f": {named}" if named else f": {verdict.line}")
+
+
+def _subject(inp: ReportInput) -> str | None:
+    s = value_at(inp.metadata, "subject")
+    return None if s is None else str(s)
+
+
+def _grade_of(inp: ReportInput) -> str:
+    """The nearest grade of the session's valid severity class, ``""`` without one."""
+    if _severity_class(inp) is None:
+        return ""
+    grade = value_at(inp.results, "severity", "paper_estimator", "nearest_grade")
+    return "" if grade is None else f"grade {grade} (nearest)"
+
+
+def _session(inp: ReportInput, label: str, group: str) -> CompareSession:
+    verdict = session_verdict(inp.summary, inp.status)
+    cls = _severity_class(inp)
+    grade = value_at(inp.results, "severity", "paper_estimator", "nearest_grade")
+    return CompareSession(
+        session_id=inp.session_id,
+        label=label,
+        group=group,
+        verdict=verdict,
+        severity=None if cls is None else f"{cls} ({grade})",
+        flags=_session_flags(inp),
+        subject=_subject(inp),
+        values={key: _session_value(inp, key, path) for key, _, _, path in COMPARE_PARAMETERS},
+        left_out=_left_out(verdict),
+    )
+
+
+def _group(label: str, members: Sequence[CompareSession]) -> CompareGroup:
+    averaged = [m for m in members if m.left_out is None]
+    stats = tuple(
+        _stat(key, symbol, unit, [m.values[key] for m in averaged])
+        for key, symbol, unit, _ in COMPARE_PARAMETERS
+    )
+    classes = [None if m.severity is None else m.severity.split(" ")[0] for m in averaged]
     return CompareGroup(
         label=label,
-        session_ids=tuple(m.session_id for m in members),
+        session_ids=tuple(m.session_id for m in averaged),
+        left_out=tuple((m.session_id, m.left_out) for m in members if m.left_out is not None),
         stats=stats,
         severe_count=sum(c == "severe" for c in classes),
         classified_count=sum(c is not None for c in classes),
@@ -212,19 +329,22 @@ def _group(label: str, members: Sequence[ReportInput]) -> CompareGroup:
 def compare_table(
     inputs: Sequence[ReportInput], labels: Sequence[str] | None = None
 ) -> CompareTable:
-    """Tabulate several sessions: each one's values, mean and spread per label and overall.
+    """Tabulate several sessions: each one's values, and the mean and spread per grade.
 
-    A value that is invalid in its session's ``summary["validity"]`` is listed but left
-    out of every mean and spread (counted in :attr:`CompareStat.n_excluded`); flagged
-    values and those of older sessions without validity enter them, counted.
+    Sessions are grouped by grade: by their labels when given (``--labels``, e.g. the
+    phantom's grade), else by the nearest grade their analysis found. Within a group only
+    sessions whose verdict is ``complete`` are averaged, and of them only valid values;
+    flagged, invalid, incomplete sessions and those of unknown validity are listed one by
+    one with the reason (:attr:`CompareGroup.left_out`). Sessions of different grades are
+    never averaged together.
 
     Parameters
     ----------
     inputs : sequence of ReportInput
         The sessions (at least one).
     labels : sequence of str, optional
-        One label per session (e.g. the grade); sessions with the same label form a group
-        (repeated trials). Default: each session's id.
+        One label per session; sessions with the same label form a group (repeated
+        trials of one grade).
 
     Raises
     ------
@@ -233,24 +353,27 @@ def compare_table(
     """
     if not inputs:
         raise AnalysisError("nothing to compare: no session given")
+    if labels is not None and len(labels) != len(inputs):
+        raise AnalysisError(f"{len(labels)} labels for {len(inputs)} sessions")
     names = tuple(labels) if labels is not None else tuple(i.session_id for i in inputs)
-    if len(names) != len(inputs):
-        raise AnalysisError(f"{len(names)} labels for {len(inputs)} sessions")
-    order: dict[str, list[ReportInput]] = {}
-    for name, inp in zip(names, inputs, strict=True):
-        order.setdefault(name, []).append(inp)
-    severities: list[str | None] = []
-    for inp in inputs:
-        sev = value_at(inp.results, "severity", "paper_estimator")
-        cls, grade = _severity_class(inp), value_at(sev, "nearest_grade")
-        severities.append(None if cls is None else f"{cls} ({grade})")
+    groups = tuple(labels) if labels is not None else tuple(_grade_of(i) for i in inputs)
+    sessions = tuple(
+        _session(inp, name, group) for inp, name, group in zip(inputs, names, groups, strict=True)
+    )
+    order: dict[str, list[CompareSession]] = {}
+    for s in sessions:
+        if s.group:
+            order.setdefault(s.group, []).append(s)
+    ungrouped = tuple(
+        (s.session_id, "no label and no valid severity class: no grade to group it under")
+        for s in sessions
+        if not s.group
+    )
     return CompareTable(
-        session_ids=tuple(i.session_id for i in inputs),
-        labels=names,
-        severities=tuple(severities),
-        verdicts=tuple(session_verdict(i.summary, i.status) for i in inputs),
+        sessions=sessions,
         groups=tuple(_group(name, members) for name, members in order.items()),
-        overall=_group("all sessions", list(inputs)),
+        grouped_by="label" if labels is not None else "nearest grade",
+        ungrouped=ungrouped,
     )
 
 
@@ -261,43 +384,54 @@ class OverlaySeries:
     Attributes
     ----------
     label : str
-        Legend text.
+        Legend text: the session's grade (or label); sessions sharing it share one entry.
     t_since_t0_s : numpy.ndarray
         Times since the session's T_0 [s].
     values : numpy.ndarray
         The series (S_k [px] or force [N]).
+    averaged : bool
+        Whether the session enters its grade's means (drawn differently when not).
     """
 
     label: str
     t_since_t0_s: FloatArray
     values: FloatArray
+    averaged: bool = True
 
 
 def _overlay(
-    inputs: Sequence[ReportInput], labels: Sequence[str] | None, which: str
+    inputs: Sequence[ReportInput],
+    labels: Sequence[str] | None,
+    which: str,
+    averaged: Sequence[bool] | None,
 ) -> tuple[OverlaySeries, ...]:
     names = list(labels) if labels is not None else [i.session_id for i in inputs]
+    kept = list(averaged) if averaged is not None else [True] * len(inputs)
     out = []
-    for name, inp in zip(names, inputs, strict=True):
+    for name, inp, avg in zip(names, inputs, kept, strict=True):
         t0 = inp.t0_s
         if t0 is None:
             continue
         t, v = (
             (inp.frame_times_s, inp.s_k_px) if which == "s_k" else (inp.force_times_s, inp.force_n)
         )
-        out.append(OverlaySeries(name, t - t0, v))
+        out.append(OverlaySeries(name, t - t0, v, avg))
     return tuple(out)
 
 
 def overlay_s_k(
-    inputs: Sequence[ReportInput], labels: Sequence[str] | None = None
+    inputs: Sequence[ReportInput],
+    labels: Sequence[str] | None = None,
+    averaged: Sequence[bool] | None = None,
 ) -> tuple[OverlaySeries, ...]:
     """Each session's S_k [px] against time since its T_0 (sessions without T_0 left out)."""
-    return _overlay(inputs, labels, "s_k")
+    return _overlay(inputs, labels, "s_k", averaged)
 
 
 def overlay_force(
-    inputs: Sequence[ReportInput], labels: Sequence[str] | None = None
+    inputs: Sequence[ReportInput],
+    labels: Sequence[str] | None = None,
+    averaged: Sequence[bool] | None = None,
 ) -> tuple[OverlaySeries, ...]:
     """Each session's force [N] against time since its T_0 (sessions without T_0 left out)."""
-    return _overlay(inputs, labels, "force")
+    return _overlay(inputs, labels, "force", averaged)

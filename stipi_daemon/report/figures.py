@@ -32,11 +32,13 @@ from stipi_daemon.analysis.severity import (
 from stipi_daemon.analysis.vpr import KPA_PER_N_PER_MM2
 from stipi_daemon.errors import AnalysisError
 from stipi_daemon.report.inputs import FloatArray, ReportInput, number_at, value_at
+from stipi_daemon.report.numbers import value_text
 from stipi_daemon.report.series import TimeGap, broken_line, find_gaps, isolated_outliers
 from stipi_daemon.report.verdict import QuantityStatus, combined, read_validity
 from stipi_daemon.storage.schema import Transition
 
 __all__ = [
+    "GRADE_MATCH_NOTE",
     "VPR_HORIZON_S",
     "VPR_SAMPLES",
     "FitFigure",
@@ -48,6 +50,7 @@ __all__ = [
     "WindowSearchFigure",
     "fit_figure",
     "force_figure",
+    "grade_note",
     "measurement_curves",
     "omitted_curves",
     "phase_spans",
@@ -404,7 +407,7 @@ class NormalisedCurve:
     Attributes
     ----------
     label : str
-        Legend text.
+        Legend text in Fig. 10 (the depth curve, decaying at :attr:`decay_rate_per_s`).
     kind : {"reference", "paper", "fitted"}
         A reference grade, or this session's paper (eta = E T_r) or fitted estimator.
     severe : bool or None
@@ -423,6 +426,14 @@ class NormalisedCurve:
         exp(-r' t) on :attr:`VprFigure.t_s` [-].
     window_mean_depth_fraction : float
         Mean normalised depth over the severity window's samples [-].
+    normalised_label : str
+        Legend text in Fig. 12 (the normalised curve, decaying at
+        :attr:`normalised_rate_per_s`). It differs from :attr:`label` exactly when the two
+        rates differ: the fit's curve is D_p exp(-t/tau) in Fig. 10 (eta = E tau) but is
+        classified at 1/T_r(tau) in Fig. 12 (eta = E T_r(tau)), so each names its own time.
+    nearest_grade : str or None
+        The reference grade this curve's estimator found nearest (``results.severity``):
+        matched on the normalised curve, not on the depth.
     """
 
     label: str
@@ -434,6 +445,14 @@ class NormalisedCurve:
     normalised_rate_per_s: float
     normalised: FloatArray
     window_mean_depth_fraction: float
+    normalised_label: str = ""
+    nearest_grade: str | None = None
+
+
+#: What Figs. 10 and 12 say about the grade a session is matched to.
+GRADE_MATCH_NOTE: Final = (
+    "grades are matched on the normalised curve D(t)/D_p (Fig. 12), not on the depth D_p"
+)
 
 
 @dataclass(frozen=True)
@@ -460,6 +479,9 @@ class VprFigure:
         The grades the window separates.
     omitted : tuple of str
         This session's curves left out because a quantity they need is invalid (why).
+    grade_note : str
+        How this session's nearest grade was found (empty without a curve of this session):
+        on the normalised shape, so a curve may start below the depth of its own grade.
     """
 
     t_s: FloatArray
@@ -473,6 +495,7 @@ class VprFigure:
     mild_grade: str
     severe_grade: str
     omitted: tuple[str, ...] = ()
+    grade_note: str = ""
 
 
 def _curve(
@@ -484,6 +507,8 @@ def _curve(
     t: FloatArray,
     window_t: FloatArray,
     normalised_rate: float | None = None,
+    normalised_label: str | None = None,
+    nearest_grade: str | None = None,
 ) -> NormalisedCurve:
     nrate = rate if normalised_rate is None else normalised_rate
     return NormalisedCurve(
@@ -496,6 +521,8 @@ def _curve(
         normalised_rate_per_s=nrate,
         normalised=normalised_depth(t, nrate),
         window_mean_depth_fraction=float(np.mean(normalised_depth(window_t, nrate))),
+        normalised_label=label if normalised_label is None else normalised_label,
+        nearest_grade=nearest_grade,
     )
 
 
@@ -543,52 +570,88 @@ def measurement_curves(
     fit_ok = _invalid(validity, "tau_s") is None
     paper = value_at(results, "paper_estimator")
     e, eta = number_at(paper, "elasticity_kpa"), number_at(paper, "viscosity_n_s_per_mm2")
-    sev = value_at(results, "severity", "paper_estimator", "severity")
+    sev = value_at(results, "severity", "paper_estimator")
     if paper_ok and e is not None and eta is not None and e > 0.0 and eta > 0.0:
         t_r = number_at(results, "pitting", "recovery_time_s")
         out.append(
             _curve(
                 f"{label_prefix}: η = E·T_r (Eq. 8)"
-                + ("" if t_r is None else f", T_r = {t_r:.2f} s"),
+                + ("" if t_r is None else f", T_r = {value_text(t_r, 's')}"),
                 "paper",
-                None if sev is None else sev == "severe",
+                _severe(sev),
                 e / KPA_PER_N_PER_MM2 / eta,
                 depth,
                 t,
                 window_t,
+                nearest_grade=_grade(sev),
             )
         )
+    fit = _fitted_curve(results, t, window_t, label_prefix, depth) if fit_ok else None
+    if fit is not None:
+        out.append(fit)
+    return tuple(out)
+
+
+def _severe(sev: Any) -> bool | None:
+    cls = value_at(sev, "severity")
+    return None if cls is None else cls == "severe"
+
+
+def _grade(sev: Any) -> str | None:
+    g = value_at(sev, "nearest_grade")
+    return None if g is None else str(g)
+
+
+def _fitted_curve(
+    results: Mapping[str, Any],
+    t: FloatArray,
+    window_t: FloatArray,
+    label_prefix: str,
+    depth: float | None,
+) -> NormalisedCurve | None:
+    """The fit's curve: D_p exp(-t/tau) (eta = E tau), classified at 1/T_r(tau).
+
+    T_r(tau) is the 98 % settling time an ideal recovery with this tau, S_0 and S_inf
+    shows (:func:`~stipi_daemon.analysis.recovery_fit.settling_time_from_time_constant`),
+    the time the reference grades' rates 1/T_r are on (Eq. 8). None without a fitted tau.
+    """
     fr = value_at(results, "fitted_recovery")
     tau, amp, off = (
         number_at(fr, "tau_s"),
         number_at(fr, "amplitude_px"),
         number_at(fr, "offset_px"),
     )
-    if fit_ok and tau is not None and tau > 0.0:
-        nrate: float | None = None
-        if amp is not None and off is not None and off > 0.0 and off - amp >= 0.0:
-            try:
-                t_r_equiv = settling_time_from_time_constant(tau, off - amp, off)
-            except AnalysisError:
-                t_r_equiv = 0.0
-            nrate = 1.0 / t_r_equiv if t_r_equiv > 0.0 else None
-        sev_fit = value_at(results, "severity", "fitted_recovery", "severity")
-        label = f"{label_prefix}: η = E·τ (fit), τ = {tau:.2f} s"
-        if nrate is not None:
-            label += f", T_r(τ) = {1.0 / nrate:.2f} s"
-        out.append(
-            _curve(
-                label,
-                "fitted",
-                None if sev_fit is None else sev_fit == "severe",
-                1.0 / tau,
-                depth,
-                t,
-                window_t,
-                normalised_rate=nrate,
-            )
+    if tau is None or tau <= 0.0:
+        return None
+    t_r_equiv: float | None = None
+    if amp is not None and off is not None and off > 0.0 and off - amp >= 0.0:
+        try:
+            t_r_equiv = settling_time_from_time_constant(tau, off - amp, off)
+        except AnalysisError:
+            t_r_equiv = None
+    sev = value_at(results, "severity", "fitted_recovery")
+    label = f"{label_prefix}, fit: η = E·τ, τ = {value_text(tau, 's')}"
+    if t_r_equiv is not None and t_r_equiv > 0.0:
+        normalised_label = (
+            f"{label_prefix}, fit: η = E·T_r(τ), T_r(τ) = {value_text(t_r_equiv, 's')} "
+            "(98 % settling time of the fit)"
         )
-    return tuple(out)
+        nrate: float | None = 1.0 / t_r_equiv
+    else:
+        normalised_label = f"{label_prefix}, fit: η = E·τ (no settling time: not classified)"
+        nrate = None
+    return _curve(
+        label,
+        "fitted",
+        _severe(sev),
+        1.0 / tau,
+        depth,
+        t,
+        window_t,
+        normalised_rate=nrate,
+        normalised_label=normalised_label,
+        nearest_grade=_grade(sev),
+    )
 
 
 def _window(
@@ -637,13 +700,15 @@ def vpr_figure(
             g.depth_mm,
             t,
             window_t,
+            normalised_label=f"grade {g.name} ({'severe' if g.severe else 'mild'})",
         )
         for g in reference.grades
     )
+    measurements = measurement_curves(results, t, window_t, validity=validity)
     return VprFigure(
         t_s=t,
         references=refs,
-        measurements=measurement_curves(results, t, window_t, validity=validity),
+        measurements=measurements,
         window_start_s=start,
         window_end_s=end,
         window_sample_times_s=tuple(float(v) for v in window_t),
@@ -652,7 +717,21 @@ def vpr_figure(
         mild_grade=mild,
         severe_grade=severe,
         omitted=omitted_curves(validity) if results is not None else (),
+        grade_note=grade_note(measurements),
     )
+
+
+def grade_note(curves: Sequence[NormalisedCurve]) -> str:
+    """How the nearest grade of these curves was found (empty without a curve).
+
+    The grade is the reference whose normalised curve D(t)/D_p is closest: a session's
+    depth D_p plays no part, so its Fig. 10 curve may start below its grade's depth.
+    """
+    if not curves:
+        return ""
+    grades = sorted({c.nearest_grade for c in curves if c.nearest_grade is not None})
+    nearest = f"nearest grade {'/'.join(grades)}; " if grades else ""
+    return nearest + GRADE_MATCH_NOTE
 
 
 @dataclass(frozen=True)

@@ -12,12 +12,18 @@ from __future__ import annotations
 
 import base64
 import html
-import math
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 
 from stipi_daemon import __version__
-from stipi_daemon.report.compare import CompareGroup, CompareTable
+from stipi_daemon.report.compare import (
+    COMPARE_PARAMETERS,
+    CompareGroup,
+    CompareSession,
+    CompareTable,
+    SessionValue,
+)
+from stipi_daemon.report.numbers import percent_text, value_text, value_with_uncertainty
 from stipi_daemon.report.parameter_table import ParameterRow
 from stipi_daemon.report.verdict import QuantityStatus, VerdictView
 
@@ -25,6 +31,7 @@ __all__ = [
     "EmbeddedFigure",
     "compare_page",
     "format_number",
+    "metadata_html",
     "session_page",
     "validity_text",
     "verdict_html",
@@ -46,6 +53,9 @@ figcaption { font-size: 0.9em; color: #444; margin-top: 0.3em; }
 .flag { font-family: monospace; background: #fff3cd; padding: 0 0.25em; border-radius: 3px; }
 .verdict { border: 2px solid #ccc; border-radius: 6px; padding: 0.5em 0.9em; margin: 0.8em 0; }
 .verdict p { margin: 0.3em 0; font-size: 1.05em; }
+.verdict ul { margin: 0.3em 0 0.3em 1.2em; padding: 0; }
+.verdict li { margin: 0.15em 0; }
+#verdict-line { color: #333; }
 .badge { display: inline-block; padding: 0.1em 0.6em; border-radius: 4px; color: #fff;
   font-weight: bold; text-transform: uppercase; letter-spacing: 0.03em; margin-right: 0.5em; }
 .verdict-complete { border-color: #1a7f37; } .badge-complete { background: #1a7f37; }
@@ -61,6 +71,7 @@ td.verdict-cell { min-width: 18em; font-size: 0.9em; }
 dl.meta { display: grid; grid-template-columns: max-content auto; gap: 0.15em 1em; }
 dl.meta dt { font-weight: bold; }
 dl.meta dd { margin: 0; }
+.scroll { overflow-x: auto; }
 footer { margin-top: 2em; font-size: 0.8em; color: #777; }
 """
 
@@ -93,20 +104,8 @@ def _e(text: object) -> str:
 
 
 def format_number(value: float | None, unit: str = "") -> str:
-    """A value with 4 significant digits, ``-`` for None.
-
-    Integers and values from 10^4 to 10^9 (pixel counts) are written in full, rounded to
-    the unit, rather than in exponent notation.
-    """
-    if value is None or (isinstance(value, float) and not math.isfinite(value)):
-        return "-"
-    if float(value).is_integer() and abs(value) < 1e9:
-        text = f"{int(value)}"
-    elif 1e4 <= abs(value) < 1e9:
-        text = f"{value:.0f}"
-    else:
-        text = f"{value:.4g}"
-    return f"{text} {unit}".strip() if unit and unit != "-" else text
+    """A value without an uncertainty, by the report's one rule (:func:`.numbers.value_text`)."""
+    return value_text(value, unit)
 
 
 def _page(title: str, body: Iterable[str]) -> str:
@@ -158,9 +157,17 @@ def _validity_cell(v: QuantityStatus | None) -> str:
     )
 
 
-def _value_cell(r: ParameterRow) -> str:
+def _row_numbers(r: ParameterRow) -> tuple[str, str]:
+    """The row's value and standard error as text, rounded together (:mod:`.numbers`)."""
+    if isinstance(r.value, str):
+        return r.value, value_text(r.uncertainty)
+    if r.uncertainty is None:
+        return value_text(r.value), value_text(None)
+    return value_with_uncertainty(r.value, r.uncertainty)
+
+
+def _value_cell(r: ParameterRow, value: str) -> str:
     """The value, or "—" with the recorded value greyed when it is not valid."""
-    value = r.value if isinstance(r.value, str) else format_number(r.value)
     if r.shown_as_result:
         return f'<td class="num" data-key="{_e(r.key)}">{_e(value)}</td>'
     raw = "" if r.value is None else f'<span class="not-valid">{_e(value)} not valid</span>'
@@ -180,24 +187,25 @@ def _parameter_table(rows: Sequence[ParameterRow]) -> str:
         if r.group != group:
             group = r.group
             out.append(f'<tr class="group"><th colspan="{len(head)}">{_e(group)}</th></tr>')
+        value, se = _row_numbers(r)
         cells = [
             f"<td>{_e(r.symbol)}</td>",
             f"<td>{_e(r.name)}</td>",
-            _value_cell(r),
-            f'<td class="num">{_e(format_number(r.uncertainty))}</td>',
+            _value_cell(r, value),
+            f'<td class="num">{_e(se)}</td>',
             f"<td>{_e(r.unit)}</td>",
             _validity_cell(r.validity),
             f"<td>{_flags_html(r.flags)}</td>",
             f"<td>{_e(r.note)}</td>",
         ]
         if has_truth:
-            err = format_number(r.error_percent)
+            err = percent_text(r.error_percent)
             err_cell = (
-                f'<td class="num">{_e(err)}</td>'
+                f'<td class="num" data-error="{_e(r.key)}">{_e(err)}</td>'
                 if r.shown_as_result or r.error_percent is None
                 else f'<td class="num"><span class="not-valid">{_e(err)} not valid</span></td>'
             )
-            cells += [f'<td class="num">{_e(format_number(r.truth))}</td>', err_cell]
+            cells += [f'<td class="num">{_e(value_text(r.truth))}</td>', err_cell]
         cls = "" if r.shown_as_result else ' class="invalid"'
         out.append(f"<tr{cls}>" + "".join(cells) + "</tr>")
     out.append("</tbody></table>")
@@ -214,40 +222,72 @@ def _flag_legend(flags: Iterable[str], descriptions: dict[str, str]) -> str:
     return f'<dl class="meta">{items}</dl>'
 
 
-def verdict_html(verdict: VerdictView, key_results: Sequence[tuple[str, str, str]] = ()) -> str:
-    """The verdict box: coloured status and line, the flagged and invalid quantities.
+def verdict_html(
+    verdict: VerdictView,
+    key_results: Sequence[tuple[str, str, str]] = (),
+    source: str = "",
+) -> str:
+    """The verdict block: the status, then one line per flagged or invalid quantity.
 
-    ``key_results`` are (symbol, value text, validity status) of the primary results.
+    ``key_results`` are (symbol, value text, validity status) of the primary results,
+    shown after the quantities; ``source`` says where the results come from when they are
+    not the recorded ones.
     """
     st = _e(verdict.status)
     out = [
         f'<section id="verdict" class="verdict verdict-{st}">',
-        f'<p><span class="badge badge-{st}" id="status">{st}</span>'
-        f'<span id="verdict-line">{_e(verdict.line)}</span></p>',
+        f'<p class="verdict-head"><b>Verdict</b> <span class="badge badge-{st}" id="status">'
+        f'{st}</span><span id="verdict-line">{_e(verdict.line)}</span></p>',
     ]
+    if verdict.problems:
+        out.append('<ul id="validity">')
+        for p in verdict.problems:
+            flags = f" {_flags_html(p.flags)}" if p.flags else ""
+            reason = f": {_e(p.reason)}" if p.reason else ""
+            out.append(
+                f'<li data-quantity="{_e(p.quantity)}"><b>{_e(p.symbol)}</b> ({_e(p.name)}) '
+                f'<span class="v-{_e(p.status)}">{_e(p.status)}</span>{reason}{flags}</li>'
+            )
+        out.append("</ul>")
+    if source:
+        out.append(f'<p id="results-source">{_e(source)}</p>')
     if key_results:
         out.append(
-            '<p id="key-results">'
+            '<p id="key-results">Results: '
             + "; ".join(
                 f'<span class="v-{_e(status)}">{_e(sym)} = {_e(text)}</span>'
                 for sym, text, status in key_results
             )
             + "</p>"
         )
-    if verdict.problems:
-        out.append(
-            '<table id="validity"><thead><tr><th>Quantity</th><th>Status</th><th>Reason</th>'
-            "<th>Flags</th></tr></thead><tbody>"
-        )
-        for p in verdict.problems:
-            out.append(
-                f'<tr data-quantity="{_e(p.quantity)}"><td>{_e(p.symbol)} ({_e(p.name)})</td>'
-                f'<td class="v-{_e(p.status)}">{_e(p.status)}</td><td>{_e(p.reason or "")}</td>'
-                f"<td>{_flags_html(p.flags)}</td></tr>"
-            )
-        out.append("</tbody></table>")
     out.append("</section>")
     return "".join(out)
+
+
+def metadata_html(metadata: Mapping[str, str | None] | None, problem: str | None = None) -> str:
+    """The session's metadata (subject, site, operator, note), or why there is none."""
+    if problem is not None:
+        return (
+            '<section id="metadata"><p class="missing">Session metadata not shown: '
+            f"{_e(problem)}</p></section>"
+        )
+    if metadata is None:
+        return (
+            '<section id="metadata"><p class="v-unknown">Session metadata: none (recorded '
+            "before subject, site, operator and note were kept).</p></section>"
+        )
+    if not any(metadata.values()):
+        return (
+            '<section id="metadata"><p class="v-unknown">Session metadata: none given '
+            "(subject, site, operator, note).</p></section>"
+        )
+    items = "".join(
+        f'<dt>{_e(k.capitalize())}</dt><dd data-field="{_e(k)}">'
+        + (_e(v).replace("\n", "<br>") if v else '<span class="v-unknown">not given</span>')
+        + "</dd>"
+        for k, v in metadata.items()
+    )
+    return f'<section id="metadata"><dl class="meta">{items}</dl></section>'
 
 
 def session_page(
@@ -260,6 +300,9 @@ def session_page(
     rows: Sequence[ParameterRow],
     flag_descriptions: dict[str, str],
     notes: Sequence[str],
+    metadata: Mapping[str, str | None] | None = None,
+    metadata_problem: str | None = None,
+    source: str = "",
 ) -> str:
     """The HTML page of one session.
 
@@ -281,10 +324,17 @@ def session_page(
         Flag -> meaning, for the flags that appear.
     notes : sequence of str
         Notes of the run and the analysis.
+    metadata : mapping or None
+        Subject, site, operator and note (None: recorded before metadata was kept).
+    metadata_problem : str or None
+        Why the metadata could not be read.
+    source : str
+        Where the results come from when they are not the recorded ones.
     """
     body = [
         f"<h1>STIP-I session report: {_e(session_id)}</h1>",
-        verdict_html(verdict, key_results),
+        verdict_html(verdict, key_results, source),
+        metadata_html(metadata, metadata_problem),
         '<dl class="meta">'
         + "".join(f"<dt>{_e(k)}</dt><dd>{_e(v)}</dd>" for k, v in meta)
         + "</dl>",
@@ -318,36 +368,107 @@ def session_page(
 
 def _stat_cell(group: CompareGroup, key: str) -> str:
     s = next(s for s in group.stats if s.key == key)
-    counts = [
-        f"{n} {what}"
-        for n, what in (
-            (s.n_excluded, "invalid excluded"),
-            (s.n_flagged, "flagged included"),
-            (s.n_unknown, "of unknown validity included"),
-        )
-        if n
-    ]
-    note = f'<span class="not-valid">{_e(", ".join(counts))}</span>' if counts else ""
+    note = (
+        f'<span class="not-valid">{s.n_excluded} not valid, left out</span>' if s.n_excluded else ""
+    )
     if s.mean is None:
         return f'<td class="num" data-key="{_e(key)}">-{note}</td>'
-    sd = "" if s.sd is None else f" ± {format_number(s.sd)}"
-    cv = "" if s.cv_percent is None else f" ({s.cv_percent:.1f} %)"
-    text = _e(format_number(s.mean) + sd + cv)
-    return f'<td class="num" data-key="{_e(key)}">{text}{note}</td>'
+    if s.sd is None:
+        text = value_text(s.mean) + " (n = 1)"
+    else:
+        mean, sd = value_with_uncertainty(s.mean, s.sd)
+        cv = "" if s.cv_percent is None else f" ({percent_text(s.cv_percent)} %)"
+        text = f"{mean} ± {sd}{cv}"
+    return f'<td class="num" data-key="{_e(key)}">{_e(text)}{note}</td>'
 
 
-def _session_value_cell(value: float | None, status: str) -> str:
-    """One session's value: "—" (value greyed, not valid) when invalid; flagged marked."""
-    text = format_number(value)
-    if value is not None and status == "invalid":
+def _session_value_cell(v: SessionValue) -> str:
+    """One session's value: "—" (value greyed, not valid) when invalid; flags named."""
+    text = value_text(v.value)
+    if v.value is not None and v.status == "invalid":
         return (
             f'<td class="num" data-validity="invalid">—'
             f'<span class="not-valid">{_e(text)} not valid</span></td>'
         )
-    mark = f' <span class="v-{_e(status)}">({_e(status)})</span>' if status != "valid" else ""
-    if value is None:
-        mark = ""
-    return f'<td class="num" data-validity="{_e(status)}">{_e(text)}{mark}</td>'
+    mark = ""
+    if v.value is not None and v.status != "valid":
+        what = ", ".join(v.flags) if v.flags else v.status
+        mark = f' <span class="v-{_e(v.status)}">({_e(what)})</span>'
+    return f'<td class="num" data-validity="{_e(v.status)}">{_e(text)}{mark}</td>'
+
+
+def _sessions_table(sessions: Sequence[CompareSession], by_label: bool) -> str:
+    subjects = any(s.subject for s in sessions)
+    head = [
+        "Session",
+        *(["Subject"] if subjects else []),
+        "Label",
+        *([] if by_label else ["Grade group"]),
+        "Verdict",
+        *[f"{sym} [{unit}]" for _, sym, unit, _ in COMPARE_PARAMETERS],
+        "Severity",
+        "Flags",
+    ]
+    out = ['<div class="scroll"><table id="sessions"><thead><tr>']
+    out += [f"<th>{_e(h)}</th>" for h in head]
+    out.append("</tr></thead><tbody>")
+    for s in sessions:
+        v = s.verdict
+        problems = "".join(
+            f"<br>{_e(p.symbol)} {_e(p.status)}" + (f": {_e(p.reason)}" if p.reason else "")
+            for p in v.problems
+        )
+        cells = [
+            f"<td>{_e(s.session_id)}</td>",
+            *([f"<td>{_e(s.subject or '-')}</td>"] if subjects else []),
+            f"<td>{_e(s.label)}</td>",
+            *([] if by_label else [f"<td>{_e(s.group or '-')}</td>"]),
+            f'<td class="verdict-cell"><span class="badge badge-{_e(v.status)}">'
+            f"{_e(v.status)}</span>{problems}</td>",
+        ]
+        cells += [_session_value_cell(s.values[key]) for key, _, _, _ in COMPARE_PARAMETERS]
+        cells.append(f"<td>{_e(s.severity or '-')}</td>")
+        cells.append(f'<td data-flags="{_e(s.session_id)}">{_flags_html(s.flags) or "-"}</td>')
+        out.append(f'<tr data-session="{_e(s.session_id)}">' + "".join(cells) + "</tr>")
+    out.append("</tbody></table></div>")
+    return "".join(out)
+
+
+def _statistics_table(table: CompareTable) -> str:
+    groups = table.groups
+    out = ['<table id="statistics"><thead><tr><th>Parameter</th>']
+    out += [
+        f'<th data-group="{_e(g.label)}">{_e(g.label)} (n = {len(g.session_ids)})</th>'
+        for g in groups
+    ]
+    out.append("</tr></thead><tbody>")
+    for key, sym, unit, _ in COMPARE_PARAMETERS:
+        row = [f"<th>{_e(sym)} [{_e(unit)}]</th>"]
+        row += [_stat_cell(g, key) for g in groups]
+        out.append("<tr>" + "".join(row) + "</tr>")
+    row = ["<th>severe (paper estimator)</th>"]
+    row += [f'<td class="num">{g.severe_count} of {g.classified_count}</td>' for g in groups]
+    out.append("<tr>" + "".join(row) + "</tr>")
+    out.append("</tbody></table>")
+    return "".join(out)
+
+
+def _left_out_html(table: CompareTable) -> str:
+    """Every session that enters no mean, and why."""
+    items = [
+        f'<li data-left-out="{_e(sid)}">{_e(g.label)}: {_e(sid)}: {_e(why)}</li>'
+        for g in table.groups
+        for sid, why in g.left_out
+    ]
+    items += [
+        f'<li data-left-out="{_e(sid)}">{_e(sid)}: {_e(why)}</li>' for sid, why in table.ungrouped
+    ]
+    if not items:
+        return '<p id="left-out">Every session enters the means of its grade.</p>'
+    return (
+        "<p>Left out of every mean (shown one by one in the table below):</p>"
+        f'<ul id="left-out">{"".join(items)}</ul>'
+    )
 
 
 def compare_page(
@@ -357,60 +478,29 @@ def compare_page(
     meta: Sequence[tuple[str, str]],
 ) -> str:
     """The HTML page comparing several sessions (Tables I and II style)."""
-    params = [(s.key, s.symbol, s.unit) for s in table.overall.stats]
-    head = [
-        "Session",
-        "Label",
-        "Verdict",
-        *[f"{sym} [{unit}]" for _, sym, unit in params],
-        "Severity",
-    ]
-    out = ['<table id="sessions"><thead><tr>']
-    out += [f"<th>{_e(h)}</th>" for h in head]
-    out.append("</tr></thead><tbody>")
-    for i, (sid, label) in enumerate(zip(table.session_ids, table.labels, strict=True)):
-        v = table.verdicts[i]
-        cells = [
-            f"<td>{_e(sid)}</td>",
-            f"<td>{_e(label)}</td>",
-            f'<td class="verdict-cell"><span class="badge badge-{_e(v.status)}">'
-            f"{_e(v.status)}</span> {_e(v.line)}</td>",
-        ]
-        cells += [_session_value_cell(s.values[i], s.statuses[i]) for s in table.overall.stats]
-        cells.append(f"<td>{_e(table.severities[i] or '-')}</td>")
-        out.append("<tr>" + "".join(cells) + "</tr>")
-    out.append("</tbody></table>")
-    per_session = "".join(out)
-    groups = list(table.groups)
-    if len(groups) == len(table.session_ids):
-        groups = []  # every session is its own group: only the overall column is meaningful
-    columns = [*groups, table.overall]
-    stats = ['<table id="statistics"><thead><tr><th>Parameter</th>']
-    stats += [f"<th>{_e(g.label)} (n = {len(g.session_ids)})</th>" for g in columns]
-    stats.append("</tr></thead><tbody>")
-    for key, sym, unit in params:
-        row = [f"<th>{_e(sym)} [{_e(unit)}]</th>"]
-        row += [_stat_cell(g, key) for g in columns]
-        stats.append("<tr>" + "".join(row) + "</tr>")
-    row = ["<th>severe (paper estimator)</th>"]
-    row += [f'<td class="num">{g.severe_count} of {g.classified_count}</td>' for g in columns]
-    stats.append("<tr>" + "".join(row) + "</tr>")
-    stats.append("</tbody></table>")
+    grouping = (
+        "the labels given (--labels), one group per grade"
+        if table.grouped_by == "label"
+        else "the nearest grade each session's analysis found (give --labels to group by "
+        "the known grade)"
+    )
     body = [
         f"<h1>STIP-I comparison of {len(table.session_ids)} sessions</h1>",
         '<dl class="meta">'
         + "".join(f"<dt>{_e(k)}</dt><dd>{_e(v)}</dd>" for k, v in meta)
         + "</dl>",
-        "<h2>Mean and spread per parameter</h2>",
-        "<p>Cells: mean ± SD (CV). SD is the sample standard deviation (n - 1), CV = SD / "
-        "|mean|; n counts the sessions of a column, a parameter may have fewer values. "
-        "Sessions sharing a label (repeated trials) form a group. A value that is invalid in "
-        "its session (see each session's verdict) is never averaged: it is left out of the "
-        "mean and spread and the cell says how many were excluded; flagged values are "
-        "included and counted.</p>",
-        "".join(stats),
+        "<h2>Mean and spread per grade</h2>",
+        f"<p>Sessions are grouped by {_e(grouping)}. Sessions of different grades are never "
+        "averaged together, and there is no mean over all sessions. Within a grade only "
+        "sessions whose verdict is complete are averaged, and of them only valid values; "
+        "flagged, invalid and incomplete sessions and those of unknown validity are listed "
+        "below, one by one, never averaged. Cells: mean ± SD (CV), n the sessions averaged; "
+        "SD is the sample standard deviation (n - 1), CV = SD / |mean|, and mean and SD are "
+        "rounded together (SD to 2 significant figures).</p>",
+        _statistics_table(table) if table.groups else "<p>No group to average.</p>",
+        _left_out_html(table),
         "<h2>Each session</h2>",
-        per_session,
+        _sessions_table(table.sessions, table.grouped_by == "label"),
     ]
     body += [_figure_html(f) for f in figures]
     return _page(f"STIP-I comparison of {len(table.session_ids)} sessions", body)

@@ -83,6 +83,12 @@ class ReportInput:
         ``stipi-daemon analyze`` (``analysis-*.json``), when there is one.
     rescued_file : str or None
         That file's name.
+    metadata : mapping or None
+        Who and what the session is of, from the manifest's ``metadata`` (``subject``,
+        ``site``, ``operator``, ``note``; a field not given is None); None for a session
+        recorded before metadata was kept.
+    metadata_problem : str or None
+        Why the manifest's ``metadata`` could not be read (one line), when it could not.
     """
 
     session_id: str
@@ -100,6 +106,8 @@ class ReportInput:
     representative: tuple[RepresentativeFrame, ...] = ()
     rescued: Mapping[str, Any] | None = None
     rescued_file: str | None = None
+    metadata: Mapping[str, str | None] | None = None
+    metadata_problem: str | None = None
 
     def __post_init__(self) -> None:
         if not (self.frame_seq.shape == self.frame_times_s.shape == self.s_k_px.shape):

@@ -2,11 +2,12 @@
 
 The I/O side of the report's data: the session's rows are read in one database snapshot
 through :class:`~stipi_daemon.storage.SessionReader` (read-only, so a report never changes
-a session), with the manifest, ``summary.json``, the representative frames
-(:mod:`stipi_daemon.report.frames`) and the newest analysis of the recording that
-``stipi-daemon analyze`` wrote beside it (``analysis-*.json``: for a session that ended
-early, the results its recording allows). Frames are timed by their capture time, as the
-pipeline and an offline replay time them. Nothing is computed here.
+a session), with the manifest (configuration, calibration, session metadata),
+``summary.json``, the representative frames (:mod:`stipi_daemon.report.frames`) and the
+newest analysis of the recording that ``stipi-daemon analyze`` wrote beside it
+(``analysis-*.json``: for a session that ended early, the results its recording allows).
+Frames are timed by their capture time, as the pipeline and an offline replay time them.
+Nothing is computed here.
 """
 
 from __future__ import annotations
@@ -18,6 +19,7 @@ from typing import Any, Final
 
 import numpy as np
 
+from stipi_daemon.errors import SessionError
 from stipi_daemon.report.frames import read_representative_frames
 from stipi_daemon.report.inputs import ReportInput
 from stipi_daemon.storage import SessionReader
@@ -68,6 +70,7 @@ def load_report_input(directory: str | Path) -> ReportInput:
         manifest = reader.manifest
         session_id = reader.session_id
         path = reader.directory
+        metadata, metadata_problem = _metadata(reader)
     calibration = manifest.get("calibration")
     config = manifest.get("config")
     rescued = read_rescued_analysis(path, session_id)
@@ -87,4 +90,19 @@ def load_report_input(directory: str | Path) -> ReportInput:
         representative=read_representative_frames(path),
         rescued=None if rescued is None else rescued[1],
         rescued_file=None if rescued is None else rescued[0],
+        metadata=metadata,
+        metadata_problem=metadata_problem,
     )
+
+
+def _metadata(reader: SessionReader) -> tuple[dict[str, str | None] | None, str | None]:
+    """The manifest's metadata (None: recorded before it was kept) and why it is unreadable.
+
+    A malformed record does not stop the report: the page says what is wrong with it.
+    """
+    if "metadata" not in reader.manifest:
+        return None, None
+    try:
+        return dict(reader.metadata), None
+    except SessionError as exc:
+        return None, str(exc)

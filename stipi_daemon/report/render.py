@@ -13,17 +13,21 @@ from __future__ import annotations
 import io
 import math
 from collections.abc import Sequence
-from typing import Final
+from typing import Any, Final
 
 import numpy as np
+from matplotlib.artist import Artist
 from matplotlib.axes import Axes
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
+from matplotlib.lines import Line2D
 from matplotlib.patches import Circle, Patch, Rectangle
+from matplotlib.patheffects import Normal, Stroke
 
 from stipi_daemon.analysis.imaging import CircleROI, RectROI
 from stipi_daemon.report.compare import OverlaySeries
 from stipi_daemon.report.figures import (
+    GRADE_MATCH_NOTE,
     FitFigure,
     ForceFigure,
     NormalisedCurve,
@@ -33,12 +37,18 @@ from stipi_daemon.report.figures import (
     WindowSearchFigure,
 )
 from stipi_daemon.report.inputs import FloatArray
+from stipi_daemon.report.numbers import value_text, value_with_uncertainty
 from stipi_daemon.report.panels import FramePanel
 from stipi_daemon.report.series import TimeGap
 
 __all__ = [
     "DPI",
+    "MEASUREMENT_ZORDER",
     "PHASE_COLOURS",
+    "REFERENCE_DASHES",
+    "REFERENCE_ZORDER",
+    "THRESHOLD_COLOUR",
+    "THRESHOLD_DASHES",
     "draw_fit",
     "draw_force",
     "draw_frames",
@@ -48,6 +58,7 @@ __all__ = [
     "draw_vpr",
     "draw_window_search",
     "png_bytes",
+    "unique_legend",
 ]
 
 #: Resolution of the PNGs [dots per inch]; figures are 10 in wide (1000 px).
@@ -69,16 +80,26 @@ PHASE_COLOURS: Final[dict[str, str]] = {
 _GRADE_COLOURS: Final = ("#1f77b4", "#2ca02c", "#ff7f0e", "#d62728", "#9467bd", "#8c564b")
 #: Bar colours of the adjacent-grade pairs in Fig. 11, as in the paper (blue, orange, yellow).
 _PAIR_COLOURS: Final = ("#0072bd", "#d95319", "#edb120", "#7e2f8e", "#77ac30")
+#: Line colours of the sessions (or grades of sessions) in a comparison: none is a grade's.
 _SESSION_COLOURS: Final = (
-    "#000000",
-    "#7f3fbf",
     "#17becf",
     "#bcbd22",
     "#e377c2",
+    "#5b3a8c",
+    "#a6761d",
+    "#1b9e77",
     "#7f7f7f",
-    "#8c564b",
-    "#1f77b4",
+    "#000000",
 )
+#: Reference grades in Figs. 10 and 12: dashed, drawn above every session curve with a white
+#: halo, so that a session curve lying on its own grade's never hides it.
+REFERENCE_DASHES: Final = (0.0, (5.0, 2.0))
+REFERENCE_ZORDER: Final = 4.0
+#: This session's curves lie below the references (wide, half transparent).
+MEASUREMENT_ZORDER: Final = 2.0
+#: The mild/severe threshold: a dark grey dotted line, a colour and pattern no curve uses.
+THRESHOLD_COLOUR: Final = "#3a3a3a"
+THRESHOLD_DASHES: Final = (0.0, (1.0, 1.5))
 
 
 def _figure(
@@ -91,6 +112,20 @@ def _figure(
     else:
         fig.add_subplot()
     return fig
+
+
+def unique_legend(ax: Axes, extra: Sequence[Artist] = (), **kwargs: Any) -> None:
+    """The axes' legend with each label once (the first artist drawn under it), then
+    ``extra`` handles (phases, gaps) not already named."""
+    handles, labels = ax.get_legend_handles_labels()
+    seen: dict[str, Artist] = {}
+    for h, lb in zip(handles, labels, strict=True):
+        seen.setdefault(lb, h)
+    for h in extra:
+        lb = h.get_label()
+        if isinstance(lb, str) and lb and not lb.startswith("_"):
+            seen.setdefault(lb, h)
+    ax.legend(list(seen.values()), list(seen), **kwargs)
 
 
 def png_bytes(fig: Figure) -> bytes:
@@ -196,7 +231,7 @@ def draw_force(data: ForceFigure, title: str = "") -> Figure:
             [data.applied_force_n] * 2,
             color="#d62728",
             lw=2.0,
-            label=f"$F_a$ = {data.applied_force_n:.2f} N (mean over the hold)",
+            label=f"$F_a$ = {value_text(data.applied_force_n, 'N')} (mean over the hold)",
         )
         fa.set_gid("applied_force")
     _vline(ax, data.release_s, "release detected", "#ff7f0e", ":")
@@ -204,8 +239,7 @@ def draw_force(data: ForceFigure, title: str = "") -> Figure:
     ax.set_xlabel("time [s] (session clock)")
     ax.set_ylabel("force [N]")
     ax.set_title(title or "Applied force over time")
-    lines, _ = ax.get_legend_handles_labels()
-    ax.legend(handles=[*lines, *handles], loc="upper right", fontsize=8, ncols=2)
+    unique_legend(ax, handles, loc="upper right", fontsize=8, ncols=2)
     ax.grid(True, alpha=0.3)
     return fig
 
@@ -298,7 +332,8 @@ def draw_s_k(data: SkFigure, title: str = "") -> Figure:
             ls="--",
             lw=1.0,
             label=(
-                f"{100 * data.settle_fraction:g} % of $S_{{max}}$ = {data.settle_level_px:.0f} px"
+                f"{100 * data.settle_fraction:g} % of $S_{{max}}$ = "
+                f"{value_text(data.settle_level_px, 'px')}"
             ),
         )
         level.set_gid("settle_level")
@@ -309,7 +344,7 @@ def draw_s_k(data: SkFigure, title: str = "") -> Figure:
             "o",
             color="#2ca02c",
             ms=6,
-            label=f"$S_0$ = {data.s0_px:.0f} px",
+            label=f"$S_0$ = {value_text(data.s0_px, 'px')}",
         )
     if data.recovery_time_s is not None and data.t0_s is not None and data.ts_s is not None:
         y = data.settle_level_px if data.settle_level_px is not None else 0.0
@@ -322,7 +357,7 @@ def draw_s_k(data: SkFigure, title: str = "") -> Figure:
         ax.text(
             0.5 * (data.t0_s + data.ts_s),
             y,
-            f"$T_r$ = {data.recovery_time_s:.2f} s"
+            f"$T_r$ = {value_text(data.recovery_time_s, 's')}"
             + ("" if data.recovery_time_invalid is None else " (not valid)"),
             ha="center",
             va="bottom",
@@ -333,8 +368,7 @@ def draw_s_k(data: SkFigure, title: str = "") -> Figure:
     ax.set_ylabel("$S_k$ [px]")
     flags = f" — flags: {', '.join(data.flags)}" if data.flags else ""
     ax.set_title((title or "Occluded pixel count $S_k$ over time") + flags)
-    lines, _ = ax.get_legend_handles_labels()
-    ax.legend(handles=[*lines, *handles], loc="best", fontsize=8, ncols=2)
+    unique_legend(ax, handles, loc="best", fontsize=8, ncols=2)
     ax.grid(True, alpha=0.3)
     return fig
 
@@ -367,24 +401,26 @@ def draw_fit(data: FitFigure, title: str = "") -> Figure:
             ),
         )
         rej.set_gid("fit_rejected")
-    se = "" if data.tau_se_s is None else f" ± {data.tau_se_s:.2g}"
+    tau, tau_se = value_with_uncertainty(data.tau_s, data.tau_se_s)
+    se = "" if data.tau_se_s is None else f" ± {tau_se}"
     (model,) = ax.plot(
         data.t_since_t0_s,
         data.model_px,
         color="#d62728",
         lw=1.5,
         label=(
-            f"fit $S_\\infty - A\\,e^{{-(t-T_0)/\\tau}}$: τ = {data.tau_s:.3f}{se} s, "
-            f"A = {data.amplitude_px:.0f} px, $S_\\infty$ = {data.offset_px:.0f} px"
+            f"fit $S_\\infty - A\\,e^{{-(t-T_0)/\\tau}}$: τ = {tau}{se} s, "
+            f"A = {value_text(data.amplitude_px, 'px')}, "
+            f"$S_\\infty$ = {value_text(data.offset_px, 'px')}"
         ),
     )
     model.set_gid("fit_model")
     ax.set_ylabel("$S_k$ [px]")
     stats = []
     if data.r_squared is not None:
-        stats.append(f"R² = {data.r_squared:.5f}")
+        stats.append(f"R² = {value_text(data.r_squared)}")
     if data.rmse_px is not None:
-        stats.append(f"RMSE = {data.rmse_px:.3g} px")
+        stats.append(f"RMSE = {value_text(data.rmse_px, 'px')}")
     if data.flags:
         stats.append("flags: " + ", ".join(data.flags))
     if data.tau_invalid is not None:
@@ -393,7 +429,7 @@ def draw_fit(data: FitFigure, title: str = "") -> Figure:
         (title or "Kelvin-Voigt recovery fitted to $S_k$")
         + (f" ({'; '.join(stats)})" if stats else "")
     )
-    ax.legend(loc="lower right", fontsize=8)
+    unique_legend(ax, loc="lower right", fontsize=8)
     ax.grid(True, alpha=0.3)
     (res,) = axr.plot(
         data.t_since_t0_s, data.residual_px, ".", color="#1f77b4", ms=2.0, label="data − fit"
@@ -422,76 +458,151 @@ def _window_shade(ax: Axes, data: VprFigure) -> None:
     span.set_gid("severity_window")
 
 
-def _measurement_style(c: NormalisedCurve) -> tuple[str, str]:
-    return ("#000000", "-") if c.kind == "paper" else ("#7f3fbf", "-.")
+def _measurement_style(c: NormalisedCurve) -> tuple[str, str, float, float]:
+    """Colour, line style, width and opacity of one of this session's curves."""
+    if c.kind == "paper":
+        return "#000000", "-", 3.2, 0.55
+    return "#7f3fbf", "-.", 2.2, 0.85
+
+
+#: White halo under a reference curve, so it stays visible on top of a session's curve.
+_HALO: Final = (Stroke(linewidth=3.4, foreground="white", alpha=0.9), Normal())
+
+
+def _reference_line(ax: Axes, x: FloatArray, y: FloatArray, i: int, label: str) -> Line2D:
+    """One reference grade's curve: dashed, in the grade's colour, above the sessions'."""
+    (ln,) = ax.plot(
+        x,
+        y,
+        color=_GRADE_COLOURS[i % len(_GRADE_COLOURS)],
+        lw=1.5,
+        ls=REFERENCE_DASHES,
+        label=label,
+        zorder=REFERENCE_ZORDER,
+    )
+    ln.set_path_effects(list(_HALO))
+    return ln
+
+
+def _threshold_line(ax: Axes, data: VprFigure, label: str) -> Line2D:
+    """The mild/severe threshold: dotted dark grey (no reference or session curve is)."""
+    line = ax.axhline(
+        data.threshold_depth_fraction,
+        color=THRESHOLD_COLOUR,
+        ls=THRESHOLD_DASHES,
+        lw=2.0,
+        label=label,
+        zorder=3.0,
+    )
+    line.set_gid("threshold")
+    return line
+
+
+def _titled(ax: Axes, title: str, note: str) -> None:
+    """The axes' title, with ``note`` (if any) as a smaller line between it and the plot."""
+    ax.set_title(title, pad=16.0 if note else 6.0)
+    if note:
+        ax.text(
+            0.5,
+            1.01,
+            note[0].upper() + note[1:] + ".",
+            transform=ax.transAxes,
+            ha="center",
+            va="bottom",
+            fontsize=8.5,
+            color="#333333",
+        ).set_gid("grade_note")
 
 
 def draw_vpr(data: VprFigure, title: str = "") -> Figure:
-    """Fig. 10: D(t) = D_p exp(-(E/eta) t) of the reference grades and of this session."""
+    """Fig. 10: D(t) = D_p exp(-(E/eta) t) of the reference grades and of this session.
+
+    The fit's curve decays at 1/tau (eta = E tau), the paper estimator's and the grades'
+    at 1/T_r (Eq. 8); the legend names each one's time. A note says that the nearest grade
+    is matched on the normalised shape (Fig. 12), not on the depth.
+    """
     fig = _figure(4.6)
     ax = fig.axes[0]
     _window_shade(ax, data)
     for i, c in enumerate(data.references):
         if c.depth_curve_mm is None:
             continue
-        (ln,) = ax.plot(
-            data.t_s, c.depth_curve_mm, color=_GRADE_COLOURS[i % 6], lw=1.4, ls="--", label=c.label
-        )
-        ln.set_gid(f"vpr_reference_{i}")
+        _reference_line(ax, data.t_s, c.depth_curve_mm, i, c.label).set_gid(f"vpr_reference_{i}")
     for c in data.measurements:
         if c.depth_curve_mm is None:
             continue
-        colour, style = _measurement_style(c)
-        (ln,) = ax.plot(data.t_s, c.depth_curve_mm, color=colour, ls=style, lw=2.0, label=c.label)
+        colour, style, width, alpha = _measurement_style(c)
+        grade = f"; nearest grade {c.nearest_grade}" if c.nearest_grade else ""
+        (ln,) = ax.plot(
+            data.t_s,
+            c.depth_curve_mm,
+            color=colour,
+            ls=style,
+            lw=width,
+            alpha=alpha,
+            label=c.label + grade,
+            zorder=MEASUREMENT_ZORDER,
+        )
         ln.set_gid(f"vpr_{c.kind}")
     ax.set_xlabel("time since $T_0$ [s]")
     ax.set_ylabel("pitting depth $D(t)$ [mm]")
-    ax.set_title(title or "VPR model, Eq. (10): reference grades (Table II) and this session")
+    _titled(
+        ax,
+        title or "VPR model, Eq. (10): reference grades (Table II) and this session",
+        data.grade_note,
+    )
     ax.set_xlim(float(data.t_s[0]), float(data.t_s[-1]))
     ax.set_ylim(bottom=0.0)
-    ax.legend(loc="upper right", fontsize=8)
+    unique_legend(ax, loc="upper right", fontsize=8)
     ax.grid(True, alpha=0.3)
     return fig
 
 
 def draw_normalised(data: VprFigure, title: str = "") -> Figure:
-    """Fig. 12: normalised VPR curves with the severity window and the mild/severe threshold."""
+    """Fig. 12: normalised VPR curves with the severity window and the mild/severe threshold.
+
+    This session's curves are drawn as classified (the fit at 1/T_r(tau)), under the
+    reference grades; the threshold is a dotted grey line.
+    """
     fig = _figure(4.6)
     ax = fig.axes[0]
     _window_shade(ax, data)
     for i, c in enumerate(data.references):
+        _reference_line(ax, data.t_s, c.normalised, i, c.normalised_label).set_gid(
+            f"normalised_reference_{i}"
+        )
+    _threshold_line(
+        ax,
+        data,
+        f"threshold: depth {value_text(data.threshold_depth_fraction)} of $D_p$ "
+        f"(severe if recovered < {value_text(data.threshold_recovered_percent)} %)",
+    )
+    mid = 0.5 * (data.window_start_s + data.window_end_s)
+    for c in data.measurements:
+        colour, style, width, alpha = _measurement_style(c)
+        cls = "" if c.severe is None else (" → severe" if c.severe else " → mild")
+        grade = f" (nearest grade {c.nearest_grade})" if c.nearest_grade else ""
         (ln,) = ax.plot(
             data.t_s,
             c.normalised,
-            color=_GRADE_COLOURS[i % 6],
-            lw=1.4,
-            ls="--",
-            label=c.label.split(",")[0],
+            color=colour,
+            ls=style,
+            lw=width,
+            alpha=alpha,
+            label=c.normalised_label + cls + grade,
+            zorder=MEASUREMENT_ZORDER,
         )
-        ln.set_gid(f"normalised_reference_{i}")
-    thr = ax.axhline(
-        data.threshold_depth_fraction,
-        color="#d62728",
-        lw=1.4,
-        label=(
-            f"threshold: depth {data.threshold_depth_fraction:.3f} of $D_p$ "
-            f"(severe if recovered < {data.threshold_recovered_percent:.1f} %)"
-        ),
-    )
-    thr.set_gid("threshold")
-    mid = 0.5 * (data.window_start_s + data.window_end_s)
-    for c in data.measurements:
-        colour, style = _measurement_style(c)
-        cls = "" if c.severe is None else (" → severe" if c.severe else " → mild")
-        (ln,) = ax.plot(data.t_s, c.normalised, color=colour, ls=style, lw=2.0, label=c.label + cls)
         ln.set_gid(f"normalised_{c.kind}")
+        what = "η = E·T_r" if c.kind == "paper" else "fit"
         (mk,) = ax.plot(
             [mid],
             [c.window_mean_depth_fraction],
             "D",
             color=colour,
-            ms=7,
-            label=f"window mean {c.window_mean_depth_fraction:.3f}",
+            ms=8 if c.kind == "paper" else 5,  # the fit's inside the paper's when they agree
+            mec="white",
+            label=f"window mean ({what}): {value_text(c.window_mean_depth_fraction)}",
+            zorder=REFERENCE_ZORDER + 1,
         )
         mk.set_gid(f"window_mean_{c.kind}")
     ax.set_xlabel("time since $T_0$ [s]")
@@ -499,7 +610,7 @@ def draw_normalised(data: VprFigure, title: str = "") -> Figure:
     ax.set_title(title or "Edema severity from normalised VPR curves (Fig. 12)")
     ax.set_xlim(float(data.t_s[0]), float(data.t_s[-1]))
     ax.set_ylim(0.0, 1.05)
-    ax.legend(loc="upper right", fontsize=8)
+    unique_legend(ax, loc="upper right", fontsize=8)
     ax.grid(True, alpha=0.3)
     return fig
 
@@ -530,7 +641,7 @@ def draw_window_search(data: WindowSearchFigure, title: str = "") -> Figure:
     ax.set_xlabel(f"window start [s since $T_0$] ({data.length_s:g} s windows)")
     ax.set_ylabel("mean |difference| of $D(t)/D_p$ [-]")
     ax.set_title(title or "Window search between adjacent reference grades (Fig. 11)")
-    ax.legend(loc="upper right", fontsize=8)
+    unique_legend(ax, loc="upper right", fontsize=8)
     ax.grid(True, axis="y", alpha=0.3)
     return fig
 
@@ -586,37 +697,63 @@ def draw_frames(panels: Sequence[FramePanel], title: str = "") -> Figure:
     return fig
 
 
+def _session_styles(labels: Sequence[tuple[str, bool]]) -> dict[tuple[str, bool], tuple[str, str]]:
+    """Colour (one per label) and line style (solid: averaged; dash-dot: not) of each
+    (label, averaged) pair, in first-appearance order."""
+    colours: dict[str, str] = {}
+    for label, _ in labels:
+        colours.setdefault(label, _SESSION_COLOURS[len(colours) % len(_SESSION_COLOURS)])
+    return {(lb, avg): (colours[lb], "-" if avg else "-.") for lb, avg in labels}
+
+
+def _legend_text(label: str, averaged: bool, n: int) -> str:
+    what = f"{n} session" + ("s" if n != 1 else "")
+    return f"{label} ({what})" if averaged else f"{label}, not averaged ({what})"
+
+
 def draw_overlay(
     series: Sequence[OverlaySeries], ylabel: str, title: str, gid_prefix: str
 ) -> Figure:
-    """Several sessions' series against time since their own T_0."""
+    """Several sessions' series against time since their own T_0.
+
+    Sessions sharing a label share a colour and one legend entry (with their count);
+    sessions left out of the means are dash-dotted.
+    """
     fig = _figure(4.2)
     ax = fig.axes[0]
+    keys = [(s.label, s.averaged) for s in series]
+    styles = _session_styles(keys)
     for i, s in enumerate(series):
+        colour, style = styles[(s.label, s.averaged)]
         (ln,) = ax.plot(
             s.t_since_t0_s,
             s.values,
             lw=1.0,
-            color=_SESSION_COLOURS[i % len(_SESSION_COLOURS)],
-            label=s.label,
+            color=colour,
+            ls=style,
+            label=_legend_text(s.label, s.averaged, keys.count((s.label, s.averaged))),
         )
         ln.set_gid(f"{gid_prefix}_{i}")
     ax.axvline(0.0, color="#2ca02c", ls="--", lw=1.0, label="$T_0$")
     ax.set_xlabel("time since $T_0$ [s]")
     ax.set_ylabel(ylabel)
     ax.set_title(title)
-    ax.legend(loc="best", fontsize=8)
+    unique_legend(ax, loc="best", fontsize=8)
     ax.grid(True, alpha=0.3)
     return fig
 
 
 def draw_compare_vpr(
     data: VprFigure,
-    sessions: Sequence[tuple[str, Sequence[NormalisedCurve]]],
+    sessions: Sequence[tuple[str, bool, Sequence[NormalisedCurve]]],
     *,
     normalised: bool,
 ) -> Figure:
-    """Figs. 10/12 for several sessions: reference grades and each session's paper curve."""
+    """Figs. 10/12 for several sessions: reference grades and each session's paper curve.
+
+    ``sessions`` holds (label, averaged, curves) per session; sessions sharing a label share
+    a colour and one legend entry. The references are drawn above the sessions' curves.
+    """
     fig = _figure(4.6)
     ax = fig.axes[0]
     _window_shade(ax, data)
@@ -624,31 +761,33 @@ def draw_compare_vpr(
         y = c.normalised if normalised else c.depth_curve_mm
         if y is None:
             continue
-        (ln,) = ax.plot(
-            data.t_s, y, color=_GRADE_COLOURS[i % 6], lw=1.2, ls="--", label=c.label.split(",")[0]
-        )
-        ln.set_gid(f"reference_{i}")
+        _reference_line(ax, data.t_s, y, i, c.normalised_label).set_gid(f"reference_{i}")
     if normalised:
-        ax.axhline(
-            data.threshold_depth_fraction,
-            color="#d62728",
-            lw=1.4,
-            label=f"threshold {data.threshold_depth_fraction:.3f} "
-            f"({data.threshold_recovered_percent:.1f} % recovered)",
+        _threshold_line(
+            ax,
+            data,
+            f"threshold {value_text(data.threshold_depth_fraction)} "
+            f"({value_text(data.threshold_recovered_percent)} % recovered)",
         )
-    for i, (label, curves) in enumerate(sessions):
+    drawn = [
+        (label, avg) for label, avg, curves in sessions if any(c.kind == "paper" for c in curves)
+    ]
+    styles = _session_styles(drawn)
+    for i, (label, avg, curves) in enumerate(sessions):
         for c in curves:
-            if c.kind != "paper":
-                continue
             y = c.normalised if normalised else c.depth_curve_mm
-            if y is None:
+            if c.kind != "paper" or y is None:
                 continue
+            colour, style = styles[(label, avg)]
             (ln,) = ax.plot(
                 data.t_s,
                 y,
-                lw=1.8,
-                color=_SESSION_COLOURS[i % len(_SESSION_COLOURS)],
-                label=f"{label} (η = E·T_r)",
+                lw=2.6,
+                alpha=0.6,
+                ls=style,
+                color=colour,
+                label=_legend_text(label, avg, drawn.count((label, avg))) + ", η = E·T_r",
+                zorder=MEASUREMENT_ZORDER,
             )
             ln.set_gid(f"session_{i}")
     ax.set_xlabel("time since $T_0$ [s]")
@@ -659,8 +798,12 @@ def draw_compare_vpr(
     else:
         ax.set_ylabel("pitting depth $D(t)$ [mm]")
         ax.set_ylim(bottom=0.0)
-        ax.set_title("VPR model, Eq. (10), of each session and the reference grades (Fig. 10)")
+        _titled(
+            ax,
+            "VPR model, Eq. (10), of each session and the reference grades (Fig. 10)",
+            GRADE_MATCH_NOTE,
+        )
     ax.set_xlim(float(data.t_s[0]), float(data.t_s[-1]))
-    ax.legend(loc="upper right", fontsize=8)
+    unique_legend(ax, loc="upper right", fontsize=8)
     ax.grid(True, alpha=0.3)
     return fig

@@ -32,6 +32,7 @@ __all__ = [
     "combined",
     "read_validity",
     "session_verdict",
+    "verdict_line",
 ]
 
 Status = Literal["valid", "flagged", "invalid", "unknown"]
@@ -142,7 +143,7 @@ class VerdictView:
     status : {"complete", "flagged", "invalid", "incomplete", "unknown"}
         ``unknown``: the session records no validity (an older session, or none finished).
     line : str
-        One short sentence for the operator.
+        A few words on what the status means (no reasons: those are the problems').
     problems : tuple of QuantityStatus
         Every flagged or invalid quantity, primary ones first.
     """
@@ -175,29 +176,35 @@ def session_verdict(summary: Mapping[str, Any] | None, session_status: str) -> V
         The summary's verdict, checked against its quantities: "complete" is shown only
         when the session completed and every primary quantity is valid; otherwise the
         status the quantities imply (``incomplete`` for a session that did not complete).
+        Its line is a few words on what the status means (:func:`verdict_line`); the
+        reasons are the problems', one per quantity, not the summary's recorded sentence.
     """
     if summary is None:
         if session_status != "complete":
-            line = f"Session incomplete ({session_status}): no summary.json, no results."
-            return VerdictView("incomplete", line, ())
-        return VerdictView("unknown", "Validity unknown: the session has no summary.json.", ())
+            return VerdictView(
+                "incomplete", verdict_line("incomplete", session_status, "no summary.json"), ()
+            )
+        return VerdictView("unknown", "validity unknown: the session has no summary.json", ())
     validity = read_validity(summary)
+    end = value_at(summary, "end_reason")
+    end_reason = str(end) if isinstance(end, str) and end.strip() else None
     if validity is None:
-        return VerdictView("unknown", UNKNOWN_LINE[0].upper() + UNKNOWN_LINE[1:] + ".", ())
+        if session_status != "complete":
+            return VerdictView(
+                "incomplete", verdict_line("incomplete", session_status, end_reason), ()
+            )
+        return VerdictView("unknown", UNKNOWN_LINE, ())
     order = [*PRIMARY_QUANTITIES, *SECONDARY_QUANTITIES]
     order += sorted(q for q in validity if q not in order)
     problems = tuple(validity[q] for q in order if q in validity and validity[q].status != "valid")
     status = value_at(summary, "verdict", "status")
-    recorded = value_at(summary, "verdict", "line")
     implied = _primary_status(validity) if validity else "invalid"
     if session_status != "complete" or status == "incomplete":
         implied = "incomplete"
     shown: VerdictStatus = status if status in _VERDICTS else implied
     if _RANK_VERDICT[implied] > _RANK_VERDICT[shown]:
-        shown, recorded = implied, None  # the recorded line words a milder verdict
-    if isinstance(recorded, str) and recorded.strip():
-        return VerdictView(shown, recorded.strip(), problems)
-    return VerdictView(shown, _default_line(shown, problems, session_status), problems)
+        shown = implied  # the recorded verdict is milder than its quantities allow
+    return VerdictView(shown, verdict_line(shown, session_status, end_reason), problems)
 
 
 #: Verdicts in increasing gravity, for checking a recorded one against its quantities.
@@ -210,15 +217,18 @@ _RANK_VERDICT: Final[Mapping[str, int]] = {
 }
 
 
-def _default_line(
-    status: VerdictStatus, problems: Sequence[QuantityStatus], session_status: str
-) -> str:
-    """A line for a verdict the summary does not word (or words wrongly)."""
-    names = ", ".join(p.symbol for p in problems if p.quantity in PRIMARY_QUANTITIES)
+def verdict_line(status: VerdictStatus, session_status: str, why: str | None = None) -> str:
+    """A few words on what ``status`` means (the quantities' reasons are listed under it).
+
+    ``why`` says how an incomplete session ended (its ``end_reason``).
+    """
     if status == "incomplete":
-        return f"Session incomplete ({session_status}): results are what the data recorded allow."
+        how = session_status if why is None else f"{session_status}: {why}"
+        return f"the session did not finish ({how}); results are what its data allow"
     if status == "invalid":
-        return f"Not valid: {names or 'no results'}."
+        return "some primary results cannot be trusted"
     if status == "flagged":
-        return f"Complete with caveats on {names}."
-    return "Complete: every result is valid."
+        return "every primary result has a value; some carry a caveat"
+    if status == "complete":
+        return "every primary result is valid"
+    return UNKNOWN_LINE

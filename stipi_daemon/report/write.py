@@ -13,9 +13,9 @@ from __future__ import annotations
 
 import os
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Final
+from typing import Final
 
 import numpy as np
 from matplotlib.figure import Figure
@@ -37,7 +37,7 @@ from stipi_daemon.report.inputs import ReportInput
 from stipi_daemon.report.load import load_report_input
 from stipi_daemon.report.panels import frame_panels
 from stipi_daemon.report.parameter_table import ParameterRow, flag_descriptions, parameter_table
-from stipi_daemon.report.verdict import read_validity, session_verdict
+from stipi_daemon.report.verdict import VerdictView, read_validity, session_verdict
 
 __all__ = [
     "COMPARE_FIGURES",
@@ -48,6 +48,7 @@ __all__ = [
     "WrittenReport",
     "record_report_failure",
     "render_session_report",
+    "verdict_text",
     "write_compare_report",
     "write_session_report",
 ]
@@ -90,8 +91,8 @@ class WrittenReport:
     missing : dict of str to str
         Figure name -> why it was not drawn.
     verdict : str
-        The verdict the page shows (``"invalid: Not valid: D_p (...)"``); empty for a
-        comparison.
+        The verdict the page shows, as text (:func:`verdict_text`: the status, then one
+        line per flagged or invalid quantity); empty for a comparison.
     """
 
     html_path: Path
@@ -286,8 +287,12 @@ def _session_makers(
             "vpr",
             SESSION_FIGURES["vpr"],
             "Pitting depth D(t) = D_p exp(-(E/eta) t), Eq. (10), of the reference grades "
-            "(Table II, STIP-I columns; depths from Table I) and of this session with eta from "
-            "Eq. (8) (E T_r) and from the fitted time constant (E tau)." + vpr_note,
+            "(Table II, STIP-I columns; depths from Table I; dashed, drawn on top) and of this "
+            "session with eta from Eq. (8), E T_r (decaying at 1/T_r, as the grades), and "
+            "from the fitted time constant, E tau (decaying at 1/tau: tau is a time constant, "
+            "shorter than the 98 % settling time T_r). The grade is matched on the normalised "
+            "shape (Fig. 12), not on the depth: a session may start below the depth of its "
+            "own grade." + vpr_note,
             lambda: r.draw_vpr(vpr),
         ),
         (
@@ -301,9 +306,11 @@ def _session_makers(
             "vpr_normalised",
             SESSION_FIGURES["vpr_normalised"],
             "Normalised VPR curves D(t)/D_p with the severity window and the mild/severe "
-            "threshold (mid-point of the two grades' window means). This session's curves are "
-            "drawn as classified: the paper estimator at 1/T_r, the fit at 1/T_r(tau); a "
-            "diamond marks each curve's mean over the window." + vpr_note,
+            "threshold (dotted grey: mid-point of the two grades' window means). This "
+            "session's curves are drawn as classified, under the reference grades: the paper "
+            "estimator at 1/T_r, the fit at 1/T_r(tau), the 98 % settling time its tau implies "
+            "(not at 1/tau as in Fig. 10: the grades' rates are 1/T_r); a diamond marks each "
+            "curve's mean over the window." + vpr_note,
             lambda: r.draw_normalised(vpr),
         ),
         (
@@ -363,8 +370,6 @@ def render_session_report(
     embedded, written, missing = _make_figures(_session_makers(inp, ref), out_dir)
     rows = parameter_table(inp.summary)
     verdict = session_verdict(inp.summary, recorded.status)
-    if source:
-        verdict = replace(verdict, line=f"{verdict.line} {source}")
     page = session_page(
         session_id=inp.session_id,
         verdict=verdict,
@@ -379,10 +384,23 @@ def render_session_report(
         rows=rows,
         flag_descriptions=flag_descriptions(),
         notes=_notes(inp),
+        metadata=recorded.metadata,
+        metadata_problem=recorded.metadata_problem,
+        source=source,
     )
     html_path = out_dir / REPORT_HTML
     _write_atomic(html_path, page.encode("utf-8"))
-    return WrittenReport(html_path, written, missing, f"{verdict.status}: {verdict.line}")
+    return WrittenReport(html_path, written, missing, verdict_text(verdict))
+
+
+def verdict_text(verdict: VerdictView) -> str:
+    """The verdict as plain text: the status and its line, then one line per flagged or
+    invalid quantity (``  D_p: invalid: <reason>``)."""
+    lines = [f"{verdict.status} ({verdict.line})"]
+    for p in verdict.problems:
+        flags = f" [{', '.join(p.flags)}]" if p.flags else ""
+        lines.append(f"  {p.symbol}: {p.status}" + (f": {p.reason}" if p.reason else "") + flags)
+    return "\n".join(lines)
 
 
 def write_session_report(
@@ -465,16 +483,17 @@ def write_compare_report(
     if labels is not None and len(labels) != len(session_dirs):
         raise AnalysisError(f"{len(labels)} labels for {len(session_dirs)} sessions")
     inputs = [load_report_input(p) for p in session_dirs]
-    names = list(labels) if labels is not None else [i.session_id for i in inputs]
-    table = compare_table(inputs, names)
+    table = compare_table(inputs, labels)
+    # Legend and colour per grade group (a session in none keeps its own label).
+    names = [s.group or s.label for s in table.sessions]
+    averaged = [s.left_out is None and bool(s.group) for s in table.sessions]
     ref = reference if reference is not None else load_reference()
     vpr = vpr_figure(None, ref)
     t = vpr.t_s
-    window_t = vpr.window_sample_times_s
-    wt = np.asarray(window_t, dtype=np.float64)
+    wt = np.asarray(vpr.window_sample_times_s, dtype=np.float64)
     curves = [
-        (name, measurement_curves(inp.results, t, wt, name, read_validity(inp.summary)))
-        for name, inp in zip(names, inputs, strict=True)
+        (name, avg, measurement_curves(inp.results, t, wt, name, read_validity(inp.summary)))
+        for name, avg, inp in zip(names, averaged, inputs, strict=True)
     ]
     out = Path(out_dir)
     try:
@@ -483,46 +502,60 @@ def write_compare_report(
         raise SessionError(f"{out}: cannot create report directory: {exc}") from exc
 
     def overlay(which: str) -> Figure | str:
-        series = overlay_s_k(inputs, names) if which == "s_k" else overlay_force(inputs, names)
+        series = (
+            overlay_s_k(inputs, names, averaged)
+            if which == "s_k"
+            else overlay_force(inputs, names, averaged)
+        )
         if not series:
             return "no session has a T_0 to align on"
         if which == "s_k":
             return r.draw_overlay(series, "$S_k$ [px]", "$S_k$ of every session", "overlay_s_k")
         return r.draw_overlay(series, "force [N]", "Force of every session", "overlay_force")
 
+    grouping = (
+        "Sessions sharing a label share a colour and a legend entry; those left out of the "
+        "means (flagged, invalid, incomplete, validity unknown) are dash-dotted."
+    )
     makers: list[tuple[str, str, str, FigureMaker]] = [
         (
             "overlay_s_k",
             COMPARE_FIGURES["overlay_s_k"],
-            "S_k of each session against the time since its own T_0.",
+            "S_k of each session against the time since its own T_0. " + grouping,
             lambda: overlay("s_k"),
         ),
         (
             "overlay_force",
             COMPARE_FIGURES["overlay_force"],
-            "Force of each session against the time since its own T_0.",
+            "Force of each session against the time since its own T_0. " + grouping,
             lambda: overlay("force"),
         ),
         (
             "compare_vpr",
             COMPARE_FIGURES["compare_vpr"],
-            "D(t), Eq. (10), of each session (paper estimator, eta = E T_r) with the reference "
-            "grades (dashed).",
+            "D(t), Eq. (10), of each session (paper estimator, eta = E T_r) under the reference "
+            "grades (dashed). Grades are matched on the normalised shape, not on the depth. "
+            + grouping,
             lambda: r.draw_compare_vpr(vpr, curves, normalised=False),
         ),
         (
             "compare_vpr_normalised",
             COMPARE_FIGURES["compare_vpr_normalised"],
-            "Normalised curves of each session with the severity window and threshold.",
+            "Normalised curves of each session under the reference grades (dashed), with the "
+            "severity window and the threshold (dotted grey). " + grouping,
             lambda: r.draw_compare_vpr(vpr, curves, normalised=True),
         ),
     ]
     embedded, written, missing = _make_figures(makers, out)
-    meta: list[tuple[str, Any]] = [
-        (f"{label}", f"{inp.session_id} (ended {inp.status}; verdict {v.status})")
-        for label, inp, v in zip(names, inputs, table.verdicts, strict=True)
+    meta = [
+        (
+            inp.session_id,
+            f"label {s.label}; ended {inp.status}; verdict {s.verdict.status}"
+            + ("" if s.left_out is None else "; not averaged"),
+        )
+        for inp, s in zip(inputs, table.sessions, strict=True)
     ]
-    page = compare_page(table=table, figures=embedded, meta=[(k, str(v)) for k, v in meta])
+    page = compare_page(table=table, figures=embedded, meta=meta)
     html_path = out / REPORT_HTML
     _write_atomic(html_path, page.encode("utf-8"))
     return WrittenReport(html_path, written, missing)
