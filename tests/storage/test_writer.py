@@ -227,6 +227,7 @@ def test_concurrent_adders_lose_nothing(tmp_path: Path) -> None:
                 writer.add_force_samples([(k * 1000 + i, 1, i, i, float(i), None)])
                 if i % 50 == 0:
                     writer.add_event(float(i), f"thread{k}", {"i": i})
+                    time.sleep(0.002)  # adding spans several commit intervals
 
         threads = [threading.Thread(target=add, args=(k,)) for k in range(4)]
         for t in threads:
