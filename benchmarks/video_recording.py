@@ -78,7 +78,7 @@ def _block(
     t0 = time.process_time()
     for i, pk in enumerate(packets):
         seq = k0 + i
-        img = cv2.imdecode(np.frombuffer(pk, np.uint8), cv2.IMREAD_GRAYSCALE)
+        img = np.asarray(cv2.imdecode(np.frombuffer(pk, np.uint8), cv2.IMREAD_GRAYSCALE), np.uint8)
         proc = proc or FrameProcessor(img.shape, 128, roi)
         m = proc.measure(img)
         if rec is not None and not rec.record(seq, seq / FPS, img, pk):
@@ -121,8 +121,14 @@ def measure_cpu(packets: list[bytes], roi: CircleROI, blocks: int) -> dict[str, 
 
 def measure_disk(packets: list[bytes], roi: CircleROI) -> list[tuple[str, float, float]]:
     """(mode, bytes per frame, encoder ms per frame) of each mode on the same frames."""
-    gray = [cv2.imdecode(np.frombuffer(p, np.uint8), cv2.IMREAD_GRAYSCALE) for p in packets]
-    bgr = [cv2.imdecode(np.frombuffer(p, np.uint8), cv2.IMREAD_COLOR) for p in packets]
+    gray = [
+        np.asarray(cv2.imdecode(np.frombuffer(p, np.uint8), cv2.IMREAD_GRAYSCALE), np.uint8)
+        for p in packets
+    ]
+    bgr = [
+        np.asarray(cv2.imdecode(np.frombuffer(p, np.uint8), cv2.IMREAD_COLOR), np.uint8)
+        for p in packets
+    ]
     y0, y1, x0, x1 = FrameProcessor(gray[0].shape, 128, roi).bounding_box
     rows: list[tuple[str, float, float]] = [
         (
