@@ -68,7 +68,7 @@ class ColumnSpec:
 
 
 _TS: Final = pa.timestamp("us", tz="UTC")
-_ORIGIN_DOC: Final = "since the session's creation (t_host_s - sessions.t0_host_s)"
+_SINCE: Final = "since the session's creation"
 
 SESSIONS_COLUMNS: Final[tuple[ColumnSpec, ...]] = (
     ColumnSpec("session_uid", pa.string(), "", "unique in the dataset: session_id, +hash if taken"),
@@ -100,7 +100,7 @@ SESSIONS_COLUMNS: Final[tuple[ColumnSpec, ...]] = (
 FORCE_SAMPLES_COLUMNS: Final[tuple[ColumnSpec, ...]] = (
     ColumnSpec("session_uid", pa.string(), "", "the session (sessions.session_uid)"),
     ColumnSpec("seq", pa.int64(), "", "row number in arrival order, from 0"),
-    ColumnSpec("t_s", pa.float64(), "s", "sample time " + _ORIGIN_DOC),
+    ColumnSpec("t_s", pa.float64(), "s", f"sample time {_SINCE}: t_host_s - sessions.t0_host_s"),
     ColumnSpec("force_n", pa.float64(), "N", "force from the calibration; null if none"),
     ColumnSpec("sample_index", pa.int64(), "", "probe sample counter (may restart)"),
     ColumnSpec("adc_counts", pa.int64(), "counts", "raw ADC reading"),
@@ -112,7 +112,9 @@ FORCE_SAMPLES_COLUMNS: Final[tuple[ColumnSpec, ...]] = (
 FRAMES_COLUMNS: Final[tuple[ColumnSpec, ...]] = (
     ColumnSpec("session_uid", pa.string(), "", "the session (sessions.session_uid)"),
     ColumnSpec("seq", pa.int64(), "", "camera frame sequence number"),
-    ColumnSpec("t_s", pa.float64(), "s", "capture time " + _ORIGIN_DOC),
+    ColumnSpec(
+        "t_s", pa.float64(), "s", f"capture time {_SINCE}: t_capture_host_s - sessions.t0_host_s"
+    ),
     ColumnSpec("s_k_px", pa.int64(), "px", "occluded pixel count S_k in the ROI, Eq. (2)"),
     ColumnSpec("t_capture_host_s", pa.float64(), "s", "capture time, host monotonic clock"),
     ColumnSpec("t_host_s", pa.float64(), "s", "host monotonic time the frame was processed"),
