@@ -38,6 +38,7 @@ import pyarrow as pa
 from stipi_daemon import __version__
 from stipi_daemon.errors import SessionError
 from stipi_daemon.storage import layout
+from stipi_daemon.storage.lock import WriterLock
 from stipi_daemon.storage.reader import SessionReader, session_dirs
 from stipi_daemon.storage.results_table import session_row
 from stipi_daemon.storage.schema import VIDEO_FRAMES, SessionState
@@ -58,6 +59,8 @@ from stipi_daemon.study.dataset import (
 )
 from stipi_daemon.study.hashing import data_hash, file_hash, recorded_settings, settings_hash
 
+#: The lock file an indexing run holds in the dataset (``flock``; gone when it ends).
+LOCK_NAME: Final = "index.lock"
 #: Save ``study.json`` at least this often while indexing [s] (and at the end).
 SAVE_INTERVAL_S: Final = 5.0
 _DATE_RE: Final = re.compile(r"\d{4}-\d{2}-\d{2}")
@@ -249,6 +252,14 @@ def _uid_for(
     return uid, None
 
 
+def _still_indexed(
+    dataset: Path, entry: Mapping[str, Any], digest: str, summary_digest: str | None
+) -> bool:
+    """Whether an indexed session's dataset files are there and of this data and summary."""
+    same = (entry.get("data_hash"), entry.get("summary_hash")) == (digest, summary_digest)
+    return same and all((dataset / f).is_file() for f in entry.get("files", []))
+
+
 def _open_dataset(dataset: Path) -> dict[str, Any]:
     """The dataset's state, a new one (directory created) if there is none yet."""
     if (dataset / STUDY_FILE).exists():
@@ -286,7 +297,28 @@ def index_sessions(
         A root does not exist (checked before anything is written).
     """
     directories = [d for root in roots for d in session_dirs(root)]
-    state = _open_dataset(dataset)
+    _open_dataset(dataset)
+    try:
+        lock = WriterLock.acquire(dataset / LOCK_NAME, started_utc=layout.utc_now_iso())
+    except SessionError as exc:
+        busy = "another writer" in str(exc)
+        raise StudyError(
+            f"{dataset}: another `study index` is writing this dataset" if busy else str(exc)
+        ) from None
+    try:
+        state = load_state(dataset)  # as the last writer left it
+        return _index_all(dataset, state, directories, on_session)
+    finally:
+        lock.release()
+
+
+def _index_all(
+    dataset: Path,
+    state: dict[str, Any],
+    directories: Sequence[Path],
+    on_session: Callable[[str], None] | None,
+) -> IndexReport:
+    """Index ``directories`` into the open dataset, saving its state as it goes."""
     sessions: dict[str, Any] = state["sessions"]
     by_path = {str(e.get("path")): uid for uid, e in sessions.items()}
     report = IndexReport(dataset)
@@ -317,8 +349,9 @@ def _index_one(
     signature = _stat_signature(directory)
     known = by_path.get(path)
     if known is not None and sessions[known].get("stat") == signature:
-        report.unchanged += 1
-        return
+        if all((dataset / f).is_file() for f in sessions[known].get("files", [])):
+            report.unchanged += 1
+            return
     try:
         with SessionReader(directory) as reader:
             if reader.status is SessionState.RECORDING:
@@ -331,10 +364,7 @@ def _index_one(
                 report.notes.append(str(note))
                 return
             entry = sessions.get(uid)
-            if entry is not None and (entry.get("data_hash"), entry.get("summary_hash")) == (
-                digest,
-                summary_digest,
-            ):
+            if entry is not None and _still_indexed(dataset, entry, digest, summary_digest):
                 entry["stat"] = signature
                 report.unchanged += 1
                 return
