@@ -257,7 +257,7 @@ def _severity_class(inp: ReportInput) -> str | None:
 
 
 def _session_flags(inp: ReportInput) -> tuple[str, ...]:
-    """Every flag of the session's results and measurement, sorted, without repeats."""
+    """Every flag of the session's results, measurement and validity, sorted, once each."""
     found = [*flags_at(inp.results), *flags_at(value_at(inp.results, "pitting"))]
     found += flags_at(value_at(inp.results, "fitted_recovery"))
     for est in ("paper_estimator", "fitted_recovery"):
@@ -265,6 +265,8 @@ def _session_flags(inp: ReportInput) -> tuple[str, ...]:
     measured = value_at(inp.summary, "measurement_flags")
     if isinstance(measured, list):
         found += [str(f) for f in measured]
+    for q in (read_validity(inp.summary) or {}).values():
+        found += q.flags
     return tuple(sorted(set(found)))
 
 

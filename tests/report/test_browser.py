@@ -26,7 +26,10 @@ CHROMIUM_FLAGS = (
 )
 
 
-def _screenshot(page: Path, tmp_path: Path) -> tuple[np.ndarray, str]:
+def _screenshot(
+    page: Path, tmp_path: Path, size: tuple[int, int] = (1200, 3000)
+) -> tuple[np.ndarray, str]:
+    """Chromium's screenshot of ``page`` in a window of ``size`` (width, height) [px]."""
     shot = tmp_path / "shot.png"
     proc = subprocess.run(
         [
@@ -34,7 +37,9 @@ def _screenshot(page: Path, tmp_path: Path) -> tuple[np.ndarray, str]:
             *CHROMIUM_FLAGS,
             f"--user-data-dir={tmp_path / 'profile'}",
             f"--screenshot={shot}",
-            "--window-size=1200,3000",
+            "--hide-scrollbars",
+            "--force-device-scale-factor=1",
+            f"--window-size={size[0]},{size[1]}",
             page.resolve().as_uri(),
         ],
         capture_output=True,

@@ -251,30 +251,40 @@ def test_compare_table_mean_and_spread(inp: ReportInput) -> None:
     inputs = [_variant(inp, f"s{i}", scale) for i, scale in enumerate((1.0, 1.1, 0.8, 1.3))]
     table = compare_table(inputs, ["A", "A", "B", "B"])
     assert table.session_ids == ("s0", "s1", "s2", "s3")
+    assert table.grouped_by == "label"
     assert [g.label for g in table.groups] == ["A", "B"]
     assert table.groups[0].session_ids == ("s0", "s1")
+    assert not hasattr(table, "overall")  # different grades are never averaged together
     assert inp.summary is not None
     depth = inp.summary["results"]["pitting"]["depth_mm"]
-    overall = {s.key: s for s in table.overall.stats}["depth_mm"]
     values = np.array([1.0, 1.1, 0.8, 1.3]) * depth
-    assert overall.values == pytest.approx(tuple(values))
-    assert overall.n == 4
-    assert overall.mean == pytest.approx(values.mean())
-    assert overall.sd == pytest.approx(values.std(ddof=1))
-    assert overall.cv_percent == pytest.approx(100 * values.std(ddof=1) / values.mean())
-    group_b = {s.key: s for s in table.groups[1].stats}["depth_mm"]
-    assert group_b.mean == pytest.approx(values[2:].mean())
-    assert table.overall.severe_count + 0 <= table.overall.classified_count == 4
-    assert table.severities[0] is not None and "(" in table.severities[0]
+    assert [s.values["depth_mm"].value for s in table.sessions] == pytest.approx(list(values))
+    for group, part in zip(table.groups, (values[:2], values[2:]), strict=True):
+        stat = {s.key: s for s in group.stats}["depth_mm"]
+        assert stat.n == 2
+        assert stat.mean == pytest.approx(part.mean())
+        assert stat.sd == pytest.approx(part.std(ddof=1))
+        assert stat.cv_percent == pytest.approx(100 * part.std(ddof=1) / part.mean())
+        assert group.severe_count <= group.classified_count == 2
+    assert table.sessions[0].severity is not None and "(" in table.sessions[0].severity
 
 
 def test_compare_table_handles_missing_values_and_bad_labels(inp: ReportInput) -> None:
     bare = ReportInput(**{**inp.__dict__, "session_id": "bare", "summary": {"results": None}})
+    table = compare_table([inp, bare], ["x", "x"])
+    (group,) = table.groups
+    stat = {s.key: s for s in group.stats}["depth_mm"]
+    assert table.sessions[1].values["depth_mm"].value is None
+    # The bare session has no validity: it is left out of the mean, and says why.
+    assert group.session_ids == () or group.session_ids == (inp.session_id,)
+    assert [sid for sid, _ in group.left_out][-1] == "bare"
+    assert stat.n <= 1 and stat.sd is None and stat.cv_percent is None
+    assert table.labels == ("x", "x")
+    assert table.sessions[1].severity is None
+    # Without labels a session without a class is in no group, and that is said.
     table = compare_table([inp, bare])
-    stat = {s.key: s for s in table.overall.stats}["depth_mm"]
-    assert stat.values[1] is None and stat.n == 1 and stat.sd is None and stat.cv_percent is None
-    assert table.labels == (inp.session_id, "bare")
-    assert table.severities[1] is None
+    assert table.grouped_by == "nearest grade"
+    assert [sid for sid, _ in table.ungrouped] == ["bare"]
     with pytest.raises(AnalysisError, match="2 labels for 1 sessions"):
         compare_table([inp], ["a", "b"])
     with pytest.raises(AnalysisError, match="no session"):

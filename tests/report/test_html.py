@@ -79,7 +79,9 @@ def test_table_rows_flags_and_legend() -> None:
     ]
     page = _page(rows=rows, flag_descriptions={"not_settled": "T_r is a lower bound."})
     assert 'data-key="recovery_time_s">26.6<' in page
-    assert '<td class="num">3.2e-05</td>' in page
+    # The value is rounded with its standard error (2 significant figures).
+    assert 'data-key="time_constant_s">7.64900<' in page
+    assert '<td class="num">0.000032</td>' in page
     assert '<span class="flag">not_settled</span>' in page
     assert "T_r is a lower bound." in page
     assert "Ground truth" not in page  # no truth column without a ground truth
@@ -94,9 +96,15 @@ def test_verdict_names_each_flagged_or_invalid_quantity() -> None:
     page = _page(verdict=verdict, key_results=[("D_p", "— (not valid)", "invalid")])
     assert 'class="badge badge-invalid" id="status">invalid<' in page
     assert '<span id="verdict-line">Not valid: D_p.</span>' in page
-    assert '<tr data-quantity="depth_mm"><td>D_p (pitting depth)</td>' in page
-    assert '<td class="v-invalid">invalid</td><td>no frame at T_0</td>' in page
-    assert '<td class="v-flagged">flagged</td><td>a lower bound</td>' in page
+    assert (
+        '<li data-quantity="depth_mm"><b>D_p</b> (pitting depth) '
+        '<span class="v-invalid">invalid</span>: no frame at T_0 '
+        '<span class="flag">release_not_observed</span></li>'
+    ) in page
+    assert (
+        '<li data-quantity="recovery_time_s"><b>T_r</b> (recovery time) '
+        '<span class="v-flagged">flagged</span>: a lower bound'
+    ) in page
     assert '<span class="v-invalid">D_p = — (not valid)</span>' in page
 
 

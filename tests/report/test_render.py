@@ -20,6 +20,7 @@ from stipi_daemon.report.figures import (
 )
 from stipi_daemon.report.inputs import ReportInput
 from stipi_daemon.report.load import load_report_input
+from stipi_daemon.report.numbers import value_text
 from stipi_daemon.report.panels import frame_panels
 from stipi_daemon.storage import SessionReader
 
@@ -108,7 +109,10 @@ def test_vpr_figures_plot_the_curves_window_and_threshold(inp: ReportInput) -> N
     assert len(window) == 1
     x0, x1 = window[0].get_x(), window[0].get_x() + window[0].get_width()
     assert (x0, x1) == (11.0, 20.0)
-    assert any("severe if recovered < 62.0 %" in t for t in _labels(fig12))
+    assert any(
+        f"severe if recovered < {value_text(vpr.threshold_recovered_percent)} %" in t
+        for t in _labels(fig12)
+    )
 
 
 def test_window_search_figure_plots_every_pair() -> None:

@@ -239,13 +239,16 @@ def test_invalid_quantities_are_not_shown_as_results(inp: ReportInput, tmp_path:
     render_session_report(bad, tmp_path)
     page = (tmp_path / REPORT_HTML).read_text(encoding="utf-8")
     assert 'class="badge badge-invalid" id="status">invalid<' in page
-    assert "Not valid: D_p, E, eta, severity (release not observed)." in page
+    assert '<span id="verdict-line">some primary results cannot be trusted</span>' in page
     assert 'data-key="depth_mm" data-invalid="1">—' in page
     depth = (bad.summary or {})["results"]["pitting"]["depth_mm"]
     assert f'data-key="depth_mm">{depth:.4g}<' not in page
     assert f"invalid: {reason}" in page
-    assert '<tr data-quantity="depth_mm"><td>D_p (pitting depth)</td>' in page
-    assert '<tr data-quantity="recovery_time_s">' in page
+    assert (
+        '<li data-quantity="depth_mm"><b>D_p</b> (pitting depth) '
+        f'<span class="v-invalid">invalid</span>: {reason} '
+    ) in page
+    assert '<li data-quantity="recovery_time_s">' in page
     assert '<span class="v-invalid">D_p = — (not valid)</span>' in page
     assert "Not drawn, as not valid: this session&#x27;s depth curves D(t) (D_p not valid" in page
     assert "the paper estimator&#x27;s curve (E or η not valid" in page
@@ -257,7 +260,7 @@ def test_complete_only_when_every_primary_quantity_is_valid(inp: ReportInput) ->
     # A summary that claims complete with a flagged primary quantity is shown as flagged.
     claim = with_validity(inp, recovery_time_s=("flagged", ["not_settled"], "lower bound"))
     v = session_verdict(claim.summary, "complete")
-    assert v.status == "flagged" and "T_r" in v.line
+    assert v.status == "flagged" and "caveat" in v.line
     assert [p.quantity for p in v.problems] == ["recovery_time_s"]
     # A flagged secondary quantity does not change the verdict but is named.
     tau = with_validity(inp, tau_s=("flagged", ["time_constant_outside_window"], "tau long"))
@@ -278,7 +281,7 @@ def test_old_sessions_read_as_validity_unknown(inp: ReportInput, tmp_path: Path)
     render_session_report(old, tmp_path)
     page = (tmp_path / REPORT_HTML).read_text(encoding="utf-8")
     assert 'id="status">unknown<' in page
-    assert "Validity unknown (recorded before validity was kept)." in page
+    assert f'<span id="verdict-line">{UNKNOWN_LINE}</span>' in page
     malformed = {**summary, "validity": {"depth_mm": "?"}, "verdict": "?"}
     assert session_verdict(malformed, "complete").status == "invalid"
 
@@ -288,9 +291,14 @@ def test_old_sessions_read_as_validity_unknown(inp: ReportInput, tmp_path: Path)
 # --------------------------------------------------------------------------------------------
 
 
-def test_compare_excludes_invalid_values_and_shows_verdicts(inp: ReportInput) -> None:
+def test_compare_averages_only_complete_sessions_and_keeps_flags(inp: ReportInput) -> None:
     a = with_validity(inp, sid="a")
-    b = with_validity(inp, sid="b", recovery_time_s=("flagged", ["not_settled"], "lower bound"))
+    b = with_validity(
+        inp,
+        ("flagged", "Complete with caveats on T_r."),
+        sid="b",
+        recovery_time_s=("flagged", ["not_settled"], "lower bound"),
+    )
     c = with_validity(
         inp,
         ("invalid", "Not valid: D_p."),
@@ -300,14 +308,49 @@ def test_compare_excludes_invalid_values_and_shows_verdicts(inp: ReportInput) ->
     summary_c: dict[str, Any] = copy.deepcopy(dict(c.summary or {}))
     summary_c["results"]["pitting"]["depth_mm"] = 100.0  # a wrong value that must not count
     c = ReportInput(**{**c.__dict__, "summary": summary_c})
-    table = compare_table([a, b, c])
+    summary_b: dict[str, Any] = copy.deepcopy(dict(b.summary or {}))
+    summary_b["results"]["pitting"]["recovery_time_s"] = 1000.0  # flagged: must not count
+    summary_b["results"]["pitting"]["flags"] = ["not_settled"]
+    b = ReportInput(**{**b.__dict__, "summary": summary_b})
+    table = compare_table([a, b, c], ["I", "I", "I"])
     assert [v.status for v in table.verdicts] == ["complete", "flagged", "invalid"]
-    depth = {s.key: s for s in table.overall.stats}["depth_mm"]
-    assert depth.statuses == ("valid", "valid", "invalid")
-    assert depth.n == 2 and depth.n_excluded == 1
-    assert depth.mean == pytest.approx((inp.summary or {})["results"]["pitting"]["depth_mm"])
-    t_r = {s.key: s for s in table.overall.stats}["recovery_time_s"]
-    assert t_r.n == 3 and t_r.n_flagged == 1 and t_r.n_excluded == 0
+    (group,) = table.groups
+    assert group.session_ids == ("a",)
+    left = dict(group.left_out)
+    assert left["b"].startswith("verdict flagged: T_r flagged (not_settled)")
+    assert left["c"].startswith("verdict invalid: D_p invalid (release_not_observed)")
+    stats = {s.key: s for s in group.stats}
+    assert stats["depth_mm"].n == 1
+    assert stats["depth_mm"].mean == (inp.summary or {})["results"]["pitting"]["depth_mm"]
+    assert stats["recovery_time_s"].mean == pytest.approx(
+        (inp.summary or {})["results"]["pitting"]["recovery_time_s"]
+    )
+    # Each session keeps its flags and each value its validity with the flags.
+    sessions = {s.session_id: s for s in table.sessions}
+    assert "not_settled" in sessions["b"].flags
+    tr = sessions["b"].values["recovery_time_s"]
+    assert (tr.status, tr.flags) == ("flagged", ("not_settled",))
+    assert sessions["c"].values["depth_mm"].status == "invalid"
+
+
+def test_compare_page_says_what_was_left_out(inp: ReportInput) -> None:
+    from stipi_daemon.report.html import compare_page
+
+    a = with_validity(inp, sid="a")
+    c = with_validity(
+        inp,
+        ("invalid", "Not valid: D_p."),
+        sid="c",
+        depth_mm=("invalid", ["release_not_observed"], "release not observed"),
+    )
+    page = compare_page(table=compare_table([a, c], ["I", "I"]), figures=[], meta=[])
+    assert '<li data-left-out="c">I: c: verdict invalid: D_p invalid' in page
+    assert '<td class="num" data-validity="invalid">—<span class="not-valid">' in page
+    assert (
+        '<span class="badge badge-invalid">invalid</span><br>D_p invalid: release not observed'
+    ) in page
+    assert '<td data-flags="c"><span class="flag">' in page
+    assert '<th data-group="I">I (n = 1)</th>' in page
 
 
 def test_figures_say_when_t_r_or_tau_is_not_valid(inp: ReportInput) -> None:
@@ -328,22 +371,6 @@ def test_figures_say_when_t_r_or_tau_is_not_valid(inp: ReportInput) -> None:
     title = r.draw_fit(fit).axes[0].get_title()
     assert "τ not valid: the recovery fit did not converge" in title
     assert s_k_figure(with_validity(inp)).recovery_time_invalid is None
-
-
-def test_compare_page_says_what_was_excluded(inp: ReportInput) -> None:
-    from stipi_daemon.report.html import compare_page
-
-    a = with_validity(inp, sid="a")
-    c = with_validity(
-        inp,
-        ("invalid", "Not valid: D_p."),
-        sid="c",
-        depth_mm=("invalid", ["release_not_observed"], "release not observed"),
-    )
-    page = compare_page(table=compare_table([a, c]), figures=[], meta=[])
-    assert '<span class="not-valid">1 invalid excluded</span>' in page
-    assert '<td class="num" data-validity="invalid">—<span class="not-valid">' in page
-    assert '<span class="badge badge-invalid">invalid</span> Not valid: D_p.' in page
 
 
 def test_force_gaps_break_the_force_line_and_nan_frames_are_marked(inp: ReportInput) -> None:

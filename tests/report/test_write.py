@@ -14,6 +14,7 @@ import pytest
 
 from stipi_daemon.app.finish import write_report
 from stipi_daemon.errors import AnalysisError
+from stipi_daemon.report.numbers import value_text, value_with_uncertainty
 from stipi_daemon.report.write import (
     COMPARE_FIGURES,
     REPORT_DIR,
@@ -84,7 +85,10 @@ def test_session_report_figures_exist_and_are_embedded(demo_session: Path, tmp_p
     assert sid in page and 'id="status">complete<' in page
     # The table shows the summary's numbers (4 significant digits) and the fit's SE.
     assert f'data-key="depth_mm">{res["pitting"]["depth_mm"]:.4g}<' in page
-    assert f"{res['fitted_recovery']['tau_se_s']:.4g}" in page
+    tau, tau_se = value_with_uncertainty(
+        res["fitted_recovery"]["tau_s"], res["fitted_recovery"]["tau_se_s"]
+    )
+    assert f'data-key="time_constant_s">{tau}<' in page and f">{tau_se}<" in page
     assert "Ground truth" in page
     sev = res["severity"]["paper_estimator"]
     assert f"{sev['severity']} (nearest grade {sev['nearest_grade']})" in page
@@ -108,7 +112,7 @@ def test_report_of_a_session_without_results(demo_session: Path, tmp_path: Path)
     assert {"force", "s_k", "vpr", "vpr_normalised", "window_search"} <= set(written.figures)
     page = written.html_path.read_text(encoding="utf-8")
     assert 'id="status">incomplete<' in page
-    assert "Session incomplete (interrupted): no summary.json, no results." in page
+    assert "the session did not finish (interrupted: no summary.json)" in page
     assert "The session has no results." in page
     assert "Not drawn: the session has no results" in page
     assert "no summary.json" in page
@@ -148,15 +152,16 @@ def test_compare_report_tabulates_mean_and_spread(
             summary = reader.summary
         assert summary is not None
         depths.append(summary["results"]["pitting"]["depth_mm"])
-    values = np.array([depths[0], depths[1], depths[0]])
-    mean, sd = values.mean(), values.std(ddof=1)
-    # Overall row: mean ± SD (CV) of the three sessions; group I: two equal trials (SD 0).
-    assert f"{mean:.4g} ± {sd:.4g} ({100 * sd / mean:.1f} %)" in page
-    assert f"{depths[0]:.4g} ± 0 (0.0 %)" in page
-    assert "<th>I (n = 2)</th>" in page and "<th>all sessions (n = 3)</th>" in page
+    # Group I: two equal trials (SD 0); group II: one session. Grades I and II are never
+    # averaged together: there is no column over all sessions.
+    assert f"{value_text(depths[0])} ± 0 (0.00 %)" in page
+    assert f"{value_text(depths[1])} (n = 1)" in page
+    assert '<th data-group="I">I (n = 2)</th>' in page
+    assert '<th data-group="II">II (n = 1)</th>' in page
+    assert "all sessions" not in page.replace("no mean over all sessions", "")
     # Each session's verdict is shown (the recorded sessions are complete and valid).
     assert page.count('<td class="verdict-cell"><span class="badge badge-complete">') == 3
-    assert "(ended complete; verdict complete)" in page
+    assert "label I; ended complete; verdict complete" in page
 
 
 def test_compare_needs_two_sessions_and_matching_labels(demo_session: Path, tmp_path: Path) -> None:
@@ -189,7 +194,7 @@ def test_an_early_ended_session_shows_the_results_its_recording_allows(
     assert f"{doc.name} (stipi-daemon analyze of the recording)" in page
     assert "The session has no results." not in page
     assert 'data-key="depth_mm"' in page and "recovery_fit" in written.figures
-    assert written.verdict.startswith("incomplete: ")
+    assert written.verdict.startswith("incomplete (the session did not finish (interrupted")
     with SessionReader(session) as reader:  # the recording itself is untouched
         assert reader.status is SessionState.INTERRUPTED
         assert reader.summary is None
