@@ -5,7 +5,7 @@
 with the phases, the fitted recovery with residuals, the VPR curves of Eq. (10) against the
 reference grades with the severity window and threshold (the paper's Figs. 10-12), the
 parameter table and representative frames with their thresholding. ``--compare`` overlays
-several sessions and tabulates mean and spread per parameter (the paper's Tables I-II).
+several sessions and tabulates mean and spread per grade (the paper's Tables I-II).
 
 One module per concept. Pure (no files, no drawing):
 
@@ -14,7 +14,10 @@ One module per concept. Pure (no files, no drawing):
   window search);
 - :mod:`.parameter_table`: the parameter table, its rows as data, and the flags' meanings;
 - :mod:`.panels`: the representative frames thresholded again with the session's p and ROI;
-- :mod:`.compare`: several sessions side by side (``--compare``), overlays and statistics.
+- :mod:`.compare`: several sessions side by side (``--compare``), overlays and statistics
+  per grade (only complete sessions averaged);
+- :mod:`.numbers`: the one rounding rule of every table, caption and legend;
+- :mod:`.verdict`: the verdict block and each quantity's validity.
 
 Shell: :mod:`.load` reads a session directory into a ``ReportInput``; :mod:`.render` draws
 (matplotlib); :mod:`.html` builds the page; :mod:`.write` writes the files
