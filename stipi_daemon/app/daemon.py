@@ -37,7 +37,6 @@ from stipi_daemon.app.devices import (
     DaemonHandles,
     close_devices,
     open_devices,
-    scene_origin,
 )
 from stipi_daemon.app.finish import (
     finish_session,
@@ -182,7 +181,7 @@ async def run_daemon(
     reference = load_reference()
     console = OperatorConsole(config.measurement, out, live=live, quiet=quiet)
     wall0 = time.monotonic()
-    origin_s = scene_origin(clock, scene_origin_s)
+    origin_s = scene_origin_s  # None: open_devices chooses it (after the probe link, if need be)
     devices = await open_devices(config, clock, calibration, threshold, roi, origin_s=origin_s)
     writer = devices.writer
     if on_session is not None:

@@ -12,6 +12,11 @@ stops and closes them.
 Simulated and replayed devices (emulated probe, simulator camera, paced video file) play
 one scene: they share its time origin on the session clock (:func:`scene_origin`), set
 far enough ahead that all are open and the measurement is armed before the scene starts.
+A probe the daemon does not emulate in its own process (``serial``, ``ble`` without
+``emulate``: e.g. ``mock-peripheral`` in another process) plays its scene from the
+STREAM_START it receives; next to a simulated or replayed camera, the origin is then
+chosen once the probe link is open and the probe's STREAM_START is sent at it
+(:class:`SceneStartProbeLink`), so both streams start the scene together (docs/bench.md).
 Which transport or camera a config names is chosen by its ``kind`` (simulated ones through
 :mod:`stipi_daemon.registry`); which calibration, threshold and ROI apply is decided before
 (:mod:`stipi_daemon.app.imaging`). Nothing here measures or records rows.
@@ -20,6 +25,7 @@ Which transport or camera a config names is chosen by its ``kind`` (simulated on
 from __future__ import annotations
 
 import contextlib
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -40,12 +46,14 @@ __all__ = [
     "SCENE_LEAD_WALL_S",
     "DaemonHandles",
     "Devices",
+    "SceneStartProbeLink",
     "close_devices",
     "open_devices",
     "scene_origin",
 ]
 
-#: Wall time between start-up and the shared scene origin of simulated devices [s].
+#: Wall time between start-up and the shared scene origin of simulated devices [s]; for a
+#: probe that plays its scene from STREAM_START, between its link being open and the origin.
 SCENE_LEAD_WALL_S = 1.0
 
 
@@ -113,6 +121,68 @@ def scene_origin(clock: ScaledClock, given_s: float | None) -> float:
     return given_s if given_s is not None else clock.now() + SCENE_LEAD_WALL_S * clock.speed
 
 
+class SceneStartProbeLink(ProbeLink):
+    """A :class:`ProbeLink` whose first STREAM_START waits for a session time.
+
+    For a probe that plays its scene from the STREAM_START it receives (``mock-peripheral``,
+    a Feather emulated in another process) next to a simulated or replayed camera: the
+    daemon's first :meth:`start_stream` sleeps until :attr:`stream_start_at_s`, so the
+    probe's scene starts at the camera's scene origin. Reconnections start the stream at
+    once, as :class:`ProbeLink` does (the scene goes on in the probe).
+    """
+
+    stream_start_at_s: float | None = None
+    """Session time to send the first STREAM_START at [s] (None: at once)."""
+    on_stream_start: Callable[[float, float], None] | None = None
+    """Called with the scheduled and the actual session time of that STREAM_START [s]."""
+
+    async def start_stream(self) -> None:
+        at, self.stream_start_at_s = self.stream_start_at_s, None
+        if at is None:
+            await super().start_stream()
+            return
+        await self.clock.sleep_until(at)
+        sent_s = self.clock.now()
+        await super().start_stream()
+        if self.on_stream_start is not None:
+            self.on_stream_start(at, sent_s)
+
+
+def plays_scene_from_stream_start(config: DaemonConfig) -> bool:
+    """Whether the probe's scene starts with STREAM_START next to a scene-playing camera.
+
+    True for a probe the daemon does not emulate in its own process (``serial``, ``ble``
+    without ``emulate``) and a simulator camera or a paced video file: the two play one
+    scene on separate clocks, and only STREAM_START ties the probe's to the session's.
+    """
+    tc = config.probe.transport
+    in_process = tc.kind == "emulated" or (tc.kind == "ble" and tc.emulate is not None)
+    return _plays_scene(config) and not in_process
+
+
+def _plays_scene(config: DaemonConfig) -> bool:
+    """Whether the camera plays the scene on the session clock (simulator, paced file)."""
+    # A paced video file replays the scene too (e.g. the simulator's rendering of it).
+    return config.camera.kind == "simulator" or (
+        config.camera.kind == "file" and config.camera.pace
+    )
+
+
+def _follow_probe_link(clock: ScaledClock, probe: SceneStartProbeLink) -> float:
+    """The scene origin chosen once the probe link is open [s]; schedules STREAM_START.
+
+    The origin is :data:`SCENE_LEAD_WALL_S` of wall time from now: the camera opens, the
+    session is created and the measurement armed before it. STREAM_START goes one sample
+    period before it: the firmware restarts its sample timer on STREAM_START and takes the
+    first sample one period later (``firmware/feather32u4/src/hal_avr.cpp``, CTC mode from
+    TCNT1 = 0; :class:`~stipi_daemon.sim.feather.FeatherCore` likewise), and that sample is
+    the probe's scene time 0.
+    """
+    origin_s = clock.now() + SCENE_LEAD_WALL_S * clock.speed
+    probe.stream_start_at_s = origin_s - 1.0 / probe.rate_hz
+    return origin_s
+
+
 def _transport_config(config: DaemonConfig, origin_s: float) -> TransportConfig:
     """The probe's transport config, an emulated probe's scene started at ``origin_s``."""
     tc = config.probe.transport
@@ -124,10 +194,14 @@ def _transport_config(config: DaemonConfig, origin_s: float) -> TransportConfig:
     return tc
 
 
-def _probe_link(config: DaemonConfig, clock: ScaledClock, origin_s: float) -> ProbeLink:
-    """The probe link the config describes (not yet connected)."""
+def _probe_link(
+    config: DaemonConfig, clock: ScaledClock, origin_s: float, *, scheduled_start: bool = False
+) -> ProbeLink:
+    """The probe link the config describes (not yet connected); with ``scheduled_start`` a
+    :class:`SceneStartProbeLink`."""
     pc = config.probe
-    return ProbeLink(
+    cls = SceneStartProbeLink if scheduled_start else ProbeLink
+    return cls(
         open_transport(_transport_config(config, origin_s), clock),
         clock=clock,
         rate_hz=pc.rate_hz,
@@ -141,10 +215,7 @@ def _probe_link(config: DaemonConfig, clock: ScaledClock, origin_s: float) -> Pr
 
 def _camera_stream(config: DaemonConfig, clock: ScaledClock, origin_s: float) -> CameraStream:
     """The camera stream the config describes (not yet opened)."""
-    # A paced video file replays the scene too (e.g. the simulator's rendering of it).
-    simulated = config.camera.kind == "simulator" or (
-        config.camera.kind == "file" and config.camera.pace
-    )
+    simulated = _plays_scene(config)
     return CameraStream(
         open_camera(config.camera, clock, t0_s=origin_s if simulated else None),
         clock,
@@ -257,7 +328,7 @@ async def open_devices(
     threshold_p: int,
     roi: CircleROI | RectROI | None,
     *,
-    origin_s: float,
+    origin_s: float | None,
 ) -> Devices:
     """Connect the probe, open the camera, then create the session.
 
@@ -269,8 +340,12 @@ async def open_devices(
         The session clock.
     calibration, threshold_p, roi
         What S_k is counted with (:mod:`stipi_daemon.app.imaging`), for the manifest.
-    origin_s : float
-        Session time of scene time 0 for simulated and replayed devices [s].
+    origin_s : float or None
+        Session time of scene time 0 for simulated and replayed devices [s], given when a
+        device the caller started plays the scene from that instant (kept as it is); None:
+        :func:`scene_origin` chooses it, and for a probe that plays its scene from
+        STREAM_START next to a scene-playing camera (:func:`plays_scene_from_stream_start`)
+        it is chosen again once the probe link is open, and STREAM_START sent at it.
 
     Raises
     ------
@@ -280,15 +355,24 @@ async def open_devices(
         cannot be created (one line; what was opened is closed again and nothing is
         recorded).
     """
-    probe = _probe_link(config, clock, origin_s)
-    camera = _camera_stream(config, clock, origin_s)
+    # A probe playing its scene from STREAM_START: the camera's origin is chosen once the
+    # probe link is open (connecting over BLE can take longer than the lead).
+    follow = origin_s is None and plays_scene_from_stream_start(config)
+    origin_s = scene_origin(clock, origin_s)
+    probe = _probe_link(config, clock, origin_s, scheduled_start=follow)
+    camera = None if follow else _camera_stream(config, clock, origin_s)
     await probe.connect()
     try:
+        if camera is None:
+            assert isinstance(probe, SceneStartProbeLink)
+            origin_s = _follow_probe_link(clock, probe)
+            camera = _camera_stream(config, clock, origin_s)
         await camera.open()
         _check_roi(config, camera, roi)
     except BaseException:
-        with contextlib.suppress(Exception):
-            await camera.close()
+        if camera is not None:
+            with contextlib.suppress(Exception):
+                await camera.close()
         await probe.close()
         raise
     try:
@@ -297,8 +381,36 @@ async def open_devices(
         await camera.close()
         await probe.close()
         raise
+    if isinstance(probe, SceneStartProbeLink):
+        _record_stream_start(writer, probe, origin_s)
     recorder = _video_recorder(config, writer, threshold_p, roi, clock, camera.camera.metadata())
     return Devices(clock, probe, camera, writer, recorder)
+
+
+def _record_stream_start(
+    writer: SessionWriter, probe: SceneStartProbeLink, origin_s: float
+) -> None:
+    """Record, when it is sent, when the probe's STREAM_START was due and went out.
+
+    Event ``stream_start``: the camera's scene origin, the scheduled and the actual session
+    time of STREAM_START [s]; ``late_s`` > 0 shifts the probe's scene after the camera's by
+    that much (the release's image/force check flags more than a few frame periods).
+    """
+
+    def record(at_s: float, sent_s: float) -> None:
+        writer.add_event(
+            sent_s,
+            "stream_start",
+            {
+                "scene_origin_s": origin_s,
+                "scheduled_s": at_s,
+                "sent_s": sent_s,
+                "late_s": sent_s - at_s,
+                "rule": "the probe plays its scene from STREAM_START (docs/bench.md)",
+            },
+        )
+
+    probe.on_stream_start = record
 
 
 async def close_devices(devices: Devices) -> None:
