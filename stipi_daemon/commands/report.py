@@ -109,6 +109,8 @@ def run(args: argparse.Namespace) -> int:
     print(f"report: {written.html_path}")
     if written.verdict:
         print(f"verdict: {written.verdict}")
+    if written.recovery_models:
+        print(written.recovery_models)
     print(f"figures: {len(written.figures)} PNG(s) in {written.html_path.parent}")
     for name, reason in written.missing.items():
         print(f"not drawn: {name}: {reason}")

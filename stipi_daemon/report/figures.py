@@ -54,6 +54,7 @@ __all__ = [
     "measurement_curves",
     "omitted_curves",
     "phase_spans",
+    "recorded_outliers",
     "s_k_figure",
     "vpr_figure",
     "window_search_figure",
@@ -249,7 +250,7 @@ def _recorded_pair(results: Mapping[str, Any] | None, key: str) -> tuple[float, 
     return float(v[0]), float(v[1])
 
 
-def _recorded_outliers(inp: ReportInput) -> NDArray[np.bool_]:
+def recorded_outliers(inp: ReportInput) -> NDArray[np.bool_]:
     """The frames the analysis recorded leaving out as outliers (none when not recorded)."""
     recorded = value_at(_observed(inp.results), "outlier_frame_times_s")
     if not isinstance(recorded, list):
@@ -264,7 +265,7 @@ def _recorded_outliers(inp: ReportInput) -> NDArray[np.bool_]:
 def _outlier_frames(inp: ReportInput) -> tuple[NDArray[np.bool_], Literal["analysis", "report"]]:
     """The outlier frames the analysis recorded, else the report's own check."""
     if isinstance(value_at(_observed(inp.results), "outlier_frame_times_s"), list):
-        return _recorded_outliers(inp), "analysis"
+        return recorded_outliers(inp), "analysis"
     return isolated_outliers(inp.frame_times_s, inp.s_k_px, inp.t0_s), "report"
 
 
@@ -369,7 +370,7 @@ def fit_figure(inp: ReportInput) -> FitFigure | None:
     lo, hi = float(window[0]), float(window[1])
     t, s = inp.frame_times_s, inp.s_k_px
     sel = (t >= lo) & (t <= hi) & (t >= t0) & np.isfinite(s)
-    rejected = sel & _recorded_outliers(inp)
+    rejected = sel & recorded_outliers(inp)
     sel &= ~rejected
     ts, ss = t[sel], s[sel]
     model = kelvin_voigt_recovery(ts, t0, off, amp, tau)

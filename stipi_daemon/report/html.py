@@ -25,6 +25,14 @@ from stipi_daemon.report.compare import (
 )
 from stipi_daemon.report.numbers import percent_text, value_text, value_with_uncertainty
 from stipi_daemon.report.parameter_table import ParameterRow
+from stipi_daemon.report.recovery_models import (
+    COLUMNS as MODEL_COLUMNS,
+)
+from stipi_daemon.report.recovery_models import (
+    INTERVAL_QUANTITIES,
+    RecoveryModelsView,
+    row_cells,
+)
 from stipi_daemon.report.verdict import QuantityStatus, VerdictView
 
 __all__ = [
@@ -32,6 +40,7 @@ __all__ = [
     "compare_page",
     "format_number",
     "metadata_html",
+    "recovery_models_html",
     "session_page",
     "validity_text",
     "verdict_html",
@@ -66,6 +75,8 @@ figcaption { font-size: 0.9em; color: #444; margin-top: 0.3em; }
 .v-valid { color: #1a7f37; } .v-flagged { color: #b35900; } .v-invalid { color: #c62828; }
 .v-unknown { color: #777; }
 tr.invalid td { background: #fbeaea; }
+tr.best td { background: #eaf4ea; font-weight: bold; }
+.ci { color: #555; font-size: 0.85em; display: block; }
 .not-valid { color: #999; font-size: 0.85em; display: block; }
 td.verdict-cell { min-width: 18em; font-size: 0.9em; }
 dl.meta { display: grid; grid-template-columns: max-content auto; gap: 0.15em 1em; }
@@ -290,6 +301,51 @@ def metadata_html(metadata: Mapping[str, str | None] | None, problem: str | None
     return f'<section id="metadata"><dl class="meta">{items}</dl></section>'
 
 
+def recovery_models_html(view: RecoveryModelsView | None, absence: str | None = None) -> str:
+    """The "Recovery models" section: the table, the rejection line and the rules; or the
+    one line saying why the session has none."""
+    if view is None:
+        return (
+            '<section id="recovery-models"><p class="missing">'
+            f"{_e(absence or 'Recovery models: none recorded.')}</p></section>"
+        )
+    head = "".join(f"<th>{_e(c)}</th>" for c in ("Model", *MODEL_COLUMNS, "τ means", "Flags"))
+    body = []
+    for row in view.rows:
+        cells = row_cells(row)
+        numbers = "".join(f'<td class="num">{_e(c)}</td>' for c in cells[:3])
+        quantities = "".join(
+            f'<td class="num">{_e(row.values[k])}<span class="ci">{_e(row.intervals[k])}</span>'
+            "</td>"
+            for k in INTERVAL_QUANTITIES
+        )
+        cls, best = (' class="best"', " — best") if row.best else ("", "")
+        body.append(
+            f'<tr data-model="{_e(row.name)}"{cls}>'
+            f"<td>{_e(row.title)}{best}<br><code>{_e(row.name)}</code>"
+            f"</td>{numbers}{quantities}<td>{_e(row.tau_meaning)}</td>"
+            f"<td>{_flags_html(row.flags)}</td></tr>"
+        )
+    flag = (
+        f'<p id="kv-flag"><span class="flag">kelvin_voigt_rejected</span> {_e(view.flag_text)}</p>'
+        if view.flag_text
+        else ""
+    )
+    return (
+        '<section id="recovery-models"><h2>Recovery models</h2>'
+        "<p>Every model fitted to the same recovery frames. Each quantity: the value and its "
+        "95 % interval [low, high] below it. The QAICc weight decides the best model and the "
+        "Kelvin-Voigt rejection (the Akaike weight, by plain AICc, is shown beside it); the "
+        "best model is marked.</p>"
+        f'<div class="scroll"><table id="recovery-models-table"><tr>{head}</tr>'
+        + "".join(body)
+        + "</table></div>"
+        f'<p id="kv-rejection">{_e(view.rejection_line)}</p>{flag}'
+        f"<p>Selection: {_e(view.selection)}. Intervals: {_e(view.intervals)}. "
+        f"Fitted: {_e(view.window_text)}.</p></section>"
+    )
+
+
 def session_page(
     *,
     session_id: str,
@@ -303,6 +359,7 @@ def session_page(
     metadata: Mapping[str, str | None] | None = None,
     metadata_problem: str | None = None,
     source: str = "",
+    recovery_models: str = "",
 ) -> str:
     """The HTML page of one session.
 
@@ -330,6 +387,9 @@ def session_page(
         Why the metadata could not be read.
     source : str
         Where the results come from when they are not the recorded ones.
+    recovery_models : str
+        The "Recovery models" section (:func:`recovery_models_html`), placed after the
+        recovery figures.
     """
     body = [
         f"<h1>STIP-I session report: {_e(session_id)}</h1>",
@@ -342,7 +402,14 @@ def session_page(
         + ", ".join(f'<a href="#fig-{_e(f.name)}">{_e(f.title)}</a>' for f in figures)
         + ', <a href="#table">parameters</a>.</p></nav>',
     ]
-    body += [_figure_html(f) for f in figures]
+    names = [f.name for f in figures]
+    after = next((n for n in ("recovery_models", "recovery_fit") if n in names), None)
+    for f in figures:
+        body.append(_figure_html(f))
+        if f.name == after:
+            body.append(recovery_models)
+    if after is None:
+        body.append(recovery_models)
     body.append('<section id="table"><h2>Parameters</h2>')
     if rows:
         body.append(

@@ -39,11 +39,13 @@ from stipi_daemon.report.figures import (
 from stipi_daemon.report.inputs import FloatArray
 from stipi_daemon.report.numbers import value_text, value_with_uncertainty
 from stipi_daemon.report.panels import FramePanel
+from stipi_daemon.report.recovery_models import RecoveryModelsFigure
 from stipi_daemon.report.series import TimeGap
 
 __all__ = [
     "DPI",
     "MEASUREMENT_ZORDER",
+    "MODEL_STYLES",
     "PHASE_COLOURS",
     "REFERENCE_DASHES",
     "REFERENCE_ZORDER",
@@ -54,6 +56,7 @@ __all__ = [
     "draw_frames",
     "draw_normalised",
     "draw_overlay",
+    "draw_recovery_models",
     "draw_s_k",
     "draw_vpr",
     "draw_window_search",
@@ -437,6 +440,74 @@ def draw_fit(data: FitFigure, title: str = "") -> Figure:
     res.set_gid("fit_residual")
     axr.axhline(0.0, color="#d62728", lw=1.0)
     axr.set_ylabel("residual [px]")
+    axr.set_xlabel("time since $T_0$ [s]")
+    axr.grid(True, alpha=0.3)
+    return fig
+
+
+#: Colour and dash pattern of each recovery model's curve (a model not listed: grey dotted).
+MODEL_STYLES: Final[dict[str, tuple[str, Any]]] = {
+    "kelvin_voigt": ("#d62728", "-"),
+    "two_exponential": ("#1f77b4", (0.0, (6.0, 2.0))),
+    "power_law": ("#2ca02c", (0.0, (6.0, 2.0, 1.5, 2.0))),
+}
+
+
+def draw_recovery_models(data: RecoveryModelsFigure, title: str = "") -> Figure:
+    """The recovery S_k frames with every recovery model's curve (top) and each model's
+    residuals (bottom); the best model drawn widest, the legend naming each model's weights."""
+    fig = _figure(5.8, rows=2, height_ratios=(3.0, 1.4))
+    ax, axr = fig.axes
+    (pts,) = ax.plot(
+        data.t_since_t0_s,
+        data.s_k_px,
+        ".",
+        color="#9a9a9a",
+        ms=2.5,
+        label=f"$S_k$ data ({data.t_since_t0_s.size} frames)",
+    )
+    pts.set_gid("models_data")
+    if data.rejected_t_since_t0_s.size:
+        (rej,) = ax.plot(
+            data.rejected_t_since_t0_s,
+            _within_line_range(ax, data.s_k_px, data.rejected_s_k_px),
+            "X",
+            color="#d62728",
+            ms=7,
+            ls="none",
+            clip_on=False,
+            label=f"outlier frames left out ({data.rejected_t_since_t0_s.size})",
+        )
+        rej.set_gid("models_rejected")
+    for c in data.curves:
+        colour, dashes = MODEL_STYLES.get(c.name, ("#555555", ":"))
+        (line,) = ax.plot(
+            c.t_since_t0_s,
+            c.model_px,
+            color=colour,
+            ls=dashes,
+            lw=2.6 if c.best else 1.5,
+            label=c.label,
+            zorder=3.0 if c.best else 2.5,
+        )
+        line.set_gid(f"model_{c.name}")
+        if c.model_px.size:
+            (res,) = axr.plot(
+                c.t_since_t0_s,
+                data.s_k_px - c.model_px,
+                color=colour,
+                ls=dashes,
+                lw=1.0,
+            )
+            res.set_gid(f"model_residual_{c.name}")
+    ax.set_ylabel("$S_k$ [px]")
+    ax.set_title(
+        (title or "Recovery models fitted to $S_k$") + "\n" + data.rejection_line, fontsize=9.5
+    )
+    unique_legend(ax, loc="lower right", fontsize=8)
+    ax.grid(True, alpha=0.3)
+    axr.axhline(0.0, color="#555555", lw=0.8)
+    axr.set_ylabel("data − model [px]")
     axr.set_xlabel("time since $T_0$ [s]")
     axr.grid(True, alpha=0.3)
     return fig

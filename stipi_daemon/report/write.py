@@ -32,11 +32,23 @@ from stipi_daemon.report.figures import (
     vpr_figure,
     window_search_figure,
 )
-from stipi_daemon.report.html import EmbeddedFigure, compare_page, format_number, session_page
+from stipi_daemon.report.html import (
+    EmbeddedFigure,
+    compare_page,
+    format_number,
+    recovery_models_html,
+    session_page,
+)
 from stipi_daemon.report.inputs import ReportInput
 from stipi_daemon.report.load import load_report_input
 from stipi_daemon.report.panels import frame_panels
 from stipi_daemon.report.parameter_table import ParameterRow, flag_descriptions, parameter_table
+from stipi_daemon.report.recovery_models import (
+    absence_line,
+    recovery_models_figure,
+    recovery_models_text,
+    recovery_models_view,
+)
 from stipi_daemon.report.verdict import VerdictView, read_validity, session_verdict
 
 __all__ = [
@@ -64,6 +76,7 @@ SESSION_FIGURES: Final[dict[str, str]] = {
     "force": "Force over time",
     "s_k": "S_k over time",
     "recovery_fit": "Recovery fit and residuals",
+    "recovery_models": "Recovery models",
     "vpr": "VPR model (Fig. 10)",
     "window_search": "Severity window search (Fig. 11)",
     "vpr_normalised": "Severity classification (Fig. 12)",
@@ -93,12 +106,17 @@ class WrittenReport:
     verdict : str
         The verdict the page shows, as text (:func:`verdict_text`: the status, then one
         line per flagged or invalid quantity); empty for a comparison.
+    recovery_models : str
+        The page's "Recovery models" table as plain text
+        (:func:`~.recovery_models.recovery_models_text`), or the one line saying why the
+        session has none; empty for a comparison.
     """
 
     html_path: Path
     figures: dict[str, Path] = field(default_factory=dict)
     missing: dict[str, str] = field(default_factory=dict)
     verdict: str = ""
+    recovery_models: str = ""
 
 
 def _write_atomic(path: Path, payload: bytes) -> None:
@@ -244,6 +262,12 @@ def _session_makers(
             return "no fitted recovery" if inp.results is not None else no_results
         return r.draw_fit(data)
 
+    def models() -> Figure | str:
+        data = recovery_models_figure(inp)
+        if data is None:
+            return "no recovery models or no T_0 in the results"
+        return r.draw_recovery_models(data)
+
     def frames() -> Figure | str:
         panels = frame_panels(inp)
         if not panels:
@@ -282,6 +306,16 @@ def _session_makers(
             "Kelvin-Voigt recovery S_inf - A exp(-(t - T_0)/tau) fitted to S_k over the "
             "recovery window (top) and the residuals data - fit (bottom).",
             fit,
+        ),
+        (
+            "recovery_models",
+            SESSION_FIGURES["recovery_models"],
+            "S_k over the recovery window with every recovery model fitted to the same frames "
+            "(Kelvin-Voigt solid red, two exponentials dashed blue, power law dash-dotted "
+            "green; the best model, highest QAICc weight, widest), each curve "
+            "offset - amplitude g(t - T_0) from its recorded parameters; the legend gives each "
+            "model's Akaike and QAICc weights; below, data - model.",
+            models,
         ),
         (
             "vpr",
@@ -367,7 +401,14 @@ def render_session_report(
     ref = reference if reference is not None else load_reference()
     recorded = inp
     inp, source = _with_rescued_results(recorded)
-    embedded, written, missing = _make_figures(_session_makers(inp, ref), out_dir)
+    makers = _session_makers(inp, ref)
+    notes = _notes(inp)
+    absence = absence_line(inp.results, notes)
+    if absence is not None:  # no section: one line says why (an older summary...)
+        makers = [m for m in makers if m[0] != "recovery_models"]
+        (out_dir / "recovery_models.png").unlink(missing_ok=True)
+    embedded, written, missing = _make_figures(makers, out_dir)
+    models_view = recovery_models_view(inp.results)
     rows = parameter_table(inp.summary)
     verdict = session_verdict(inp.summary, recorded.status)
     page = session_page(
@@ -383,14 +424,21 @@ def render_session_report(
         figures=embedded,
         rows=rows,
         flag_descriptions=flag_descriptions(),
-        notes=_notes(inp),
+        notes=notes,
         metadata=recorded.metadata,
         metadata_problem=recorded.metadata_problem,
         source=source,
+        recovery_models=recovery_models_html(models_view, absence),
     )
     html_path = out_dir / REPORT_HTML
     _write_atomic(html_path, page.encode("utf-8"))
-    return WrittenReport(html_path, written, missing, verdict_text(verdict))
+    return WrittenReport(
+        html_path,
+        written,
+        missing,
+        verdict_text(verdict),
+        recovery_models_text(models_view, absence),
+    )
 
 
 def verdict_text(verdict: VerdictView) -> str:
