@@ -11,9 +11,9 @@ is pure: the sessions come as :class:`~.inputs.ReportInput`.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from typing import Final, Literal
+from typing import Any, Final, Literal
 
 import numpy as np
 
@@ -33,6 +33,7 @@ __all__ = [
     "compare_table",
     "overlay_force",
     "overlay_s_k",
+    "recovery_model_text",
     "value_status",
 ]
 
@@ -113,6 +114,9 @@ class CompareSession:
         Parameter key (:data:`COMPARE_PARAMETERS`) -> its value.
     left_out : str or None
         Why the session enters no mean (None: it does).
+    recovery_model : str
+        The best recovery model and whether Kelvin-Voigt is rejected
+        (:func:`recovery_model_text`).
     """
 
     session_id: str
@@ -124,6 +128,7 @@ class CompareSession:
     subject: str | None
     values: dict[str, SessionValue]
     left_out: str | None
+    recovery_model: str = "-"
 
 
 @dataclass(frozen=True)
@@ -294,6 +299,28 @@ def _grade_of(inp: ReportInput) -> str:
     return "" if grade is None else f"grade {grade} (nearest)"
 
 
+def recovery_model_text(results: Mapping[str, Any] | None) -> str:
+    """The best recovery model and the Kelvin-Voigt decision, in a few words.
+
+    ``two_exponential; kelvin_voigt_rejected``, ``kelvin_voigt; Kelvin-Voigt not rejected``,
+    or why there is none (no results, a summary from before the comparison, not compared).
+    """
+    if results is None:
+        return "- (no results)"
+    if "recovery_models" not in results:
+        return "- (summary predates the recovery models)"
+    rm = results.get("recovery_models")
+    if not isinstance(rm, Mapping):
+        return "- (not compared)"
+    best = rm.get("best_model")
+    best_text = str(best) if isinstance(best, str) else "none"
+    if rm.get("kelvin_voigt_rejected") is True:
+        return f"{best_text}; kelvin_voigt_rejected"
+    if value_at(rm, "kelvin_voigt_delta_qaicc") is None:
+        return f"{best_text}; Kelvin-Voigt not weighed"
+    return f"{best_text}; Kelvin-Voigt not rejected"
+
+
 def _session(inp: ReportInput, label: str, group: str) -> CompareSession:
     verdict = session_verdict(inp.summary, inp.status)
     cls = _severity_class(inp)
@@ -308,6 +335,7 @@ def _session(inp: ReportInput, label: str, group: str) -> CompareSession:
         subject=_subject(inp),
         values={key: _session_value(inp, key, path) for key, _, _, path in COMPARE_PARAMETERS},
         left_out=_left_out(verdict),
+        recovery_model=recovery_model_text(inp.results),
     )
 
 

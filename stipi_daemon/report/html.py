@@ -474,6 +474,7 @@ def _sessions_table(sessions: Sequence[CompareSession], by_label: bool) -> str:
         "Verdict",
         *[f"{sym} [{unit}]" for _, sym, unit, _ in COMPARE_PARAMETERS],
         "Severity",
+        "Best recovery model; Kelvin-Voigt",
         "Flags",
     ]
     out = ['<div class="scroll"><table id="sessions"><thead><tr>']
@@ -495,6 +496,7 @@ def _sessions_table(sessions: Sequence[CompareSession], by_label: bool) -> str:
         ]
         cells += [_session_value_cell(s.values[key]) for key, _, _, _ in COMPARE_PARAMETERS]
         cells.append(f"<td>{_e(s.severity or '-')}</td>")
+        cells.append(f'<td data-recovery-model="{_e(s.session_id)}">{_e(s.recovery_model)}</td>')
         cells.append(f'<td data-flags="{_e(s.session_id)}">{_flags_html(s.flags) or "-"}</td>')
         out.append(f'<tr data-session="{_e(s.session_id)}">' + "".join(cells) + "</tr>")
     out.append("</tbody></table></div>")
