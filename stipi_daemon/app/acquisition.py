@@ -41,7 +41,9 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import time
+from collections import deque
 from collections.abc import AsyncIterator, Callable, Coroutine
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Any
 
@@ -58,7 +60,7 @@ from stipi_daemon.cameras import CameraStalled as CamStalled
 from stipi_daemon.cameras.threaded import ThreadedCamera
 from stipi_daemon.clock import ScaledClock
 from stipi_daemon.measurement.merge import TimeOrderedMerger
-from stipi_daemon.measurement.pipeline import MeasurementPipeline
+from stipi_daemon.measurement.pipeline import LiveParameters, MeasurementPipeline, compute_live
 from stipi_daemon.measurement.representative_frames import RepresentativeFrames
 from stipi_daemon.measurement.state_machine import (
     Advisory,
@@ -104,6 +106,9 @@ LATE_GAP_REASON = "processing_behind"
 COMMIT_SPACING_WALL_S = 0.005
 #: Shortest wall time between two frames' S_k shown on the console [s] (it redraws at 4 Hz).
 CONSOLE_FRAME_INTERVAL_WALL_S = 0.05
+#: Live computations (snapshots taken every LIVE_INTERVAL_S) waiting on the worker thread
+#: before the loop waits for the oldest: the loop never falls further behind than this.
+LIVE_BACKLOG_MAX = 4
 
 OnRunning = Callable[[DaemonHandles], Coroutine[Any, Any, None]]
 """An async callback run as a task while the daemon records (see :class:`DaemonHandles`)."""
@@ -318,6 +323,10 @@ class Acquisition:
         self._queue: asyncio.Queue[object] = asyncio.Queue(maxsize=QUEUE_MAX_EVENTS)
         self._tasks: list[asyncio.Task[None]] = []
         self._next_live_s = 0.0
+        # The live fit runs on a worker thread, off the event loop (tens of ms at 60 fps
+        # and a long recovery); its rows are stored in the order the snapshots were taken.
+        self._live_pool: ThreadPoolExecutor | None = None
+        self._live_pending: deque[tuple[float, asyncio.Future[LiveParameters | None]]] = deque()
         self.counts = {
             "frames": 0,
             "samples": 0,
@@ -398,8 +407,11 @@ class Acquisition:
             if outputs:
                 self._record(outputs)
             if pipeline.finished:
+                await self._drain_live(wait=True)
                 return
             self._store_live()
+            if self._live_pending:
+                await self._drain_live(wait=len(self._live_pending) > LIVE_BACKLOG_MAX)
 
     def _commit_frames(self) -> None:
         """Commit the buffered frame rows (and whatever else is buffered) when the queue is
@@ -428,8 +440,13 @@ class Acquisition:
             self._tasks.append(asyncio.create_task(on_running(handles), name="on_running"))
 
     async def stop(self) -> None:
-        """Cancel the pumps, the ticker and the ``on_running`` task, and wait for them."""
+        """Cancel the pumps, the ticker and the ``on_running`` task, and wait for them; end
+        the live fit's worker thread (live rows not yet stored are left out)."""
         tasks, self._tasks = self._tasks, []
+        pool, self._live_pool = self._live_pool, None
+        if pool is not None:
+            pool.shutdown(wait=False, cancel_futures=True)
+        self._live_pending.clear()
         pending = set(tasks)
         while pending:
             # A cancellation can be swallowed (asyncio.wait_for in a camera's read racing
@@ -482,14 +499,38 @@ class Acquisition:
                 writer.add_event(now, "prompt", {"text": o.text})
 
     def _store_live(self) -> None:
-        """Every LIVE_INTERVAL_S after the release: store and show the live parameters."""
+        """Every LIVE_INTERVAL_S after the release: snapshot the series and compute the
+        live parameters on the worker thread (stored by :meth:`_drain_live`)."""
         now = self._pipeline.state.now_s
         if now >= self._next_live_s and self._pipeline.state.t_release_s is not None:
             self._next_live_s = now + LIVE_INTERVAL_S
-            live_params = self._pipeline.live()
+            inputs = self._pipeline.live_inputs()
+            if inputs is None:
+                return
+            if self._live_pool is None:
+                self._live_pool = ThreadPoolExecutor(1, thread_name_prefix="stipi-live")
+            future = asyncio.get_running_loop().run_in_executor(
+                self._live_pool, compute_live, inputs
+            )
+            self._live_pending.append((now, future))
+
+    async def _drain_live(self, *, wait: bool) -> None:
+        """Store and show the finished live parameters, oldest first; with ``wait``, wait
+        for the oldest (the backlog is full) or for all of them (the measurement ended)."""
+        pending = self._live_pending
+        while pending:
+            now, future = pending[0]
+            if not future.done():
+                if not wait:
+                    return
+                await asyncio.wait([future])
+            pending.popleft()
+            live_params = future.result()
             if live_params is not None:
                 self._writer.add_live_parameters(now, live_params.to_dict())
                 self._console.update(now, params=live_params)
+            if wait and not self._pipeline.finished:
+                return
 
     # -------------------------------------------------------------- the handlers
 

@@ -53,7 +53,7 @@ from stipi_daemon.measurement.release import ReleaseObservation, observe_release
 from stipi_daemon.measurement.settings import MeasurementConfig
 from stipi_daemon.measurement.state_machine import MachineState, close, initial_state, transition
 
-__all__ = ["LiveParameters", "MeasurementPipeline"]
+__all__ = ["LiveInputs", "LiveParameters", "MeasurementPipeline", "compute_live"]
 
 #: Minimum recovery observed before a live time-constant fit is attempted [s].
 LIVE_FIT_MIN_S = 2.0
@@ -371,7 +371,17 @@ class MeasurementPipeline:
 
         Costs one pass over the recovery series (and one fit once at least
         :data:`LIVE_FIT_MIN_S` of recovery is recorded): call it at display rate, not per
-        frame.
+        frame. Equal to ``compute_live(self.live_inputs())``.
+        """
+        inputs = self.live_inputs()
+        return None if inputs is None else compute_live(inputs)
+
+    def live_inputs(self) -> LiveInputs | None:
+        """What :func:`compute_live` needs, taken now (cheap: views of the series, no copy);
+        None before the release or before a frame after it.
+
+        The snapshot stays valid while more samples and frames are fed, so that the
+        computation can run on another thread (the daemon's live fit, off its event loop).
         """
         t_rel = self.state.t_release_s
         if t_rel is None:
@@ -382,49 +392,78 @@ class MeasurementPipeline:
         if self.t0_s is None and self._live_t0 is None and t[-1] > t_rel + self.t0_refine_s:
             self._live_t0 = self._observe_release(t_rel, note=False).t0_s
         t0 = self.t0_s if self.t0_s is not None else (self._live_t0 or t_rel)
-        elapsed = float(t[-1] - t0)
-        try:
-            params = compute_pitting_parameters(
-                t,
-                s,
-                t0,
-                self.calibration,
-                settle_fraction=self.analysis.settle_fraction,
-                window_s=max(elapsed, 1e-9),
-                persist_frames=self.analysis.persist_frames,
-                end_slope_fraction=0.0,
-            )
-        except AnalysisError:
-            return None
-        e_kpa: float | None = None
         ft, fv = self._force.arrays()
         pit_start, pit_end = self.state.t_pit_start_s, self.state.t_pit_end_s
-        if pit_start is not None and pit_end is not None and params.depth_mm > 0.0:
-            try:
-                f_a = self.analysis.applied_force_n or applied_force_n_from_samples(
-                    ft, fv, pit_start, self._hold_end_s(pit_start, pit_end, t_rel)
-                )
-                e_kpa = elasticity_kpa(f_a, params.depth_mm, self.analysis.indenter_radius_mm)
-            except AnalysisError:
-                e_kpa = None
-        tau = tau_se = eta = None
-        if elapsed >= LIVE_FIT_MIN_S:
-            fit = fit_recovery(t, s, t0, elapsed)
-            tau, tau_se = fit.tau_s, fit.tau_se_s
-            if tau is not None and e_kpa is not None and math.isfinite(tau):
-                try:
-                    eta = fit.viscosity_n_s_per_mm2(e_kpa)
-                except AnalysisError:
-                    eta = None
-        return LiveParameters(
-            t_s=float(t[-1]),
-            elapsed_s=elapsed,
-            depth_mm=params.depth_mm,
-            rebound_force_n=params.rebound_force_n,
-            recovery_time_s=params.recovery_time_s,
-            settled=Flag.NOT_SETTLED not in params.flags and Flag.NO_RECOVERY not in params.flags,
-            elasticity_kpa=e_kpa,
-            tau_s=tau,
-            tau_se_s=tau_se,
-            viscosity_n_s_per_mm2=eta,
+        hold_end = None
+        if pit_start is not None and pit_end is not None:
+            hold_end = self._hold_end_s(pit_start, pit_end, t_rel)
+        return LiveInputs(t, s, t0, self.calibration, self.analysis, ft, fv, pit_start, hold_end)
+
+
+@dataclass(frozen=True)
+class LiveInputs:
+    """A snapshot of what the live parameters are computed from
+    (:meth:`MeasurementPipeline.live_inputs`): read-only arrays that later samples do not
+    change."""
+
+    t: np.ndarray  #: frame times [s]
+    s: np.ndarray  #: frame S_k [px]
+    t0_s: float  #: T_0 used so far [s]
+    calibration: Calibration
+    analysis: AnalysisSettings
+    force_t: np.ndarray  #: force sample times [s]
+    force_n: np.ndarray  #: forces [N]
+    pit_start_s: float | None  #: start of the pitting hold [s], once known
+    hold_end_s: float | None  #: end of the hold for F_a [s], once the pitting ended
+
+
+def compute_live(inputs: LiveInputs) -> LiveParameters | None:
+    """Live parameters from a snapshot (pure; numpy and scipy do the work, so that it can
+    run on a worker thread beside the event loop); None while they cannot be computed."""
+    t, s, t0 = inputs.t, inputs.s, inputs.t0_s
+    analysis = inputs.analysis
+    elapsed = float(t[-1] - t0)
+    try:
+        params = compute_pitting_parameters(
+            t,
+            s,
+            t0,
+            inputs.calibration,
+            settle_fraction=analysis.settle_fraction,
+            window_s=max(elapsed, 1e-9),
+            persist_frames=analysis.persist_frames,
+            end_slope_fraction=0.0,
         )
+    except AnalysisError:
+        return None
+    e_kpa: float | None = None
+    pit_start, hold_end = inputs.pit_start_s, inputs.hold_end_s
+    if pit_start is not None and hold_end is not None and params.depth_mm > 0.0:
+        try:
+            f_a = analysis.applied_force_n or applied_force_n_from_samples(
+                inputs.force_t, inputs.force_n, pit_start, hold_end
+            )
+            e_kpa = elasticity_kpa(f_a, params.depth_mm, analysis.indenter_radius_mm)
+        except AnalysisError:
+            e_kpa = None
+    tau = tau_se = eta = None
+    if elapsed >= LIVE_FIT_MIN_S:
+        fit = fit_recovery(t, s, t0, elapsed)
+        tau, tau_se = fit.tau_s, fit.tau_se_s
+        if tau is not None and e_kpa is not None and math.isfinite(tau):
+            try:
+                eta = fit.viscosity_n_s_per_mm2(e_kpa)
+            except AnalysisError:
+                eta = None
+    return LiveParameters(
+        t_s=float(t[-1]),
+        elapsed_s=elapsed,
+        depth_mm=params.depth_mm,
+        rebound_force_n=params.rebound_force_n,
+        recovery_time_s=params.recovery_time_s,
+        settled=Flag.NOT_SETTLED not in params.flags and Flag.NO_RECOVERY not in params.flags,
+        elasticity_kpa=e_kpa,
+        tau_s=tau,
+        tau_se_s=tau_se,
+        viscosity_n_s_per_mm2=eta,
+    )
