@@ -455,7 +455,9 @@ MODEL_STYLES: Final[dict[str, tuple[str, Any]]] = {
 
 def draw_recovery_models(data: RecoveryModelsFigure, title: str = "") -> Figure:
     """The recovery S_k frames with every recovery model's curve (top) and each model's
-    residuals (bottom); the best model drawn widest, the legend naming each model's weights."""
+    residuals (bottom); the best model drawn widest and underneath the others (which then
+    stay visible on it), the legend naming each model's weights. Gids: ``models_data``,
+    ``model_<name>``, ``model_residual_<name>``."""
     fig = _figure(5.8, rows=2, height_ratios=(3.0, 1.4))
     ax, axr = fig.axes
     (pts,) = ax.plot(
@@ -488,7 +490,7 @@ def draw_recovery_models(data: RecoveryModelsFigure, title: str = "") -> Figure:
             ls=dashes,
             lw=2.6 if c.best else 1.5,
             label=c.label,
-            zorder=3.0 if c.best else 2.5,
+            zorder=2.5 if c.best else 3.0,  # the best widest, underneath: none hidden
         )
         line.set_gid(f"model_{c.name}")
         if c.model_px.size:

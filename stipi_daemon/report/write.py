@@ -312,7 +312,7 @@ def _session_makers(
             SESSION_FIGURES["recovery_models"],
             "S_k over the recovery window with every recovery model fitted to the same frames "
             "(Kelvin-Voigt solid red, two exponentials dashed blue, power law dash-dotted "
-            "green; the best model, highest QAICc weight, widest), each curve "
+            "green; the best model, highest QAICc weight, widest and underneath), each curve "
             "offset - amplitude g(t - T_0) from its recorded parameters; the legend gives each "
             "model's Akaike and QAICc weights; below, data - model.",
             models,
