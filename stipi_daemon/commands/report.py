@@ -28,7 +28,9 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
             "Write a self-contained HTML report with its figures as PNGs: force and S_k over "
             "time with the phases, the recovery fit with residuals, the VPR curves against "
             "the reference grades with the severity window and threshold (the paper's "
-            "Figs. 10-12), the parameter table and representative frames. With --compare, "
+            "Figs. 10-12), the recovery models side by side (weights, 95 % intervals, the "
+            "Kelvin-Voigt decision; also printed), the parameter table and representative "
+            "frames. With --compare, "
             "overlay several sessions and tabulate mean and spread per parameter."
         ),
     )

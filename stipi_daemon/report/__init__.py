@@ -16,6 +16,8 @@ One module per concept. Pure (no files, no drawing):
 - :mod:`.panels`: the representative frames thresholded again with the session's p and ROI;
 - :mod:`.compare`: several sessions side by side (``--compare``), overlays and statistics
   per grade (only complete sessions averaged);
+- :mod:`.recovery_models`: the recovery models side by side (their table with weights and
+  95 % intervals, its plain text, each model's curve on the recovery S_k);
 - :mod:`.numbers`: the one rounding rule of every table, caption and legend;
 - :mod:`.verdict`: the verdict block and each quantity's validity.
 
