@@ -64,9 +64,13 @@ CPU_GOAL_RATIO = 1.25
 # ----------------------------------------------------------------------------- worker
 
 
-def worker(config_path: Path, cpu: int, result_path: Path, nice: int) -> None:
-    """Run one measurement pinned to ``cpu``; write the figures as JSON to ``result_path``."""
-    os.sched_setaffinity(0, {cpu})  # before numpy/OpenCV start any thread
+def worker(config_path: Path, cpus: set[int], result_path: Path, nice: int) -> None:
+    """Run one measurement pinned to ``cpus``; write the figures as JSON to ``result_path``.
+
+    The emulated probe runs in a child process (:func:`probe_process`) on the other CPUs,
+    as a real probe's firmware runs on its MCU: this process's CPU time is the daemon's
+    alone."""
+    os.sched_setaffinity(0, cpus)  # before numpy/OpenCV start any thread
     if nice:
         try:
             os.nice(nice)
@@ -75,6 +79,8 @@ def worker(config_path: Path, cpu: int, result_path: Path, nice: int) -> None:
     import asyncio
     import resource
     import sqlite3
+    import subprocess
+    import tempfile
     import time
 
     import numpy as np
@@ -85,7 +91,29 @@ def worker(config_path: Path, cpu: int, result_path: Path, nice: int) -> None:
     from stipi_daemon.clock import ScaledClock
     from stipi_daemon.storage.writer import SessionWriter
 
+    clock = ScaledClock(1.0)
+    stalls, stacks = time_loop_callbacks()
+    doc = json.loads(config_path.read_text())
+    scene_path = doc["probe"]["transport"].pop("scene")
+    link = Path(tempfile.mkdtemp(prefix="stipi-bench-probe-")) / "ttyFEATHER"
+    doc["probe"]["transport"] = {"kind": "serial", "port": str(link)}
+    config_path.write_text(json.dumps(doc))
     config = load_config(config_path)
+    # The scene's t = 0 on the host's monotonic clock, shared with the probe's process.
+    origin_mono = time.monotonic() + PROBE_LEAD_S
+    others = sorted(set(range(os.cpu_count() or 1)) - cpus) or sorted(cpus)
+    probe = subprocess.Popen(
+        [
+            *(sys.executable, __file__, "--probe", scene_path, "--link", str(link)),
+            *("--origin-mono", repr(origin_mono), "--cpus", ",".join(map(str, others))),
+        ],
+        stdin=subprocess.PIPE,
+    )
+    while not link.exists():
+        if probe.poll() is not None or time.monotonic() > origin_mono:
+            raise SystemExit("the emulated probe did not start")
+        time.sleep(0.02)
+    origin_s = origin_mono - (time.monotonic() - clock.now())
     writers: list[SessionWriter] = []
 
     def on_session(writer: SessionWriter) -> None:
@@ -103,13 +131,19 @@ def worker(config_path: Path, cpu: int, result_path: Path, nice: int) -> None:
 
     sampler = threading.Thread(target=sample_cpu, daemon=True)
     sampler.start()
-    clock = ScaledClock(1.0)
     wall0, cpu0 = time.monotonic(), time.process_time()
     ru0 = resource.getrusage(resource.RUSAGE_SELF)
     with threadpool_limits(limits=1, user_api="blas"):  # as run_measurement (the CLI) does
-        outcome = asyncio.run(run_daemon(config, clock=clock, quiet=True, on_session=on_session))
+        outcome = asyncio.run(
+            run_daemon(
+                config, clock=clock, quiet=True, on_session=on_session, scene_origin_s=origin_s
+            )
+        )
     wall_s, cpu_s = time.monotonic() - wall0, time.process_time() - cpu0
     done.set()
+    assert probe.stdin is not None
+    probe.stdin.close()  # the probe process ends
+    probe.wait(timeout=10)
     sampler.join()
     ru1 = resource.getrusage(resource.RUSAGE_SELF)
     session_minus_mono = clock.now() - time.monotonic()
@@ -159,6 +193,9 @@ def worker(config_path: Path, cpu: int, result_path: Path, nice: int) -> None:
         "window_frames": frames_window,
         "worst_frames": [[int(i), float(to_disk[i]) * 1e3] for i in worst],
         "floor_ms": decode_count_floor_ms(config),
+        "cpus": len(cpus),
+        "loop_stalls": summarize_stalls(stalls, t_a, t_b),
+        "stall_stacks": sorted(stacks.items(), key=lambda kv: -kv[1])[:8],
     }
     result_path.write_text(json.dumps(result))
 
@@ -193,6 +230,97 @@ def decode_count_floor_ms(config: Any, n: int = 600) -> float:
             proc.measure(np.asarray(cv2.imdecode(pk, cv2.IMREAD_GRAYSCALE), dtype=np.uint8))
         best = min(best, (time.process_time() - t0) / len(packets))
     return best * 1e3
+
+
+#: Wall time from the worker's start of the probe process to the scene's t = 0 [s].
+PROBE_LEAD_S = 4.0
+
+
+def time_loop_callbacks() -> tuple[list[tuple[float, float, str]], dict[str, int]]:
+    """Time every event-loop callback from now on: (end, duration [s], name) of those
+    longer than 0.5 ms (what holds the loop, and with it the frames, that long); and, from
+    a watchdog thread sampling every 5 ms, the loop thread's stacks while a callback has run
+    for more than 10 ms (where the long ones spend their time)."""
+    import asyncio.events
+    import threading
+    import time
+    import traceback
+    from collections import Counter
+
+    stalls: list[tuple[float, float, str]] = []
+    stacks: Counter[str] = Counter()
+    running: list[float | None] = [None]
+    loop_thread = threading.get_ident()
+    run = asyncio.events.Handle._run
+
+    def timed(handle: asyncio.events.Handle) -> None:
+        t0 = running[0] = time.monotonic()
+        run(handle)
+        t1 = time.monotonic()
+        running[0] = None
+        if t1 - t0 > 5e-4:
+            cb = getattr(handle, "_callback", None)
+            task = getattr(cb, "__self__", None)
+            name = task.get_name() if isinstance(task, asyncio.Task) else repr(cb)[:60]
+            stalls.append((t1, t1 - t0, name))
+
+    def watchdog() -> None:
+        while True:
+            time.sleep(0.005)
+            t0 = running[0]
+            if t0 is not None and time.monotonic() - t0 > 0.01:
+                frame = sys._current_frames().get(loop_thread)
+                if frame is not None:
+                    where = traceback.extract_stack(frame)[-6:]
+                    stacks[" < ".join(f"{f.name}:{f.lineno}" for f in reversed(where))] += 1
+
+    asyncio.events.Handle._run = timed  # type: ignore[method-assign,assignment]
+    threading.Thread(target=watchdog, daemon=True).start()
+    return stalls, stacks
+
+
+def summarize_stalls(stalls: list[tuple[float, float, str]], t_a: float, t_b: float) -> Any:
+    """Loop callbacks over 1 ms in the steady state [t_a, t_b] (monotonic): count, longest,
+    and the longest per task name."""
+    steady = [(d, n) for t, d, n in stalls if t_a <= t <= t_b and d > 1e-3]
+    worst: dict[str, float] = {}
+    for d, n in steady:
+        worst[n] = max(worst.get(n, 0.0), d * 1e3)
+    return {
+        "over_1ms": len(steady),
+        "max_ms": max((d for d, _ in steady), default=0.0) * 1e3,
+        "by_name_ms": dict(sorted(worst.items(), key=lambda kv: -kv[1])[:5]),
+    }
+
+
+def probe_process(scene_path: Path, link: Path, origin_mono: float, cpus: set[int]) -> None:
+    """The emulated Feather (the probe's firmware model, :mod:`stipi_daemon.sim.feather`) on
+    a pty at ``link``, its scene's t = 0 at ``origin_mono`` (``time.monotonic``), until
+    stdin closes: the probe's MCU, outside the daemon's process."""
+    os.sched_setaffinity(0, cpus)
+    import asyncio
+    import time
+
+    from stipi_daemon.clock import ScaledClock
+    from stipi_daemon.probe.transports.configs import EmulatedTransportConfig
+    from stipi_daemon.sim import load_scene
+    from stipi_daemon.sim.feather import EmulatedFeather, McuClock, scene_core
+
+    async def run() -> None:
+        clock = ScaledClock(1.0)
+        cfg = EmulatedTransportConfig(kind="emulated", scene=scene_path)
+        scene = load_scene(scene_path)
+        now = clock.now()
+        mcu = McuClock(now, cfg.boot_offset_us, cfg.rate_error_ppm)
+        start_s = origin_mono - (time.monotonic() - now)
+        core = scene_core(scene, cfg.seed, mcu, now, calibrated=True, scene_start_s=start_s)
+        feather = EmulatedFeather(core, clock, mcu, link_path=link, seed=scene.seed)
+        await feather.start()
+        loop = asyncio.get_running_loop()
+        await loop.run_in_executor(None, sys.stdin.buffer.read)  # until the daemon ends
+        await feather.stop()
+
+    asyncio.run(run())
 
 
 # ----------------------------------------------------------------------------- parent
@@ -307,10 +435,10 @@ def prepare(tmp: Path, width: int, height: int) -> tuple[Path, dict[str, Any]]:
     return scene, config
 
 
-def run_once(tmp: Path, config: dict[str, Any], label: str, cpu: int, nice: int) -> dict[str, Any]:
+def run_once(
+    tmp: Path, config: dict[str, Any], label: str, cpus: set[int], nice: int
+) -> dict[str, Any]:
     import subprocess
-
-    import yaml
 
     cfg = dict(config)
     cfg["storage"] = {
@@ -318,8 +446,8 @@ def run_once(tmp: Path, config: dict[str, Any], label: str, cpu: int, nice: int)
         "min_free_mb": 0,
         "video": "passthrough",
     }
-    path = tmp / f"daemon_{label}.yaml"
-    path.write_text(yaml.safe_dump(cfg))
+    path = tmp / f"daemon_{label}.json"  # YAML is a superset of JSON
+    path.write_text(json.dumps(cfg))
     result = tmp / f"result_{label}.json"
     subprocess.run(
         [
@@ -327,8 +455,8 @@ def run_once(tmp: Path, config: dict[str, Any], label: str, cpu: int, nice: int)
             __file__,
             "--worker",
             str(path),
-            "--cpu",
-            str(cpu),
+            "--cpus",
+            ",".join(map(str, sorted(cpus))),
             "--nice",
             str(nice),
             "--out",
@@ -353,10 +481,13 @@ def markdown(info: dict[str, str], runs: dict[str, dict[str, Any]], costs: dict[
         "an MJPG camera sends it with `stipi-daemon simulate --resolution WxH`, then runs the "
         "real daemon at speed 1 on it: `camera: {kind: file, pace: true}`, whose capture "
         "thread decodes each JPEG only at its capture time, as a camera delivers it; "
-        "`storage.video: passthrough`; emulated Feather at 100 Hz on a pty; worker process "
-        "pinned to one CPU with `os.sched_setaffinity`).",
+        "`storage.video: passthrough`; the daemon process pinned to one CPU with "
+        "`os.sched_setaffinity`, and with `--two-cores` once more on both; the probe is the "
+        "emulated Feather (`stipi_daemon.sim.feather`, 100 Hz) in a process of its own on the "
+        "other CPU, on a pty the daemon opens as `probe.transport: {kind: serial}`, as a real "
+        "probe's firmware runs on its MCU).",
         "",
-        f"Machine: {info['cpu']}, {info['cores']} cores (the daemon pinned to 1), Linux "
+        f"Machine: {info['cpu']}, {info['cores']} cores, Linux "
         f"{info['kernel']}; Python {info['python']}, OpenCV {info['opencv']}, NumPy "
         f"{info['numpy']}, SQLite {info['sqlite']}. Load average when the benchmark ended: "
         f"{info['load']} (other jobs shared the machine; the daemon worker ran at niceness "
@@ -365,27 +496,33 @@ def markdown(info: dict[str, str], runs: dict[str, dict[str, Any]], costs: dict[
         "Frame-to-disk latency = end of the SQLite commit holding the frame's row minus the "
         "frame's capture time (session clock; the JPEG is decoded after it); processed = "
         "decoded, S_k measured and handed to the writer. CPU per frame = process time of all "
-        "the worker's threads (capture and decode, event loop with the emulated Feather, "
-        "commit thread, video muxing) / frames, in the steady state (from 1 s after the first "
+        "the daemon process's threads (capture and decode, event loop, live fit, commit "
+        "thread, video muxing; not the probe's process) / frames, in the steady state (from "
+        "1 s after the first "
         "frame is stored to 0.5 s before the last: not start-up, analysis, report); "
-        "floor = decode to gray + S_k of the same JPEGs in the same process, on the same core.",
+        "floor = decode to gray + S_k of the same JPEGs in the same process, on the same "
+        "CPUs. Loop stalls = event-loop callbacks that ran longer than 1 ms in the steady "
+        "state (each one holds every frame behind it), their count and the longest.",
         "",
-        "| frames | n | commits | to disk median / p99 / max [ms] | processed median / p99 "
-        "[ms] | CPU per frame [ms] | floor [ms] | CPU / floor | dropped | video frames "
-        "| goals met |",
-        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|:---:|",
+        "| frames | daemon CPUs | n | commits | to disk median / p99 / max [ms] | processed "
+        "median / p99 [ms] | CPU per frame [ms] | floor [ms] | CPU / floor | loop stalls > "
+        "1 ms (longest [ms]) | dropped | video frames | goals met |",
+        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|:---:|",
     ]
     for label, r in runs.items():
         d, p = r["to_disk_ms"], r["processed_ms"]
         ratio = r["cpu_per_frame_ms"] / r["floor_ms"]
         ok = ratio <= CPU_GOAL_RATIO and r["dropped_frames"] == 0
-        if label.endswith("1080"):
+        if "1080" in label:
             ok = ok and d[1] < P99_GOAL_MS
         video = r.get("video") or {}
+        st = r["loop_stalls"]
         lines.append(
-            f"| {label} MJPG 60 fps | {r['frames']} | {r['commits']} | {d[0]:.1f} / {d[1]:.1f} "
+            f"| {label.split()[0]} MJPG 60 fps | {r['cpus']} | {r['frames']} | {r['commits']} "
+            f"| {d[0]:.1f} / {d[1]:.1f} "
             f"/ {d[2]:.1f} | {p[0]:.1f} / {p[1]:.1f} | {r['cpu_per_frame_ms']:.2f} "
-            f"| {r['floor_ms']:.2f} | {ratio:.2f}x | {r['dropped_frames']} "
+            f"| {r['floor_ms']:.2f} | {ratio:.2f}x | {st['over_1ms']} ({st['max_ms']:.1f}) "
+            f"| {r['dropped_frames']} "
             f"| {video.get('frames', '-')} | {'yes' if ok else 'no'} |"
         )
     lines += [
@@ -409,16 +546,19 @@ def markdown(info: dict[str, str], runs: dict[str, dict[str, Any]], costs: dict[
 
 #: How to read the table (fixed text; the figures are measured).
 NOTES = (
-    "Frame-to-disk now includes the decode (before, the file camera decoded ahead and the "
-    "latency began after it: 1.8 ms median, 3.2 ms p99 at 720p). On the one pinned core the "
-    "decode of a noisy 1080p JPEG alone takes about 5 ms of CPU, and it shares the core "
-    "with the event loop, so its wall time stretches whenever the loop has work: the "
-    "median frame is on disk about two decode times after its capture. Beyond decode + "
-    "S_k, the worker runs the emulated probe on its event loop (the Feather model, its "
-    "pty, the protocol decoder and clock sync: 100 samples/s), the state machine for each "
-    "force sample, a live fit every second, the video muxing and the SQLite commits; "
-    "with a real probe the Feather's share runs on the probe's MCU.",
+    "Frame-to-disk includes the decode: on one CPU the decode of a noisy 1080p JPEG alone "
+    "takes about 5 ms of CPU and shares the core with the event loop, the live fit's thread, "
+    "the commit thread and the muxing, so its wall time stretches whenever any of them has "
+    "work; on two CPUs the decode runs beside them. The live parameters (a fit of the "
+    "recovery, tens of ms once the recovery is long) are computed on a worker thread from a "
+    "snapshot of the series (`MeasurementPipeline.live_inputs`, `compute_live`), no longer "
+    "on the event loop; their rows are stored in the order the snapshots were taken, so "
+    "they are the same at any speed.",
 )
+
+
+def _cpus(text: str) -> set[int]:
+    return {int(x) for x in text.split(",")}
 
 
 def write_section(text: str) -> None:
@@ -440,6 +580,15 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--worker", type=Path, help=argparse.SUPPRESS)
     parser.add_argument("--cpu", type=int, default=None, help="CPU to pin the daemon to")
+    parser.add_argument("--cpus", help=argparse.SUPPRESS)
+    parser.add_argument("--probe", type=Path, help=argparse.SUPPRESS)
+    parser.add_argument("--link", type=Path, help=argparse.SUPPRESS)
+    parser.add_argument("--origin-mono", type=float, help=argparse.SUPPRESS)
+    parser.add_argument(
+        "--two-cores",
+        action="store_true",
+        help="also run each size with the daemon on all CPUs (decode beside the loop)",
+    )
     parser.add_argument("--out", type=Path, help=argparse.SUPPRESS)
     parser.add_argument(
         "--nice",
@@ -451,8 +600,11 @@ def main() -> None:
     parser.add_argument("--no-doc", action="store_true", help="print only, leave the doc alone")
     args = parser.parse_args()
     cpu = args.cpu if args.cpu is not None else max(os.sched_getaffinity(0))
+    if args.probe is not None:
+        probe_process(args.probe, args.link, args.origin_mono, _cpus(args.cpus))
+        return
     if args.worker is not None:
-        worker(args.worker, cpu, args.out, args.nice)
+        worker(args.worker, _cpus(args.cpus), args.out, args.nice)
         return
 
     import tempfile
@@ -465,8 +617,12 @@ def main() -> None:
             print(f"rendering {label} 60 fps MJPG ...", flush=True)
             _, config = prepare(tmp, width, height)
             print(f"daemon run, {label} ...", flush=True)
-            runs[label] = run_once(tmp, config, label, cpu, args.nice)
+            runs[label] = run_once(tmp, config, label, {cpu}, args.nice)
             print(json.dumps(runs[label]), flush=True)
+            if args.two_cores:
+                every = set(os.sched_getaffinity(0))
+                runs[label + " 2cores"] = run_once(tmp, config, label + "_2", every, args.nice)
+                print(json.dumps(runs[label + " 2cores"]), flush=True)
         costs = {s: commit_cost(s) for s in ("NORMAL", "FULL")}
     text = markdown(machine(), runs, costs)
     print(text)
