@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+from collections.abc import Mapping
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
@@ -80,6 +81,7 @@ __all__ = [
     "analyze",
     "analyze_files",
     "analyze_session",
+    "replay_session",
 ]
 
 OUTPUT_FORMAT = "stipi-offline-analysis"
@@ -126,6 +128,10 @@ class AnalyzeRequest:
         A simulator ground truth to compare with.
     out : Path or None
         Output file (default ``analysis-<UTC time>.json`` next to the input).
+    sections : mapping or None
+        With a session: fields of the ``measurement``, ``analysis`` and ``imaging``
+        sections (section -> field -> value) set over those the session recorded (or
+        ``config``'s); the merged sections are validated as the config's are.
     """
 
     session_dir: Path | None = None
@@ -140,6 +146,7 @@ class AnalyzeRequest:
     recompute_sk: bool = False
     ground_truth: Path | None = None
     out: Path | None = None
+    sections: Mapping[str, Mapping[str, Any]] | None = None
 
     def override(self) -> ImagingSource:
         """The command line's imaging source (``--calibration``, ``--threshold``, ``--roi``)."""
@@ -235,17 +242,33 @@ def _validated(model: type[_M], data: Any, where: str) -> _M:
 
 
 def _session_settings(
-    data: SessionData, config: DaemonConfig | None
+    data: SessionData,
+    config: DaemonConfig | None,
+    sections: Mapping[str, Mapping[str, Any]] | None = None,
 ) -> tuple[MeasurementConfig, AnalysisSettings, ImagingSettings]:
-    """The config's settings if one is given, else those the manifest recorded."""
-    if config is not None:
+    """The config's settings if one is given, else those the manifest recorded; then
+    the fields of ``sections`` set over them (:attr:`AnalyzeRequest.sections`)."""
+    sections = sections or {}
+    names = ("measurement", "analysis", "imaging")
+    if config is None:
+        cfg = data.manifest.get("config") or {}
+        where = f"{data.directory / layout.MANIFEST_NAME}: field 'config."
+    elif not sections:
         return config.measurement, config.analysis, config.imaging
-    cfg = data.manifest.get("config") or {}
-    where = f"{data.directory / layout.MANIFEST_NAME}: field 'config"
+    else:
+        cfg = {name: getattr(config, name).model_dump(mode="json") for name in names}
+        where = "the config's field '"
+    if sections:
+        where = f"(with the settings given) {where}"
+    merged = {name: cfg.get(name) for name in names}
+    for name, fields in sections.items():
+        recorded = merged.get(name) or {}
+        if isinstance(recorded, dict):  # else the recorded section's own error is reported
+            merged[name] = {**recorded, **fields}
     return (
-        _validated(MeasurementConfig, cfg.get("measurement"), f"{where}.measurement"),
-        _validated(AnalysisSettings, cfg.get("analysis"), f"{where}.analysis"),
-        _validated(ImagingSettings, cfg.get("imaging"), f"{where}.imaging"),
+        _validated(MeasurementConfig, merged["measurement"], f"{where}measurement"),
+        _validated(AnalysisSettings, merged["analysis"], f"{where}analysis"),
+        _validated(ImagingSettings, merged["imaging"], f"{where}imaging"),
     )
 
 
@@ -491,9 +514,23 @@ def _incomplete_verdict(
 
 def analyze_session(request: AnalyzeRequest) -> AnalysisRun:
     """Replay a stored session (:class:`AnalyzeRequest` ``session_dir``) and write the results."""
+    doc, outcome, header, truth_rows, directory = replay_session(request)
+    out = request.out if request.out is not None else _default_out(directory)
+    _check_out(out, [directory / name for name in _PROTECTED])
+    return _write(out, doc, outcome, header, truth_rows)
+
+
+def replay_session(
+    request: AnalyzeRequest,
+) -> tuple[dict[str, Any], ReplayOutcome, list[str], list[ParameterComparison] | None, Path]:
+    """Replay a stored session as :func:`analyze_session` does, writing nothing.
+
+    Returns the output document, the replay, the header line, the comparison with a
+    ground truth (None: none) and the session's directory.
+    """
     assert request.session_dir is not None
     data = read_session(request.session_dir)
-    measurement, analysis, settings = _session_settings(data, request.config)
+    measurement, analysis, settings = _session_settings(data, request.config, request.sections)
     truth = _session_truth(request, data)
     imaging = choose_imaging(
         override=request.override(),
@@ -557,10 +594,8 @@ def analyze_session(request: AnalyzeRequest) -> AnalysisRun:
     doc["summary"] = recomputed
     # Who and what the session is of (subject, site, operator, note), as recorded.
     doc["metadata"] = metadata_of(data.manifest, data.directory / layout.MANIFEST_NAME)
-    out = request.out if request.out is not None else _default_out(data.directory)
-    _check_out(out, [data.directory / name for name in _PROTECTED])
     header = [f"session {data.session_id} ({status}), {data.directory}"]
-    return _write(out, doc, outcome, header, truth_rows)
+    return doc, outcome, header, truth_rows, data.directory
 
 
 # --------------------------------------------------------------------------------------------
