@@ -273,6 +273,26 @@ def test_results_table_csv_and_parquet(recorded: Recorded, tmp_path: Path) -> No
         assert row["verdict"] == pr["verdict"] == summary["verdict"]["status"]
         assert row["verdict_line"] == summary["verdict"]["line"]
         assert int(row["n_frames"]) == pr["n_frames"] > 0
+        # The recovery models the daemon compared, exactly as summary.json has them.
+        models = results["recovery_models"]
+        assert row["recovery_models_best"] == pr["recovery_models_best"] == models["best_model"]
+        assert pr["kelvin_voigt_rejected"] is models["kelvin_voigt_rejected"]
+        assert row["kelvin_voigt_rejected"] == str(models["kelvin_voigt_rejected"])
+        for name, fit in models["models"].items():
+            assert pr[f"{name}_aicc"] == fit["aicc"]
+            assert pr[f"{name}_aicc_weight"] == fit["akaike_weight"]
+            for q in ("tau_s", "recovery_time_s", "rebound_force_n", "viscosity_n_s_per_mm2"):
+                if (
+                    q == "viscosity_n_s_per_mm2"
+                    and validity["elasticity_kpa"]["status"] == "invalid"
+                ):
+                    assert pr[f"{name}_{q}"] is None
+                    continue
+                assert pr[f"{name}_{q}"] == fit[q]
+                bounds = fit["ci95"].get(q) or [None, None]
+                assert [pr[f"{name}_{q}_ci95_low"], pr[f"{name}_{q}_ci95_high"]] == bounds
+                got = row[f"{name}_{q}_ci95_low"]
+                assert (float(got) if got else None) == bounds[0]
     first = rows[recorded.first.name]
     assert (first["subject"], first["site"], first["operator"]) == ("P-001", "Lab A", "Dr. X")
     assert first["note"] == "left ankle, day 3\nafter 10 min rest"
@@ -283,6 +303,10 @@ def test_results_table_csv_and_parquet(recorded: Recorded, tmp_path: Path) -> No
     assert schema.field("elasticity_kpa").metadata[b"unit"] == b"kPa"
     units = json.loads(schema.metadata[b"units"])
     assert units["viscosity_n_s_per_mm2"] == "N*s/mm^2" and units["duration_s"] == "s"
+    assert units["two_exponential_tau_s_ci95_low"] == "s"
+    assert schema.field("power_law_viscosity_n_s_per_mm2_ci95_high").metadata[b"unit"] == (
+        b"N*s/mm^2"
+    )
 
 
 def test_results_table_selects_and_has_a_default_place(recorded: Recorded) -> None:

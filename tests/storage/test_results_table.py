@@ -136,3 +136,139 @@ def test_mat_of_nulls_and_edges(recorded: Recorded, tmp_path: Path) -> None:
     np.testing.assert_array_equal(mat["force_samples"]["t_mcu_us"], force["t_mcu_us"])
     assert mat["metadata"]["subject"].size == 0  # not set: MATLAB []
     assert mat["results"]["verdict"]["status"] == "unknown"  # an old summary
+
+
+# ---------------------------------------------------------------- recovery models
+
+
+def _comparison_summary(elasticity_status: str) -> dict[str, Any]:
+    """A summary whose recovery models are the analysis' own comparison of a recovery
+    with two time constants (docs/analysis.md, "Recovery models, model selection and
+    intervals"), as the daemon writes it (``RecoveryModelComparison.to_dict``)."""
+    from stipi_daemon.analysis.recovery_models import fit_recovery_models
+
+    rng = np.random.default_rng(3)
+    t = np.arange(0.0, 60.0, 1 / 30)
+    s = 9000.0 - 6000.0 * (0.4 * np.exp(-t / 1.0) + 0.6 * np.exp(-t / 9.0))
+    s = s + rng.normal(0.0, 5.0, t.size)
+    comparison = fit_recovery_models(
+        t,
+        s,
+        0.0,
+        60.0,
+        replicates=40,
+        rebound_force=lambda v: (v - 1500.0) / 2500.0,
+        elasticity_kpa=220.0,
+    )
+    summary = {**SUMMARY, "results": {**SUMMARY["results"]}}
+    summary["results"]["recovery_models"] = comparison.to_dict("px")
+    summary["validity"] = {
+        **SUMMARY["validity"],
+        "elasticity_kpa": {"status": elasticity_status, "flags": [], "reason": None},
+    }
+    return summary
+
+
+def test_recovery_model_columns_name_their_unit_and_follow_the_registry() -> None:
+    from stipi_daemon.analysis.recovery_models import CI_QUANTITIES, known_models
+    from stipi_daemon.storage.results_table import COLUMNS, RECOVERY_MODELS
+
+    assert RECOVERY_MODELS == known_models()
+    units = {name: unit for name, _, unit, _ in COLUMNS}
+    for m in RECOVERY_MODELS:
+        assert f"{m}_aicc" in units and f"{m}_aicc_weight" in units and f"{m}_flags" in units
+        for q, unit in (
+            ("tau_s", "s"),
+            ("recovery_time_s", "s"),
+            ("rebound_force_n", "N"),
+            ("viscosity_n_s_per_mm2", "N*s/mm^2"),
+        ):
+            assert q in CI_QUANTITIES  # the analysis gives an interval for it
+            for name in (f"{m}_{q}", f"{m}_{q}_ci95_low", f"{m}_{q}_ci95_high"):
+                assert units[name] == unit, name
+    assert {"recovery_models_best", "kelvin_voigt_rejected"} <= set(COLUMN_NAMES)
+    assert len(set(COLUMN_NAMES)) == len(COLUMN_NAMES)
+
+
+@pytest.mark.parametrize("suffix", ["csv", "parquet"])
+def test_recovery_models_round_trip(tmp_path: Path, suffix: str) -> None:
+    summary = _comparison_summary("valid")
+    rm = summary["results"]["recovery_models"]
+    root = tmp_path / "sessions"
+    with SessionWriter.create(root, {}, {}, session_id="m", options=OPTIONS) as w:
+        w.finish("complete", summary)
+    out, _ = write_results_table(root, tmp_path / f"r.{suffix}")
+    if suffix == "csv":
+        with open(out, newline="", encoding="utf-8") as f:
+            (raw,) = list(csv.DictReader(f))
+        from stipi_daemon.storage.results_table import COLUMNS
+
+        real = {name for name, kind, _, _ in COLUMNS if kind == "real"}
+        row: dict[str, Any] = {
+            k: None if v == "" else float(v) if k in real else v for k, v in raw.items()
+        }
+        assert raw["kelvin_voigt_rejected"] == str(rm["kelvin_voigt_rejected"])
+    else:
+        (row,) = pq.read_table(out).to_pylist()
+        assert row["kelvin_voigt_rejected"] is rm["kelvin_voigt_rejected"]
+    # Two time constants: the data reject Kelvin-Voigt and pick the two-exponential model.
+    assert rm["kelvin_voigt_rejected"] is True
+    assert row["recovery_models_best"] == rm["best_model"] == "two_exponential"
+    assert row["recovery_models_flags"] == ";".join(rm["flags"])
+    for m, fit in rm["models"].items():
+        assert row[f"{m}_aicc"] == fit["aicc"] and row[f"{m}_aicc_weight"] == fit["akaike_weight"]
+        assert row[f"{m}_flags"] == (";".join(fit["flags"]) or None)
+        for q in ("tau_s", "recovery_time_s", "rebound_force_n", "viscosity_n_s_per_mm2"):
+            assert row[f"{m}_{q}"] == fit[q]
+            lo, hi = fit["ci95"][q] or (None, None)
+            assert (row[f"{m}_{q}_ci95_low"], row[f"{m}_{q}_ci95_high"]) == (lo, hi)
+    two = rm["models"]["two_exponential"]
+    assert two["ci95"]["tau_s"][0] <= two["tau_s"] <= two["ci95"]["tau_s"][1]
+
+
+def test_recovery_model_eta_is_empty_when_e_is_invalid(tmp_path: Path) -> None:
+    from stipi_daemon.storage.results_table import model_cells
+
+    valid = model_cells(_comparison_summary("valid"))
+    invalid = model_cells(_comparison_summary("invalid"))
+    for m in ("kelvin_voigt", "two_exponential", "power_law"):
+        assert valid[f"{m}_viscosity_n_s_per_mm2"] is not None
+        for name in ("", "_ci95_low", "_ci95_high"):
+            assert invalid[f"{m}_viscosity_n_s_per_mm2{name}"] is None
+        # The rest does not depend on E.
+        assert invalid[f"{m}_tau_s"] == valid[f"{m}_tau_s"] is not None
+        assert invalid[f"{m}_rebound_force_n_ci95_low"] == valid[f"{m}_rebound_force_n_ci95_low"]
+
+
+def test_recovery_model_cells_of_old_odd_and_absent_comparisons() -> None:
+    from stipi_daemon.storage.results_table import model_cells
+
+    assert set(model_cells(SUMMARY).values()) == {None}  # recorded before the models
+    assert set(model_cells(None).values()) == {None}
+    odd = {
+        "results": {
+            "recovery_models": {
+                "best_model": None,
+                "kelvin_voigt_rejected": "yes",  # not a bool: not shown as one
+                "kelvin_voigt_delta_qaicc": float("nan"),
+                "flags": ["constant_series", "model_selection_unavailable"],
+                "models": {
+                    "kelvin_voigt": {
+                        "aicc": None,
+                        "akaike_weight": True,
+                        "tau_s": float("inf"),
+                        "ci95": {"tau_s": [1.0]},
+                        "flags": ["constant_series"],
+                    },
+                    "power_law": "not a fit",
+                },
+            }
+        }
+    }
+    row = model_cells(odd)
+    assert row["recovery_models_best"] is None and row["kelvin_voigt_rejected"] is None
+    assert row["kelvin_voigt_delta_qaicc"] is None
+    assert row["recovery_models_flags"] == "constant_series;model_selection_unavailable"
+    assert row["kelvin_voigt_flags"] == "constant_series"
+    assert row["kelvin_voigt_aicc_weight"] is None and row["kelvin_voigt_tau_s"] is None
+    assert row["kelvin_voigt_tau_s_ci95_low"] is None and row["power_law_aicc"] is None
