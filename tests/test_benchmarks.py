@@ -55,7 +55,14 @@ def test_throughput_quick_writes_its_section_and_keeps_others(tmp_path: Path) ->
 @pytest.mark.timeout(300)
 def test_accuracy_vs_time_quick_writes_report_and_plots(tmp_path: Path) -> None:
     proc = run_benchmark(
-        "accuracy_vs_time.py", "--out", str(tmp_path), "--jobs", "2", timeout_s=280.0
+        "accuracy_vs_time.py",
+        "--out",
+        str(tmp_path),
+        "--jobs",
+        "2",
+        "--tissue-scenes",
+        "tissue_power_law",
+        timeout_s=280.0,
     )
     assert proc.returncode == 0, proc.stderr
     text = (tmp_path / "accuracy-vs-time.md").read_text()
@@ -65,6 +72,7 @@ def test_accuracy_vs_time_quick_writes_report_and_plots(tmp_path: Path) -> None:
         "## Pareto front and recommended settings",
         "## Accuracy against recording time",
         "## Spread over seeds",
+        "## Tissue models: accuracy against recording time",
     ):
         assert heading in text
     assert "| full, p fixed, binary, every 1 |" in text
@@ -72,3 +80,52 @@ def test_accuracy_vs_time_quick_writes_report_and_plots(tmp_path: Path) -> None:
     for png in ("error_vs_compute.png", "error_vs_recording.png"):
         data = (tmp_path / "accuracy-vs-time" / png).read_bytes()
         assert data.startswith(b"\x89PNG") and len(data) > 10_000
+
+
+@pytest.mark.timeout(200)
+def test_accuracy_vs_time_quick_tissue_scene_writes_the_tissue_tables(tmp_path: Path) -> None:
+    """--quick on one tissue scene (the Zener jump): every tissue-model table comes out,
+    with a row per estimator and a cell for the scene's tissue model."""
+    proc = run_benchmark(
+        "accuracy_vs_time.py",
+        "--out",
+        str(tmp_path),
+        "--jobs",
+        "1",
+        "--only",
+        "tissue",
+        "--tissue-scenes",
+        "tissue_zener",
+        timeout_s=180.0,
+    )
+    assert proc.returncode == 0, proc.stderr
+    text = (tmp_path / "accuracy-vs-time.md").read_text()
+    for heading in (
+        "## Tissue models: accuracy against recording time",
+        "### Shortest recording for eta",
+        "### Shortest recording for F_r",
+        "### Error at 30 s and at 105 s",
+        "### Coverage of the 95 % intervals",
+        "### Model selection",
+        "### Compute per measurement",
+        "### Where an estimator is biased, and whether the result says so",
+        "### Recommendation (from the tissue-model tables)",
+    ):
+        assert heading in text, heading
+    assert "## Accuracy against compute time" not in text  # --only tissue
+    assert "| estimator | target | zener |" in text
+    for est in ("paper", "kelvin_voigt", "two_exponential", "power_law", "best"):
+        for target in ("2 %", "5 %", "10 %"):
+            assert f"| {est} | {target} |" in text
+        assert f"| zener | {est} |" in text
+    for est in ("kelvin_voigt", "two_exponential", "power_law", "best"):
+        for q in ("tau", "T_r", "F_r", "eta"):
+            assert f"| {est} | {q} |" in text
+    # The compute table has a measured number for every estimator.
+    cost = text.split("### Compute per measurement", 1)[1].split("###", 1)[0]
+    for est in ("paper", "kelvin_voigt", "two_exponential", "power_law", "best"):
+        row = next(line for line in cost.splitlines() if line.startswith(f"| {est} | "))
+        assert float(row.split("|")[2]) > 0.0
+    assert "instantaneous recovery" in text  # the Zener jump is explained
+    data = (tmp_path / "accuracy-vs-time" / "tissue_error_vs_recording.png").read_bytes()
+    assert data.startswith(b"\x89PNG") and len(data) > 10_000
