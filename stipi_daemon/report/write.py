@@ -235,6 +235,14 @@ def _meta(inp: ReportInput, results_from: str) -> list[tuple[str, str]]:
     return meta
 
 
+def _models_figure(inp: ReportInput) -> Figure | str:
+    """``recovery_models.png``, or why it cannot be drawn."""
+    data = recovery_models_figure(inp)
+    if data is None:
+        return "no recovery models or no T_0 in the results"
+    return r.draw_recovery_models(data)
+
+
 def _session_makers(
     inp: ReportInput, ref: SeverityReference
 ) -> list[tuple[str, str, str, FigureMaker]]:
@@ -261,12 +269,6 @@ def _session_makers(
         if data is None:
             return "no fitted recovery" if inp.results is not None else no_results
         return r.draw_fit(data)
-
-    def models() -> Figure | str:
-        data = recovery_models_figure(inp)
-        if data is None:
-            return "no recovery models or no T_0 in the results"
-        return r.draw_recovery_models(data)
 
     def frames() -> Figure | str:
         panels = frame_panels(inp)
@@ -315,7 +317,7 @@ def _session_makers(
             "green; the best model, highest QAICc weight, widest and underneath), each curve "
             "offset - amplitude g(t - T_0) from its recorded parameters; the legend gives each "
             "model's Akaike and QAICc weights; below, data - model.",
-            models,
+            lambda: _models_figure(inp),
         ),
         (
             "vpr",
