@@ -80,8 +80,69 @@ def _add_query(sub: _Sub) -> None:
     p.set_defaults(handler=_cmd_query)
 
 
+def _add_reanalyze(sub: _Sub) -> None:
+    p = sub.add_parser(
+        "reanalyze",
+        help="analyse every session of a study again, as Dask tasks",
+        description="Analyse every session of DATASET again with the settings of S.yaml "
+        "(configs/study-settings.example.yaml) and write them as a new analysis version "
+        "(results/analysis=V). Each session is a Dask distributed task: on an embedded "
+        "LocalCluster (one worker process per CPU) or on the cluster at --scheduler. "
+        "Sessions already done for V (same data and settings hashes) are not analysed "
+        "again, so an interrupted run is finished by running it again. A session's "
+        "error is its row's error, not the run's. Exit 1 when a task failed outside "
+        "the analysis (run again to retry it).",
+    )
+    p.add_argument("dataset", type=Path, metavar="DATASET", help="the dataset directory")
+    p.add_argument(
+        "--settings", type=Path, required=True, metavar="S.yaml", help="the settings file"
+    )
+    p.add_argument(
+        "--recompute-sk", action="store_true", help="count S_k again from each session's video"
+    )
+    where = p.add_mutually_exclusive_group()
+    where.add_argument(
+        "--scheduler", metavar="tcp://HOST:8786", help="a running Dask scheduler's address"
+    )
+    where.add_argument(
+        "--serial", action="store_true", help="no cluster: one session after the other, here"
+    )
+    p.add_argument(
+        "--workers", type=int, metavar="N", help="embedded cluster's workers (default: CPUs)"
+    )
+    p.add_argument("--name", metavar="V", help="analysis version (default s-<settings hash>)")
+    p.add_argument("--quiet", action="store_true", help="no progress, only the summary")
+    p.set_defaults(handler=_cmd_reanalyze)
+
+
+def _add_diff(sub: _Sub) -> None:
+    p = sub.add_parser(
+        "diff",
+        help="what changed between two analysis versions of a study",
+        description="Compare analysis versions V1 and V2 (e.g. recorded and a "
+        "re-analysis): the sessions whose verdict or severity class changed, and per "
+        "quantity the distribution of the changes V2 - V1 (n, median, 5th and 95th "
+        "percentiles, largest absolute change, in the quantity's unit).",
+    )
+    p.add_argument("dataset", type=Path, metavar="DATASET", help="the dataset directory")
+    p.add_argument("v1", metavar="V1", help="the analysis version compared against")
+    p.add_argument("v2", metavar="V2", help="the analysis version compared")
+    p.add_argument(
+        "--out", type=Path, metavar="FILE.csv", help="also write one row per session to CSV"
+    )
+    p.add_argument(
+        "--max-rows", type=int, default=50, metavar="N", help="changed sessions listed (50)"
+    )
+    p.set_defaults(handler=_cmd_diff)
+
+
 #: The ``study`` sub-subcommands, in the order ``--help`` shows them.
-_SUBCOMMANDS: tuple[Callable[[_Sub], None], ...] = (_add_index, _add_query)
+_SUBCOMMANDS: tuple[Callable[[_Sub], None], ...] = (
+    _add_index,
+    _add_query,
+    _add_reanalyze,
+    _add_diff,
+)
 
 
 def _cmd_index(args: argparse.Namespace) -> int:
@@ -108,4 +169,35 @@ def _cmd_query(args: argparse.Namespace) -> int:
         print(f"{args.out}: {result.num_rows} rows")
     else:
         print(format_result(result, max(0, args.max_rows)))
+    return 0
+
+
+def _cmd_reanalyze(args: argparse.Namespace) -> int:
+    from stipi_daemon.study.reanalyze import SYNCHRONOUS, reanalyze
+
+    report = reanalyze(
+        args.dataset,
+        args.settings,
+        recompute_sk=args.recompute_sk,
+        scheduler=SYNCHRONOUS if args.serial else args.scheduler,
+        workers=args.workers,
+        name=args.name,
+        progress=None if args.quiet else sys.stderr,
+    )
+    *problems, line = report.lines()
+    for problem in problems:
+        print(f"stipi-daemon: {problem}", file=sys.stderr)
+    print(line)
+    return report.exit_code
+
+
+def _cmd_diff(args: argparse.Namespace) -> int:
+    from stipi_daemon.study.diff import diff_versions
+
+    diff = diff_versions(args.dataset, args.v1, args.v2)
+    if args.out is not None:
+        diff.write_csv(args.out)
+    print("\n".join(diff.lines(max(0, args.max_rows))))
+    if args.out is not None:
+        print(f"{args.out}: {len(diff.sessions)} rows")
     return 0
