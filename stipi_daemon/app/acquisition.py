@@ -40,6 +40,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import sys
 import time
 from collections import deque
 from collections.abc import AsyncIterator, Callable, Coroutine
@@ -109,6 +110,10 @@ CONSOLE_FRAME_INTERVAL_WALL_S = 0.05
 #: Live computations (snapshots taken every LIVE_INTERVAL_S) waiting on the worker thread
 #: before the loop waits for the oldest: the loop never falls further behind than this.
 LIVE_BACKLOG_MAX = 4
+#: Python's thread switch interval while measuring [s] (default 5 ms): a thread that wants
+#: the GIL back (the event loop after each select, read, commit) waits for the holder (the
+#: live fit's thread) at most this long, so the fit cannot convoy the loop.
+SWITCH_INTERVAL_S = 0.0005
 
 OnRunning = Callable[[DaemonHandles], Coroutine[Any, Any, None]]
 """An async callback run as a task while the daemon records (see :class:`DaemonHandles`)."""
@@ -391,6 +396,16 @@ class Acquisition:
         )
         await self._devices.probe.start_stream()
         self._start_tasks(on_running)
+        switch = sys.getswitchinterval()
+        sys.setswitchinterval(SWITCH_INTERVAL_S)
+        try:
+            await self._take_events()
+        finally:
+            sys.setswitchinterval(switch)
+
+    async def _take_events(self) -> None:
+        """Take events to their handlers until the measurement finishes."""
+        clock, pipeline = self._clock, self._pipeline
         queue, handlers, merger = self._queue, self._handlers, self.merger
         while True:
             if self._frames_uncommitted and queue.empty():
