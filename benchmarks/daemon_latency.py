@@ -546,14 +546,16 @@ def markdown(info: dict[str, str], runs: dict[str, dict[str, Any]], costs: dict[
 
 #: How to read the table (fixed text; the figures are measured).
 NOTES = (
-    "Frame-to-disk includes the decode: on one CPU the decode of a noisy 1080p JPEG alone "
-    "takes about 5 ms of CPU and shares the core with the event loop, the live fit's thread, "
-    "the commit thread and the muxing, so its wall time stretches whenever any of them has "
-    "work; on two CPUs the decode runs beside them. The live parameters (a fit of the "
-    "recovery, tens of ms once the recovery is long) are computed on a worker thread from a "
-    "snapshot of the series (`MeasurementPipeline.live_inputs`, `compute_live`), no longer "
-    "on the event loop; their rows are stored in the order the snapshots were taken, so "
-    "they are the same at any speed.",
+    "The live parameters are computed on a worker thread from a snapshot of the series "
+    "(`MeasurementPipeline.live_inputs`, then the pure `compute_live`), no longer on the "
+    "event loop; their rows are stored in the order the snapshots were taken, so they are "
+    "the same at any speed, and the loop waits for the oldest only when more than "
+    "`LIVE_BACKLOG_MAX` (4) are pending. While measuring, Python's thread switch interval "
+    "is 0.5 ms (`SWITCH_INTERVAL_S`; default 5 ms): a thread that wants the GIL back (the "
+    "loop after each select, read or commit) waits for the holder (the fit's thread) at "
+    "most that long. The benchmark counts every loop callback over 0.5 ms "
+    "(`time_loop_callbacks`) and samples the loop thread's stack while one runs over 10 ms "
+    "(printed with the JSON of each run).",
 )
 
 
