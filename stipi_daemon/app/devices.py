@@ -24,6 +24,7 @@ Which transport or camera a config names is chosen by its ``kind`` (simulated on
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -55,6 +56,10 @@ __all__ = [
 #: Wall time between start-up and the shared scene origin of simulated devices [s]; for a
 #: probe that plays its scene from STREAM_START, between its link being open and the origin.
 SCENE_LEAD_WALL_S = 1.0
+
+
+#: Wall time before a scheduled STREAM_START from which the loop polls the clock for it [s].
+STREAM_START_SPIN_WALL_S = 0.005
 
 
 @dataclass(frozen=True)
@@ -141,8 +146,13 @@ class SceneStartProbeLink(ProbeLink):
         if at is None:
             await super().start_stream()
             return
-        await self.clock.sleep_until(at)
-        sent_s = self.clock.now()
+        # A timer wakes the loop late on a busy host (milliseconds of wall time, times the
+        # clock's speed): sleep to just before the instant, then yield until it comes.
+        clock = self.clock
+        await clock.sleep_until(at - STREAM_START_SPIN_WALL_S * clock.speed)
+        while clock.now() < at:
+            await asyncio.sleep(0)
+        sent_s = clock.now()
         await super().start_stream()
         if self.on_stream_start is not None:
             self.on_stream_start(at, sent_s)

@@ -40,7 +40,7 @@ _SERVING = re.compile(r"serving a virtual radio on (127\.0\.0\.1):(\d+)")
 
 @contextmanager
 def mock_peripheral(
-    *extra: str, scene: Path = SCENES / "grade1.yaml"
+    *extra: str, scene: Path = SCENES / "grade1.yaml", speed: float = SPEED, seed: int = SEED
 ) -> Iterator[tuple[subprocess.Popen[str], int, list[str]]]:
     """Start ``stipi-daemon mock-peripheral --transport loopback:0``; yield it, its port and
     the lines it printed before serving. Stopped with SIGINT (then killed) and reaped."""
@@ -55,9 +55,9 @@ def mock_peripheral(
             "--transport",
             "loopback:0",
             "--seed",
-            str(SEED),
+            str(seed),
             "--speed",
-            str(SPEED),
+            str(speed),
             "--duration",
             "600",
             "--report-every",
@@ -149,9 +149,9 @@ async def test_mock_peripheral_and_daemon_in_two_processes() -> None:
         assert proc.poll() is None  # still serving
     assert proc.returncode == 0
     reference = await _serial_reference(N_SAMPLES)
-    rows = [tuple(r) for r in first["rows"]]  # type: ignore[union-attr]
+    rows = [tuple(r) for r in first["rows"]]  # type: ignore[attr-defined]
     assert [r[0] for r in rows] == list(range(N_SAMPLES))
-    assert _relative(rows) == _relative(reference)  # type: ignore[arg-type]
+    assert _relative(rows) == _relative(reference)
     stats = first["decoder"]
     assert isinstance(stats, dict)
     assert stats["crc_errors"] == stats["frames_lost"] == stats["restarts"] == 0
