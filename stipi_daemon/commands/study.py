@@ -3,7 +3,10 @@
 ``study index ROOT... --out DATASET`` writes (or brings up to date) a Parquet dataset of
 every session under the roots (:func:`stipi_daemon.study.index.index_sessions`); ``study
 query DATASET "SQL"`` runs one SQL query over it with DuckDB and prints the result or
-writes it to CSV/Parquet (:mod:`stipi_daemon.study.query`). Each sub-subcommand is one
+writes it to CSV/Parquet (:mod:`stipi_daemon.study.query`); ``study reanalyze DATASET
+--settings S.yaml`` analyses every session again as Dask tasks into a new analysis version
+(:func:`stipi_daemon.study.reanalyze.reanalyze`); ``study diff DATASET V1 V2`` compares two
+versions (:func:`stipi_daemon.study.diff.diff_versions`). Each sub-subcommand is one
 ``_add_*`` function in :data:`_SUBCOMMANDS`; the layout and schema are in docs/study.md.
 The study modules are imported when a subcommand runs, not when the parser is built.
 """
@@ -22,7 +25,7 @@ _Sub: TypeAlias = "argparse._SubParsersAction[argparse.ArgumentParser]"
 def register(subparsers: _Sub) -> None:
     parser = subparsers.add_parser(
         "study",
-        help="many sessions as one dataset: index them, query them with SQL",
+        help="many sessions as one dataset: index, query with SQL, re-analyse, compare",
         description="A study: the sessions of many probes and sites as one Parquet dataset "
         "(hive-partitioned by site, probe and date; docs/study.md), queried with SQL.",
     )
