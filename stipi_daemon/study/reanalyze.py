@@ -34,6 +34,7 @@ sessions analysed, skipped, errors) with the totals.
 
 from __future__ import annotations
 
+import errno
 import json
 import logging
 import os
@@ -81,6 +82,11 @@ SYNCHRONOUS: Final = "synchronous"
 #: Times a task that raised is run again (the analysis itself never raises: its errors
 #: are rows; this covers a worker's own failures, e.g. out of memory).
 TASK_RETRIES: Final = 2
+#: Operating-system errors that may pass (a network filesystem's, memory): the task is
+#: retried, not given an error row.
+_TRANSIENT_ERRNOS: Final = frozenset(
+    {errno.EIO, errno.ESTALE, errno.ETIMEDOUT, errno.EAGAIN, errno.ENOMEM, errno.EINTR}
+)
 _NAME_RE: Final = re.compile(r"[A-Za-z0-9][A-Za-z0-9._+-]{0,99}")
 
 
@@ -174,13 +180,21 @@ def _analyse(task: SessionTask, plan: Plan) -> dict[str, Any]:
 
 def analyse_session(task: SessionTask, plan: Plan) -> dict[str, Any]:
     """Analyse one session, write its ``results`` file of ``plan.version`` atomically and
-    return the row. Any failure of the analysis is the row's ``error`` (never raised);
-    only a failure to write the file raises. Idempotent: the same inputs write the same
-    row (but for ``analysed_utc``)."""
+    return the row. A failure of the analysis is the row's ``error``; what may pass
+    (out of memory, an I/O error or timeout such as a network filesystem's) and a
+    failure to write the file raise, so that Dask retries the task and, failing that,
+    nothing is written and a rerun tries again. Idempotent: the same inputs write the
+    same row (but for ``analysed_utc``)."""
     try:
         summary: dict[str, Any] | None = _analyse(task, plan)
         error = None
-    except Exception as exc:  # every failure is this session's, told in its row
+    except MemoryError:
+        raise
+    except OSError as exc:
+        if exc.errno in _TRANSIENT_ERRNOS:
+            raise
+        summary, error = None, _one_line(exc)
+    except Exception as exc:  # the analysis failed on this session: told in its row
         summary, error = None, _one_line(exc)
     row = results_row(
         session_uid=task.uid,
@@ -298,7 +312,7 @@ def run_serial(tasks: Sequence[SessionTask], plan: Plan, on_done: _OnDone) -> No
     for task in tasks:
         try:
             row = analyse_session(task, plan)
-        except StipiError as exc:
+        except (StipiError, OSError, MemoryError) as exc:
             on_done(task, None, _one_line(exc))
         else:
             on_done(task, row, None)
