@@ -40,4 +40,5 @@ def test_quick_run_writes_its_block_and_keeps_the_rest(tmp_path: Path) -> None:
     assert text.count(start) == 1 and text.count(end) == 1
     for row in ("| serial |", "| 1 worker |", "| 2 workers |", "| 32 |"):
         assert row in text
-    assert "Speed-up at 2 workers:" in text and "serial part s =" in text
+    assert "Speed-up at 2 workers, steady:" in text and "serial part s =" in text
+    assert "plain spawned processes" in text and "pure-Python loop" in text
