@@ -114,8 +114,15 @@ def _own_cpu_s() -> float:
 
 
 def _plain_task(args: tuple[str, str, str]) -> float:
-    """In a plain process: analyse one session (as a Dask task does); its wall [s]."""
+    """In a plain process: analyse one session (as a Dask task does), with a Dask
+    worker's thread limits (BLAS/OpenMP and OpenCV one thread); its wall [s]."""
+    import cv2
+    from threadpoolctl import threadpool_limits
+
     from stipi_daemon.study.reanalyze import Plan, SessionTask, analyse_session
+
+    threadpool_limits(1)
+    cv2.setNumThreads(1)
 
     dataset, version, task_json = args
     task = SessionTask(**json.loads(task_json))
@@ -264,7 +271,7 @@ def _report(n: int, repeat: int, m: dict[str, Any], command: str) -> str:
         "| reference | 1 process [s] | 2 processes [s] | 2 vs 1 | every run, 2 vs 1 |",
         "|---|---:|---:|---:|---|",
         f"| the same task function in plain spawned processes (multiprocessing, no Dask; "
-        f"imports done before) | {plain[1]:.1f} | {plain[2]:.1f} | "
+        f"imports done before; the workers' thread limits) | {plain[1]:.1f} | {plain[2]:.1f} | "
         f"{plain[1] / plain[2]:.2f} | "
         + ", ".join(f"{a / b:.2f}" for a, b in zip(m["plain"][1], m["plain"][2], strict=True))
         + " |",
@@ -304,9 +311,11 @@ def _report(n: int, repeat: int, m: dict[str, Any], command: str) -> str:
         "when the machine's 2 CPUs are theirs; the whole machine's figure minus this "
         "run's is the other work's share. "
         "The serial path runs in the benchmark's own process, where OpenCV and FFmpeg "
-        "may use both CPUs; Dask's workers run one thread each with OMP/MKL/OpenBLAS "
-        "limited to one thread (the nanny's default environment), so one worker is the "
-        "one-CPU baseline the speed-up is measured against. The projection assumes one "
+        "may use both CPUs; Dask's workers run one task thread each with OMP/MKL/"
+        "OpenBLAS limited to one thread (the nanny's default environment) and OpenCV's "
+        "pool to one thread (the task sets it), so one worker is the one-CPU baseline "
+        "the speed-up is measured against (the video decoder may still use a thread of "
+        "its own). The projection assumes one "
         "worker per CPU, that the efficiency measured at 2 holds, the sessions on a "
         "filesystem every worker reads at the needed rate, and a scheduler that keeps "
         "up (a few ms per task against a session's c_1). On a machine whose CPUs are "

@@ -178,6 +178,22 @@ def _analyse(task: SessionTask, plan: Plan) -> dict[str, Any]:
     return summary
 
 
+def _one_thread_on_a_worker() -> None:
+    """On a Dask worker (one task thread per process, BLAS and OpenMP held to one thread
+    by the nanny's environment), OpenCV's own thread pool held to one thread too, so
+    that the worker processes do not oversubscribe the CPUs (the serial path keeps it)."""
+    try:
+        from distributed import get_worker
+
+        get_worker()
+    except (ImportError, ValueError):
+        return
+    import cv2
+
+    if cv2.getNumThreads() != 1:
+        cv2.setNumThreads(1)
+
+
 def analyse_session(task: SessionTask, plan: Plan) -> dict[str, Any]:
     """Analyse one session, write its ``results`` file of ``plan.version`` atomically and
     return the row. A failure of the analysis is the row's ``error``; what may pass
@@ -185,6 +201,7 @@ def analyse_session(task: SessionTask, plan: Plan) -> dict[str, Any]:
     failure to write the file raise, so that Dask retries the task and, failing that,
     nothing is written and a rerun tries again. Idempotent: the same inputs write the
     same row (but for ``analysed_utc``)."""
+    _one_thread_on_a_worker()
     try:
         summary: dict[str, Any] | None = _analyse(task, plan)
         error = None
