@@ -2,7 +2,7 @@
 
 Run as ``./dev python benchmarks/bench_camera_decode.py``. Renders 600 frames (10 s at
 60 fps) of the grade-III scene at 1280x720 (a realistic probe image, BGR), writes them as an
-MJPG AVI (quality 95, as the simulator does), then measures frames per second of wall time,
+MJPG AVI (quality 95, the simulator's MJPG quality), then measures frames per second of wall time,
 best of five passes, with the file in the page cache, for:
 
 * ``VideoFileCamera`` unpaced (the whole path: capture thread, hand-off, asyncio), gray and

@@ -30,10 +30,14 @@ def test_demo_config_runs_a_whole_measurement(tmp_path: Path) -> None:
     cfg["probe"]["transport"]["scene"] = scene
     cfg["camera"]["scene"] = scene
     cfg["storage"]["root"] = str(tmp_path / "sessions")
+    # The demo's 30 s lag bound is 3 s of wall time at speed 10: a suite running beside
+    # CPU hogs may stall a child that long. This test checks the measurement, not the
+    # lag policy (tests/daemon/ test it), so it allows the most, 6 s of wall time.
+    cfg["run"]["max_lag_s"] = 60.0
     path = tmp_path / "demo.yaml"
     path.write_text(yaml.safe_dump(cfg))
     proc = _run_cli(path, timeout_s=120)
-    assert proc.returncode == 0, proc.stderr
+    assert proc.returncode == 0, proc.stderr + proc.stdout[-2000:]
     out = proc.stdout
     for needle in (
         "D_p =",

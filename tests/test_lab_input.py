@@ -619,3 +619,16 @@ def test_short_scene_helper_still_loads(tmp_path: Path) -> None:
     from stipi_daemon.sim import load_scene
 
     assert load_scene(short_scene(tmp_path)).name == "grade1_short"
+
+
+def test_video_off_unquoted_means_off(tmp_path: Path) -> None:
+    # YAML 1.1 reads an unquoted `off` as false: in the file and in --set alike
+    from stipi_daemon.app.config import load_config
+
+    cfg = _config(tmp_path, SCENES / "grade1.yaml")
+    text = cfg.read_text().replace("video: 'off'", "video: off")
+    assert "video: off" in text
+    cfg.write_text(text)
+    assert load_config(cfg).storage.video == "off"
+    cfg.write_text(text.replace("video: off", "video: lossless"))
+    assert load_config(cfg, overrides=["storage.video=off"]).storage.video == "off"

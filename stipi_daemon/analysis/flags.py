@@ -43,6 +43,7 @@ class Flag(StrEnum):
     OUTLIER_FRAMES = "outlier_frames"
     S0_EXTRAPOLATED = "s0_extrapolated"
     RELEASE_FRAME_OUTLIER = "release_frame_outlier"
+    RELEASE_STEP = "release_step"
     # VPR model and recovery fit (Eqs. 7-10)
     FIT_NOT_CONVERGED = "fit_not_converged"
     TIME_CONSTANT_OUTSIDE_WINDOW = "time_constant_outside_window"
@@ -120,6 +121,12 @@ FLAG_DESCRIPTIONS: Final[Mapping[Flag, str]] = MappingProxyType(
         Flag.RELEASE_FRAME_OUTLIER: (
             "The last frame before T_0 is an outlier (a dark or bright frame): the release may "
             "have come a frame earlier, and S_0 may be read a frame late."
+        ),
+        Flag.RELEASE_STEP: (
+            "S_k jumped between the release frame and the next, a step the frames after "
+            "it do not continue: an instantaneous recovery (an elastic spring-back, which a "
+            "Kelvin-Voigt solid has not) or an outlier frame at the release. S_0 is read "
+            "from the release frame alone."
         ),
         # VPR model and recovery fit (Eqs. 7-10)
         Flag.FIT_NOT_CONVERGED: (

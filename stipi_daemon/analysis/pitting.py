@@ -47,6 +47,7 @@ __all__ = [
     "DEFAULT_SETTLE_FRACTION",
     "DEFAULT_WINDOW_S",
     "NOTHING_OBSERVED",
+    "RELEASE_STEP_UNCONTINUED",
     "SETTLING_GAP_FRACTION",
     "S_MAX_MEDIAN_HALF_WIDTH",
     "FlaggedValue",
@@ -77,6 +78,12 @@ NOTHING_OBSERVED = Observed(frame_period_s=0.0)
 S_MAX_MEDIAN_HALF_WIDTH = 2
 #: A gap around the settling crossing shorter than this fraction of T_r is immaterial [-].
 SETTLING_GAP_FRACTION = 0.01
+#: A release frame below the frames after it is a step at the release (``RELEASE_STEP``)
+#: when the line through the next two frames, continued back to it, passes above it by at
+#: least this fraction of the jump [-]. For a Kelvin-Voigt recovery sampled every d seconds
+#: that fraction is 1 - exp(-d/tau), the share recovered in one frame: 0.8 needs tau below
+#: 0.62 d (10 ms at 60 fps), far below any tissue of Table I.
+RELEASE_STEP_UNCONTINUED = 0.8
 #: A step of S_k is a jump (:func:`detect_recovery_start`) when at least this fraction of the
 #: largest step in the search range [-] ...
 JUMP_FRACTION = 0.25
@@ -330,6 +337,7 @@ def recovery_time(
     persist_frames: int = DEFAULT_PERSIST_FRAMES,
     s_max_top_frames: int = 1,
     end_slope_fraction: float = DEFAULT_END_SLOPE_FRACTION,
+    contact_floor_px: float = 0.0,
 ) -> RecoveryTime:
     """Recovery time T_r = T_s - T_0, Eq. (6).
 
@@ -394,6 +402,9 @@ def recovery_time(
         Number of largest window frames whose median is S_max, >= 1 (1: plain maximum).
     end_slope_fraction : float
         Fraction of the window, at its end, for the still-rising check, in [0, 1) [-].
+    contact_floor_px : float
+        The least S_k a contact image shows [px] (C1 of Eq. 5, the count at zero tip
+        force): a release frame below it is no image of the pit (``RELEASE_STEP``).
 
     Returns
     -------
@@ -411,7 +422,7 @@ def recovery_time(
         t, t0_s, settle_fraction, window_s, persist_frames, s_max_top_frames, end_slope_fraction
     )
     flags = {Flag.NON_FINITE_INPUT} if series.dropped else set()
-    win = _RecoveryFrames.of(t, s, t0, window, fraction)
+    win = _RecoveryFrames.of(t, s, t0, window, (fraction, contact_floor_px))
     smooth = running_median(win.sw, S_MAX_MEDIAN_HALF_WIDTH)
     s_max = _s_max(smooth, s_max_top_frames)
     band = (1.0 - fraction) * s_max
@@ -485,6 +496,13 @@ class _RecoveryFrames:
       ``S0_EXTRAPOLATED``. An outlier on the first frame is kept as S_0 when the frames
       after it are already settled: a release step within one frame looks the same, and
       S_0 then rests on that single frame (``SETTLED_WITHIN_ONE_FRAME`` flags D_p too).
+    * An outlier on the first frame is kept as S_0, flagged ``RELEASE_STEP``, when it lies
+      below the frames after it but not below the contact floor (C1 of Eq. 5), and no frame
+      was lost between the pitting phase and it (it is the release frame): S_k fell
+      at the release frame and jumped up at the next, as an instantaneous recovery (an
+      elastic spring-back: a standard linear solid) makes it. A dark frame (S_k above the
+      frames after it, against the recovery) and a bright one (S_k below C1, no image of
+      the pit) are outliers and S_0 is extrapolated as above.
     * When the last frame before T_0 is an outlier of the pitting frames before it, the
       release may have come a frame before T_0 (a dark frame looks like the pitting phase):
       ``RELEASE_FRAME_OUTLIER``.
@@ -510,10 +528,10 @@ class _RecoveryFrames:
         s: NDArray[np.float64],
         t0: float,
         window: float,
-        fraction: float,
+        levels: tuple[float, float],
     ) -> _RecoveryFrames:
         """Frames ``t`` [s], ``s`` [px] (finite) split at T_0 ``t0`` [s], window [s] long;
-        ``fraction`` is the settling fraction [-].
+        ``levels`` are the settling fraction [-] and the contact floor [px].
 
         Raises
         ------
@@ -533,12 +551,20 @@ class _RecoveryFrames:
                 f"no finite frame in the recovery window ({t0}, {t0 + window}] s: "
                 "the series ends at T_0"
             )
+        fraction, floor = levels
+        before = t[t < t0]
+        t_before = float(before[-1]) if before.size else t0
+        # the release frame itself: no frame lost between the pitting phase and it
+        on_time = bool(ts_[0] - t_before <= GAP_FACTOR * period)
         outlier = find_outlier_frames(ss_)
         rest = ss_[1:][~outlier[1:]]
         if outlier[0] and rest.size and rest[0] >= fraction * float(np.max(rest)):
             # The frames after it are already settled: a release step within one frame
             # (SETTLED_WITHIN_ONE_FRAME) cannot be told from an outlier; keep it as S_0.
             outlier[0] = False
+        elif outlier[0] and on_time and _release_step(ts_, ss_, outlier, floor):
+            outlier[0] = False
+            flags.add(Flag.RELEASE_STEP)
         if outlier.any():
             flags.add(Flag.OUTLIER_FRAMES)
         keep_t, keep_s = ts_[~outlier], ss_[~outlier]
@@ -548,10 +574,7 @@ class _RecoveryFrames:
         gaps = tuple(
             g for g in find_frame_gaps(t, period) if g.end_s > t0 and g.start_s < t0 + window
         )
-        before = t[t < t0]
-        s0, late = _s0_at_release(
-            t0, float(before[-1]) if before.size else t0, keep_t, keep_s, period
-        )
+        s0, late = _s0_at_release(t0, t_before, keep_t, keep_s, period)
         if late and at_release is None:
             flags.add(Flag.S0_EXTRAPOLATED)
         if _last_frame_before_is_outlier(s[t < t0]):
@@ -576,6 +599,29 @@ class _RecoveryFrames:
         if self.period_s > 0.0 and length > max(MATERIAL_GAP_PERIODS * self.period_s, min_s):
             return gap_covering(self.gaps, lo_s, hi_s) or FrameGap(lo_s, hi_s)
         return None
+
+
+def _release_step(
+    ts: NDArray[np.float64], ss: NDArray[np.float64], outlier: NDArray[np.bool_], floor: float
+) -> bool:
+    """Whether the release frame (``ts[0]`` [s], ``ss[0]`` [px]), an outlier of the frames
+    after it, shows a step at the release rather than a dark or bright frame.
+
+    It must lie below the next usable frame (in the direction of the recovery: a dark
+    frame lies above) and not below the contact floor ``floor`` [px] (C1 of Eq. 5; a bright
+    frame's S_k is near 0), and the frames after it must not continue the jump: the line
+    through the next two usable frames, continued back to the release frame, passes above
+    it by at least :data:`RELEASE_STEP_UNCONTINUED` of the jump. A recovery that is merely
+    fast for the frame rate (a concave rise sampled sparsely) continues most of its first
+    rise; a standard linear solid's spring-back continues none of it.
+    """
+    rest_t, rest_s = ts[1:][~outlier[1:]], ss[1:][~outlier[1:]]
+    if rest_s.size < 2 or not floor <= ss[0] < rest_s[0]:
+        return False
+    slope = float(rest_s[1] - rest_s[0]) / float(rest_t[1] - rest_t[0])
+    back = float(rest_s[0]) - slope * float(rest_t[0] - ts[0])
+    jump = float(rest_s[0] - ss[0])
+    return back - float(ss[0]) >= RELEASE_STEP_UNCONTINUED * jump
 
 
 def _last_frame_before_is_outlier(s_before: NDArray[np.float64]) -> bool:
@@ -895,6 +941,7 @@ def compute_pitting_parameters(
         persist_frames=persist_frames,
         s_max_top_frames=s_max_top_frames,
         end_slope_fraction=end_slope_fraction,
+        contact_floor_px=calibration.c1_px,
     )
     d_s = float(calibration.depth_change_mm(rt.s0_px))
     if not math.isfinite(d_s):

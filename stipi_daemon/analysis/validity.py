@@ -181,6 +181,12 @@ FLAG_RULES: Final[Mapping[Flag, FlagRule]] = MappingProxyType(
             "the frame before T_0 is an outlier: the release may be a frame earlier and S_0 "
             "a frame late",
         ),
+        Flag.RELEASE_STEP: FlagRule(
+            ("depth_mm", "elasticity_kpa"),
+            (),
+            "S_k jumped right after the release frame (an instantaneous spring-back or an "
+            "outlier frame): S_0 rests on the release frame alone",
+        ),
         Flag.FRAME_GAP_AT_SETTLING: FlagRule(
             ("recovery_time_s",), (), "the 98 % crossing lies in a frame gap"
         ),

@@ -158,6 +158,12 @@ class StorageSettings(_Model):
     video: Literal["passthrough", "lossless", "off"] = "passthrough"
     video_roi_only: bool = False
 
+    @field_validator("video", mode="before")
+    @classmethod
+    def _yaml_off(cls, value: object) -> object:
+        # YAML 1.1 (PyYAML) reads an unquoted `off` as false: `video: off` means "off"
+        return "off" if value is False else value
+
 
 class SessionSettings(_Model):
     """Who and what a session is of: stored as the manifest's ``metadata``.

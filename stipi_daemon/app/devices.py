@@ -272,6 +272,7 @@ def _video_recorder(
     roi: CircleROI | RectROI | None,
     clock: ScaledClock,
     camera_metadata: dict[str, Any],
+    frame_rate_hz: float | None = None,
 ) -> VideoRecorder | None:
     """The session video's recorder as ``storage.video`` says (None: none).
 
@@ -302,8 +303,10 @@ def _video_recorder(
         return x0, y0, x1, y1
 
     if storage.video_roi_only:
-        return VideoRecorder(path, writer, storage.video, crop=roi_box, to_gray=to_gray)
-    return VideoRecorder(path, writer, storage.video)
+        return VideoRecorder(
+            path, writer, storage.video, crop=roi_box, to_gray=to_gray, frame_rate_hz=frame_rate_hz
+        )
+    return VideoRecorder(path, writer, storage.video, frame_rate_hz=frame_rate_hz)
 
 
 def frame_size(metadata: dict[str, Any]) -> tuple[int, int] | None:
@@ -393,7 +396,15 @@ async def open_devices(
         raise
     if isinstance(probe, SceneStartProbeLink):
         _record_stream_start(writer, probe, origin_s)
-    recorder = _video_recorder(config, writer, threshold_p, roi, clock, camera.camera.metadata())
+    recorder = _video_recorder(
+        config,
+        writer,
+        threshold_p,
+        roi,
+        clock,
+        camera.camera.metadata(),
+        camera.camera.nominal_fps,
+    )
     return Devices(clock, probe, camera, writer, recorder)
 
 

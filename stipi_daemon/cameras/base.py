@@ -294,7 +294,7 @@ class V4L2CameraConfig(_Model):
 
 
 class VideoFileCameraConfig(_Model):
-    """A recorded video (e.g. the simulator's MJPG AVI) replayed as a camera.
+    """A recorded video (the simulator's video.mkv, a session's stored video) as a camera.
 
     Attributes
     ----------

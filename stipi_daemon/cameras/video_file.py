@@ -1,4 +1,4 @@
-"""A recorded video replayed as a camera (the simulator's MJPG AVI, a saved session video).
+"""A recorded video replayed as a camera (the simulator's video.mkv, a session's stored video).
 
 This module owns reading a video file with OpenCV's FFmpeg backend in a capture thread,
 timestamping frame k at ``t0 + (k - k0) / fps`` on the session clock (k0 the first frame

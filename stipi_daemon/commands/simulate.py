@@ -46,6 +46,9 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     )
     parser.add_argument("--fps", type=float, default=None, help="frame rate override [1/s]")
     parser.add_argument("--quiet", action="store_true", help="no progress bar, no summary")
+    parser.add_argument(
+        "--overwrite", action="store_true", help="replace an earlier rendering in DIR"
+    )
     parser.set_defaults(handler=run)
 
 
@@ -78,9 +81,11 @@ def run(args: argparse.Namespace) -> int:
             def progress(done: int, total: int) -> None:
                 bar.update(task, completed=done, total=total)
 
-            paths = write_outputs(scene, args.out, args.seed, progress=progress)
+            paths = write_outputs(
+                scene, args.out, args.seed, progress=progress, overwrite=args.overwrite
+            )
     else:
-        paths = write_outputs(scene, args.out, args.seed)
+        paths = write_outputs(scene, args.out, args.seed, overwrite=args.overwrite)
     if not args.quiet:
         print(
             f"{paths.frames_written} frames ({_coding(paths.video_codec, paths.jpeg_quality)}) "

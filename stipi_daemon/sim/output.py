@@ -22,9 +22,9 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from fractions import Fraction
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, Final, Literal
 
-from stipi_daemon.errors import StipiError
+from stipi_daemon.errors import ConfigError, StipiError
 from stipi_daemon.sim.pipeline import Pipeline, frame_count
 from stipi_daemon.sim.scene import Scene
 from stipi_daemon.sim.truth import ground_truth
@@ -54,12 +54,31 @@ class OutputPaths:
     jpeg_quality: int | None = None
 
 
+#: The files a rendering writes into its directory.
+OUTPUT_FILES: Final = (VIDEO_FILE, "frames.csv", "force.csv", "ground_truth.json")
+
+
+def _check_out_dir(out: Path, overwrite: bool) -> None:
+    """Refuse an output directory that would lose something (see :func:`write_outputs`)."""
+    if out.exists() and not out.is_dir():
+        raise ConfigError(f"--out {out}: is a file, not a directory")
+    if (out / "manifest.json").exists():
+        raise ConfigError(f"--out {out}: is a session directory; a rendering never goes there")
+    present = [name for name in OUTPUT_FILES if (out / name).exists()]
+    if present and not overwrite:
+        raise ConfigError(
+            f"--out {out}: holds an earlier rendering ({', '.join(present)}); "
+            "give --overwrite to replace it"
+        )
+
+
 def write_outputs(
     scene: Scene,
     out_dir: str | Path,
     seed: int | None = None,
     *,
     progress: Callable[[int, int], None] | None = None,
+    overwrite: bool = False,
 ) -> OutputPaths:
     """Render ``scene`` and write its video, frame times, force samples and ground truth.
 
@@ -73,13 +92,19 @@ def write_outputs(
         Random seed (default: the scene's).
     progress : callable, optional
         Called as ``progress(frames_done, frames_total)`` after every frame.
+    overwrite : bool
+        Replace the files of an earlier rendering in ``out_dir``.
 
     Raises
     ------
+    ConfigError
+        ``out_dir`` is a file or a session directory, or holds an earlier rendering and
+        ``overwrite`` is not set (nothing is written then).
     StipiError
         The directory or a file cannot be written (the message names it).
     """
     out = Path(out_dir)
+    _check_out_dir(out, overwrite)
     try:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:

@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import math
 import os
 import queue
 import threading
@@ -145,6 +146,9 @@ class VideoRecorder:
         With ``crop``: store the rectangle of ``to_gray(image)`` (the gray image S_k is
         counted on, e.g. :func:`stipi_daemon.analysis.imaging.to_gray`) rather than of the
         image as delivered.
+    frame_rate_hz : float, optional
+        The camera's nominal frame rate [1/s], declared in the file (players and OpenCV
+        read it; the frames' own times are their pts). None or not finite and > 0: none.
     """
 
     def __init__(
@@ -155,6 +159,7 @@ class VideoRecorder:
         *,
         crop: Crop | Callable[[tuple[int, ...]], Crop | None] | None = None,
         to_gray: Callable[[Image], Image] | None = None,
+        frame_rate_hz: float | None = None,
     ) -> None:
         if mode not in ("passthrough", "lossless"):
             raise ValueError(f"video mode {mode!r}: a recorder records passthrough or lossless")
@@ -165,6 +170,9 @@ class VideoRecorder:
         self._writer = writer
         self._crop_for = crop
         self._to_gray = to_gray
+        self._frame_rate: Fraction | None = None
+        if frame_rate_hz is not None and math.isfinite(frame_rate_hz) and frame_rate_hz > 0:
+            self._frame_rate = Fraction(frame_rate_hz).limit_denominator(1001)
         self._crop: Crop | None = None
         self._container: Any = None
         self._stream: Any = None
@@ -279,7 +287,9 @@ class VideoRecorder:
             w, h = x1 - x0, y1 - y0
         self._crop = crop
         codec: Literal["mjpeg", "ffv1"] = "mjpeg" if passthrough else "ffv1"
-        container, stream = open_video_file(self.path, codec, layout, (w, h), crop=crop)
+        container, stream = open_video_file(
+            self.path, codec, layout, (w, h), crop=crop, frame_rate=self._frame_rate
+        )
         self._container, self._stream = container, stream
         self._codec = "mjpeg" if passthrough else "ffv1"
         self._t0_s = t_capture_s

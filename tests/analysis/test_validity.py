@@ -326,6 +326,58 @@ def test_a_release_step_within_one_frame_keeps_its_s0_and_flags_depth() -> None:
     assert v["depth_mm"]["status"] == "flagged"
 
 
+def spring_back(
+    jump: float, t0_s: float, noise_px: float = 20.0, tau_sigma_s: float = 8.31
+) -> tuple[np.ndarray, np.ndarray, float]:
+    """A standard linear solid's recovery (Fung 1993 Sec. 2.11): the share ``jump`` of it
+    at once, the rest exponential; 60 fps from 0 s, T_0 ``t0_s`` [s]. Returns t, S_k, S_0."""
+    s0 = CAL.s0_for_depth_change(CAL.indenter_length_mm - 3.0)
+    s_inf = CAL.area_for_force_px(6.5)
+    t = np.arange(0.0, 125.0, 1 / 60)
+    x = t - t0_s
+    after = s_inf - (s_inf - s0) * (1.0 - jump) * np.exp(-np.clip(x, 0.0, None) / tau_sigma_s)
+    s = np.where(t < t0_s, 40000.0, after)
+    s[int(np.searchsorted(t, t0_s))] = s0  # the release frame still shows the pit
+    noise = np.random.default_rng(3).normal(0.0, noise_px, t.size)
+    return t, np.clip(s + noise, 0.0, None), s0
+
+
+@pytest.mark.parametrize("jump", [0.1, 0.25, 0.6])
+@pytest.mark.parametrize("t0_s", [19.5, 19.505])  # T_0 on a frame, and between two
+def test_a_spring_back_at_the_release_keeps_s0_from_the_release_frame(
+    jump: float, t0_s: float
+) -> None:
+    # A standard linear solid recovers the share tau_eps/tau_sig at once, between the
+    # release frame and the next: the release frame is then an outlier of the frames
+    # after it, but the pit it shows is S_0. Read from the frames after the jump, D_p
+    # was 79 % low and E 390 % high on the Zener scene.
+    t, s, s0 = spring_back(jump, t0_s)
+    res = analyse(t, s, t0_s)
+    assert res.pitting.s0_px == pytest.approx(s0, abs=80.0)
+    assert res.pitting.depth_mm == pytest.approx(3.0, rel=0.01)
+    assert Flag.RELEASE_STEP in res.flags
+    assert Flag.S0_EXTRAPOLATED not in res.flags
+    v = assess_validity(res, ended_done=True)["validity"]
+    for q in ("depth_mm", "elasticity_kpa"):
+        assert v[q]["status"] == "flagged", q
+        assert "spring-back" in v[q]["reason"], q
+
+
+def test_kelvin_voigt_recoveries_show_no_release_step() -> None:
+    for tau_s in (0.05, 0.3, 7.5, 30.0):
+        res = analyse(*noisy_kv(tau_s, noise_px=20.0), 19.5)
+        assert Flag.RELEASE_STEP not in res.flags, tau_s
+
+
+def test_a_bright_frame_at_a_spring_back_is_still_an_outlier() -> None:
+    # below the contact floor C1 (Eq. 5) no image shows the pit: an outlier, extrapolated
+    t, s, _ = spring_back(0.25, 19.5)
+    s[int(np.searchsorted(t, 19.5))] = 0.0
+    res = analyse(t, s, 19.5)
+    assert Flag.RELEASE_STEP not in res.flags
+    assert Flag.S0_EXTRAPOLATED in res.flags
+
+
 def test_a_dark_frame_just_before_t0_flags_depth_and_tr() -> None:
     # The dark frame at the release looks like one more pitting frame: T_0 placed at the
     # image's step (the next frame) may be a frame late.

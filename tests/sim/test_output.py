@@ -10,6 +10,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+import pytest
 
 from stipi_daemon.cli import main
 from stipi_daemon.sim import Pipeline, load_scene, write_outputs
@@ -120,3 +121,35 @@ def test_cli_simulate(tmp_path: Path) -> None:
     truth = json.loads((tmp_path / "o" / "ground_truth.json").read_text())
     assert truth["frame"]["fps"] == 2.0 and truth["calibration"]["area_scale"] == 0.0625
     assert main(["simulate", str(tmp_path / "missing.yaml"), "--out", str(tmp_path)]) == 2
+
+
+def test_cli_simulate_never_replaces_an_earlier_rendering_silently(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = tmp_path / "o"
+    argv = ["simulate", str(SCENES / "grade1.yaml"), "--out", str(out)]
+    small = ["--resolution", "160x120", "--fps", "2", "--quiet"]
+    assert main([*argv, *small]) == 0
+    before = (out / "ground_truth.json").read_bytes()
+    assert main([*argv, *small, "--seed", "9"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "holds an earlier rendering" in err[0] and "--overwrite" in err[0]
+    assert (out / "ground_truth.json").read_bytes() == before  # nothing touched
+    assert main([*argv, *small, "--seed", "9", "--overwrite"]) == 0
+    assert json.loads((out / "ground_truth.json").read_text())["seed"] == 9
+
+
+def test_cli_simulate_refuses_a_session_directory_and_a_file(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    session = tmp_path / "s"
+    session.mkdir()
+    (session / "manifest.json").write_text("{}")
+    small = ["--resolution", "160x120", "--fps", "2", "--quiet", "--overwrite"]
+    assert main(["simulate", str(SCENES / "grade1.yaml"), "--out", str(session), *small]) == 2
+    assert "session directory" in capsys.readouterr().err
+    assert sorted(p.name for p in session.iterdir()) == ["manifest.json"]
+    f = tmp_path / "f"
+    f.write_text("x")
+    assert main(["simulate", str(SCENES / "grade1.yaml"), "--out", str(f), *small]) == 2
+    assert "is a file" in capsys.readouterr().err

@@ -93,6 +93,26 @@ def test_lossless_reproduces_every_pixel(tmp_path: Path, shape: tuple[int, ...])
         assert [f.pts for f in c.decode(video=0)] == r.video_frames()["pts_ms"].tolist()
 
 
+@pytest.mark.parametrize("mode", ["passthrough", "lossless"])
+@pytest.mark.parametrize("fps", [60.0, 29.97])
+def test_the_camera_frame_rate_is_declared(tmp_path: Path, mode: str, fps: float) -> None:
+    # without it OpenCV reports FFmpeg's default of 24 fps for a 60 fps session video
+    images = _images(ENCODER_QUEUE_FRAMES - 2, (48, 64))  # never more than the encoder queue
+    with _writer(tmp_path) as w:
+        assert w.video_path is not None
+        rec = VideoRecorder(w.video_path, w, mode, frame_rate_hz=fps)  # type: ignore[arg-type]
+        for k, im in enumerate(images):
+            pk = cv2.imencode(".jpg", im)[1].tobytes()
+            assert rec.record(k, k / fps, im, pk)
+        rec.close()
+        w.finish("complete")
+    cap = cv2.VideoCapture(str(tmp_path / "s" / "video.mkv"), cv2.CAP_FFMPEG)
+    try:
+        assert cap.get(cv2.CAP_PROP_FPS) == pytest.approx(fps, rel=1e-3)
+    finally:
+        cap.release()
+
+
 def test_lossless_crop_stores_the_rectangle(tmp_path: Path) -> None:
     images = _images(3, (40, 50))
     with _writer(tmp_path) as w:

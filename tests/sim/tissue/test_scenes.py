@@ -17,12 +17,16 @@ import numpy as np
 import pytest
 import yaml
 
+from stipi_daemon.analysis.flags import Flag
+from stipi_daemon.analysis.pitting import compute_pitting_parameters
 from stipi_daemon.cli import main
 from stipi_daemon.errors import ConfigError
 from stipi_daemon.sim.physics import SceneModel
+from stipi_daemon.sim.pipeline import Pipeline
 from stipi_daemon.sim.scene import load_scene, parse_scene
 from stipi_daemon.sim.tissue import known_tissue_models
 from stipi_daemon.sim.truth import ground_truth
+from tests.sim._analysis import calibration_of, count_frames
 
 REPO = Path(__file__).resolve().parents[3]
 SCENES = REPO / "configs" / "scenes"
@@ -120,6 +124,20 @@ def test_zener_jump_falls_between_the_t0_frame_and_the_next() -> None:
     jumped = (s[1] - s[0]) / (s_inf - s[0])
     expected = 1.0 - (1.0 - 2.08 / 8.31) * math.exp(-period / 8.31)
     assert jumped == pytest.approx(expected, rel=1e-12)
+
+
+@pytest.mark.parametrize("name", ["zener", "kelvin_voigt"])
+def test_zener_scene_is_analysed_from_the_release_frame(name: str) -> None:
+    # The analysis core on rendered frames: the Zener spring-back leaves D_p (hence E)
+    # right and says that S_0 rests on the release frame; Kelvin-Voigt tissue shows no step.
+    scene = load_scene(TISSUE_SCENES[name]).with_camera(width=160, height=120, fps=30.0)
+    gt = ground_truth(scene)
+    frames = Pipeline(scene).frames(gt.t0_s - 1.0, gt.t0_s + 30.0)
+    t, s, _ = count_frames(frames, gt)
+    pp = compute_pitting_parameters(t, s, gt.t0_s, calibration_of(gt), window_s=30.0)
+    assert pp.depth_mm == pytest.approx(gt.depth_mm, rel=0.02)
+    assert (Flag.RELEASE_STEP in pp.flags) is (name == "zener")
+    assert Flag.S0_EXTRAPOLATED not in pp.flags
 
 
 def _scene(tissue: dict[str, object]) -> dict[str, object]:
