@@ -609,8 +609,9 @@ def _coverage_table(groups: dict[str, list[TissueRun]], windows: list[float]) ->
         "`+k none` when k windows gave no interval (too few points, failed refits or an "
         "undefined quantity). An interval describes the fitted window (S_max at its end), so "
         "the truth here is the true curve recorded for the same W (tau: the effective tau). "
-        "Nominal: 95 %. eta's interval holds E fixed (docs/analysis.md), so an error in E "
-        "(shared by all estimators) is outside it.\n",
+        "Nominal: 95 %. eta's interval also draws D_p (hence E) with its standard "
+        "uncertainty from the S_0 frame's noise (docs/analysis.md, \"eta's interval carries "
+        "D_p's uncertainty\"); F_a's and the calibration's errors are outside it.\n",
         "| estimator | quantity | " + " | ".join(tissues) + " | all |",
         "|---|---|" + "---:|" * (len(tissues) + 1),
     ]
@@ -665,8 +666,7 @@ def _coverage_table(groups: dict[str, list[TissueRun]], windows: list[float]) ->
                 + ", ".join(low)
                 + ": an interval narrower than the error misses, and the bootstrap resamples "
                 "the noise of the residuals, not a systematic offset such as the binary "
-                "count's edge quantisation and the JPEG round trip (eta's interval also "
-                "leaves out E's error).\n"
+                "count's edge quantisation and the JPEG round trip.\n"
                 if low
                 else ". Coverage there is at least 90 % for every quantity.\n"
             )

@@ -26,7 +26,7 @@ from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
-from numpy.typing import ArrayLike
+from numpy.typing import ArrayLike, NDArray
 from pydantic import BaseModel, ConfigDict, Field
 
 from stipi_daemon.analysis.calibration import Calibration
@@ -63,6 +63,7 @@ __all__ = [
     "MeasurementResult",
     "analyze_recovery",
     "applied_force_n_from_samples",
+    "depth_relative_sd",
 ]
 
 
@@ -442,6 +443,29 @@ def _checked_fit(
     return fit, pitting, notes
 
 
+def depth_relative_sd(
+    times_s: NDArray[np.float64],
+    s_k: NDArray[np.float64],
+    pitting: PittingParameters,
+    calibration: Calibration,
+) -> float:
+    """Relative standard uncertainty of D_p [-] from the noise of the one frame S_0 is.
+
+    D_p = l - d_s(S_0) (Eqs. 3-4), so sd(D_p) = |2 alpha1 S_0 - alpha2| sigma_S, with
+    sigma_S the frame-to-frame noise of the recovery frames [px]
+    (:func:`~stipi_daemon.analysis.observation.noise_sigma`); divided by D_p. 0 when D_p
+    is not positive or there are too few frames to tell the noise. A calibration's own
+    error and F_a's are not in it.
+    """
+    depth = pitting.depth_mm
+    window = (times_s > pitting.t0_s) & np.isfinite(s_k)
+    if not (math.isfinite(depth) and depth > 0.0) or np.count_nonzero(window) < 3:
+        return 0.0
+    slope = 2.0 * calibration.alpha1_mm_per_px2 * pitting.s0_px - calibration.alpha2_mm_per_px
+    rel = abs(slope) * noise_sigma(s_k[window]) / depth
+    return rel if math.isfinite(rel) else 0.0
+
+
 def _usable_frames(
     times_s: ArrayLike, s_k: ArrayLike, pitting: PittingParameters
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -487,6 +511,7 @@ def _compared_models(
             seed=settings.bootstrap_seed,
             rebound_force=force,
             elasticity_kpa=elasticity_kpa,
+            depth_rel_sd=depth_relative_sd(t, s, pitting, calibration),
         )
     except AnalysisError as exc:
         notes.append(f"recovery models not compared: {exc}")

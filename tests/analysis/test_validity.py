@@ -392,3 +392,19 @@ def test_a_dark_frame_just_before_t0_flags_depth_and_tr() -> None:
     assert v["recovery_time_s"]["status"] == "flagged"
     clean = assess_validity(analyse(*noisy_kv(0.56), 19.5), ended_done=True)
     assert "release_frame_outlier" not in clean["validity"]["depth_mm"]["flags"]
+
+
+def test_depth_uncertainty_is_the_calibration_slope_times_the_frame_noise() -> None:
+    # checked against a central difference of Eqs. (3)-(4) through Calibration itself
+    from stipi_daemon.analysis.results import depth_relative_sd
+
+    t, s = noisy_kv(7.5, noise_px=20.0)
+    res = analyse(t, s, 19.5)
+    p = res.pitting
+    h = 1.0
+    slope = (CAL.depth_change_mm(p.s0_px + h) - CAL.depth_change_mm(p.s0_px - h)) / (2 * h)
+    rel = depth_relative_sd(t, s, p, CAL)
+    assert rel == pytest.approx(abs(slope) * 20.0 / p.depth_mm, rel=0.15)  # noise SD 20 px
+    assert res.models is not None and res.models.depth_rel_sd == rel
+    clean = analyse(*noisy_kv(7.5, noise_px=0.0), 19.5)
+    assert clean.models is not None and clean.models.depth_rel_sd < 1e-4  # no noise

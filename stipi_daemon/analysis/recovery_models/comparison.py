@@ -205,6 +205,8 @@ class RecoveryModelComparison:
         QAICc(Kelvin-Voigt) - min QAICc.
     replicates, seed : int
         Bootstrap settings.
+    depth_rel_sd : float
+        D_p's relative standard uncertainty carried into eta's interval [-] (0: E fixed).
     flags : frozenset[Flag]
         ``KELVIN_VOIGT_REJECTED`` (Kelvin-Voigt's QAICc exceeds the best by more than 10),
         ``MODEL_SELECTION_UNAVAILABLE``, ``NON_FINITE_INPUT``, ``CONSTANT_SERIES``.
@@ -221,6 +223,7 @@ class RecoveryModelComparison:
     replicates: int
     seed: int
     flags: frozenset[Flag]
+    depth_rel_sd: float = 0.0
 
     @property
     def kelvin_voigt_rejected(self) -> bool:
@@ -243,7 +246,9 @@ class RecoveryModelComparison:
             "(noise variance); decision by QAICc (log-likelihood / variance_inflation)",
             "kelvin_voigt_rejection_rule": f"QAICc(kelvin_voigt) - min QAICc > "
             f"{KV_REJECTION_DELTA:g}",
-            "intervals": "95 % percentile, moving-block bootstrap of the residuals",
+            "intervals": "95 % percentile, moving-block bootstrap of the residuals; eta's "
+            "also draws D_p (hence E, Eq. 7) with its standard uncertainty",
+            "depth_relative_sd": self.depth_rel_sd,
             "variance_inflation": _finite(self.variance_inflation),
             "best_model": self.best_model,
             "kelvin_voigt_delta_qaicc": _finite(self.kelvin_voigt_delta_qaicc),
@@ -268,6 +273,7 @@ class _Series:
     settle_fraction: float
     rebound_force: Callable[[float], float | None] | None
     elasticity_kpa: float | None
+    depth_rel_sd: float = 0.0
 
     def unscale(self, p: FloatArray) -> tuple[float, float]:
         """(offset, amplitude) in the series' unit."""
@@ -342,6 +348,9 @@ def _bootstrap(
     resid = s.z - fitted[0]
     block = block_length(resid)
     idx = moving_block_indices(s.x.size, block.length, replicates, rng)
+    # E = c / D_p (Eq. 7): each replicate's D_p drawn with its standard uncertainty, after
+    # the block indices so that the other intervals do not depend on it
+    depth_factor = 1.0 + s.depth_rel_sd * rng.standard_normal(replicates)
     samples: dict[str, list[float]] = {k: [] for k in CI_QUANTITIES}
     failed = 0
     for lo in range(0, replicates, _CHUNK):
@@ -349,9 +358,12 @@ def _bootstrap(
         p_star, ok = solve_batch(model, s.x, z_star, p)
         for b in range(p_star.shape[0]):
             q = _quantities(model, p_star[b], s) if ok[b] else None
-            if q is None or not np.all(np.isfinite(p_star[b])):
+            d = float(depth_factor[lo + b])
+            if q is None or not np.all(np.isfinite(p_star[b])) or d <= 0.0:
                 failed += 1
                 continue
+            eta = q["viscosity_n_s_per_mm2"]
+            q["viscosity_n_s_per_mm2"] = None if eta is None else eta / d
             for k in CI_QUANTITIES:
                 v = q[k]
                 samples[k].append(math.inf if v is None else v)
@@ -392,6 +404,7 @@ def fit_recovery_models(
     models: Sequence[str] | None = None,
     rebound_force: Callable[[float], float | None] | None = None,
     elasticity_kpa: float | None = None,
+    depth_rel_sd: float = 0.0,
 ) -> RecoveryModelComparison:
     """Fit every recovery model to one series; AICc weights; bootstrap 95 % intervals.
 
@@ -417,8 +430,12 @@ def fit_recovery_models(
     rebound_force : callable, optional
         Eq. (5), S_max [px] -> F_r [N] (None for an S_max it cannot take).
     elasticity_kpa : float, optional
-        E [kPa] for eta = E T_r (Eq. 8); E itself is held fixed (its own uncertainty, from
-        S_0 and F_a, is not in eta's interval).
+        E [kPa] for eta = E T_r (Eq. 8).
+    depth_rel_sd : float
+        Relative standard uncertainty of D_p [-], >= 0 and finite (0: E held fixed). E =
+        c/D_p (Eq. 7), so each bootstrap replicate's eta is divided by 1 + depth_rel_sd z,
+        z standard normal: eta's interval carries E's uncertainty through D_p (F_a's is
+        not in it).
 
     Raises
     ------
@@ -430,6 +447,8 @@ def fit_recovery_models(
         raise AnalysisError(f"settle_fraction must be in (0, 1), got {settle_fraction}")
     if replicates < 0 or seed < 0:
         raise AnalysisError(f"replicates and seed must be >= 0, got {replicates}, {seed}")
+    if not (math.isfinite(depth_rel_sd) and depth_rel_sd >= 0.0):
+        raise AnalysisError(f"depth_rel_sd must be finite and >= 0, got {depth_rel_sd}")
     names = [_KV, *[m for m in (models or MODELS) if m != _KV]]
     unknown = [m for m in names if m not in MODELS]
     if unknown:
@@ -447,6 +466,7 @@ def fit_recovery_models(
         "n_points": int(x.size),
         "replicates": replicates,
         "seed": seed,
+        "depth_rel_sd": float(depth_rel_sd),
     }
     if span <= 1e-12 * max(abs(y_lo), abs(y_hi)) or span == 0.0:
         fits = tuple(
@@ -462,7 +482,16 @@ def fit_recovery_models(
             flags=frozenset(flags),
             **common,  # type: ignore[arg-type]
         )
-    s = _Series(x, (y - y_lo) / span, y_lo, span, settle_fraction, rebound_force, elasticity_kpa)
+    s = _Series(
+        x,
+        (y - y_lo) / span,
+        y_lo,
+        span,
+        settle_fraction,
+        rebound_force,
+        elasticity_kpa,
+        depth_rel_sd,
+    )
     return _compare(names, s, replicates, seed, flags, common)
 
 

@@ -16,6 +16,7 @@ from stipi_daemon.analysis.recovery_fit import fit_recovery
 from stipi_daemon.analysis.recovery_models import MODELS, fit_recovery_models
 from stipi_daemon.analysis.recovery_models.base import solve_batch, solve_scaled
 from stipi_daemon.analysis.recovery_models.bootstrap import block_length
+from stipi_daemon.errors import AnalysisError
 
 from ._curves import SCENE_MODELS, T0_S, TRUE_FIT, realistic_noise, series
 
@@ -161,3 +162,23 @@ def test_batch_solver_agrees_with_scipy(name: str) -> None:
         assert model.time_to_remaining(batch[b][2:], u) == pytest.approx(
             model.time_to_remaining(ref[2:], u), rel=1e-3
         )
+
+
+def test_eta_interval_carries_the_depth_uncertainty() -> None:
+    # E = c/D_p (Eq. 7): with D_p uncertain by 1 %, eta's 95 % interval spans at least
+    # +-1.96 % around eta (the T_r part adds to it); the other intervals do not change.
+    t, s, _ = series("kelvin_voigt", noise="realistic", seed=1, window_s=30.0)
+    kw = {"replicates": 200, "seed": 3, "elasticity_kpa": 200.0}
+    fixed = fit_recovery_models(t, s, T0_S, 30.0, **kw).fit("kelvin_voigt")  # type: ignore[arg-type]
+    drawn = fit_recovery_models(t, s, T0_S, 30.0, depth_rel_sd=0.01, **kw)  # type: ignore[arg-type]
+    f = drawn.fit("kelvin_voigt")
+    assert drawn.to_dict()["depth_relative_sd"] == 0.01
+    for k in ("tau_s", "recovery_time_s", "rebound_force_n", "s_max"):
+        assert f.ci95[k] == fixed.ci95[k], k
+    eta = f.quantities["viscosity_n_s_per_mm2"]
+    lo, hi = f.ci95["viscosity_n_s_per_mm2"] or (math.nan, math.nan)
+    flo, fhi = fixed.ci95["viscosity_n_s_per_mm2"] or (math.nan, math.nan)
+    assert eta is not None and lo < flo and hi > fhi
+    assert (hi - lo) / eta == pytest.approx(2 * 1.96 * 0.01, rel=0.25)
+    with pytest.raises(AnalysisError, match="depth_rel_sd"):
+        fit_recovery_models(t, s, T0_S, 30.0, depth_rel_sd=math.nan)
