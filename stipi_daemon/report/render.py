@@ -376,34 +376,52 @@ def draw_s_k(data: SkFigure, title: str = "") -> Figure:
     return fig
 
 
-def draw_fit(data: FitFigure, title: str = "") -> Figure:
-    """The fitted Kelvin-Voigt recovery against the data (top) and the residuals (bottom)."""
-    fig = _figure(5.6, rows=2, height_ratios=(3.0, 1.4))
-    ax, axr = fig.axes
+def _frames_and_outliers(
+    ax: Axes,
+    frames: tuple[FloatArray, FloatArray],
+    rejected: tuple[FloatArray, FloatArray],
+    style: tuple[str, str, str],
+    outlier_label: str,
+) -> None:
+    """The recovery frames (times since T_0 [s], S_k [px]) as dots and the outlier frames
+    left out as red crosses (kept at the axis edge when off scale); ``style`` is the dots'
+    colour and the two artists' gids."""
+    colour, gid, rejected_gid = style
     (pts,) = ax.plot(
-        data.t_since_t0_s,
-        data.s_k_px,
+        frames[0],
+        frames[1],
         ".",
-        color="#7f7f7f",
+        color=colour,
         ms=2.5,
-        label=f"$S_k$ data ({data.t_since_t0_s.size} frames)",
+        label=f"$S_k$ data ({frames[0].size} frames)",
     )
-    pts.set_gid("fit_data")
-    if data.rejected_t_since_t0_s.size:
+    pts.set_gid(gid)
+    if rejected[0].size:
         (rej,) = ax.plot(
-            data.rejected_t_since_t0_s,
-            _within_line_range(ax, data.s_k_px, data.rejected_s_k_px),
+            rejected[0],
+            _within_line_range(ax, frames[1], rejected[1]),
             "X",
             color="#d62728",
             ms=7,
             ls="none",
             clip_on=False,
-            label=(
-                f"outlier frames left out of the fit ({data.rejected_t_since_t0_s.size}; "
-                "at the edge if off scale)"
-            ),
+            label=outlier_label,
         )
-        rej.set_gid("fit_rejected")
+        rej.set_gid(rejected_gid)
+
+
+def draw_fit(data: FitFigure, title: str = "") -> Figure:
+    """The fitted Kelvin-Voigt recovery against the data (top) and the residuals (bottom)."""
+    fig = _figure(5.6, rows=2, height_ratios=(3.0, 1.4))
+    ax, axr = fig.axes
+    _frames_and_outliers(
+        ax,
+        (data.t_since_t0_s, data.s_k_px),
+        (data.rejected_t_since_t0_s, data.rejected_s_k_px),
+        ("#7f7f7f", "fit_data", "fit_rejected"),
+        f"outlier frames left out of the fit ({data.rejected_t_since_t0_s.size}; "
+        "at the edge if off scale)",
+    )
     tau, tau_se = value_with_uncertainty(data.tau_s, data.tau_se_s)
     se = "" if data.tau_se_s is None else f" ± {tau_se}"
     (model,) = ax.plot(
@@ -460,27 +478,13 @@ def draw_recovery_models(data: RecoveryModelsFigure, title: str = "") -> Figure:
     ``model_<name>``, ``model_residual_<name>``."""
     fig = _figure(5.8, rows=2, height_ratios=(3.0, 1.4))
     ax, axr = fig.axes
-    (pts,) = ax.plot(
-        data.t_since_t0_s,
-        data.s_k_px,
-        ".",
-        color="#9a9a9a",
-        ms=2.5,
-        label=f"$S_k$ data ({data.t_since_t0_s.size} frames)",
+    _frames_and_outliers(
+        ax,
+        (data.t_since_t0_s, data.s_k_px),
+        (data.rejected_t_since_t0_s, data.rejected_s_k_px),
+        ("#9a9a9a", "models_data", "models_rejected"),
+        f"outlier frames left out ({data.rejected_t_since_t0_s.size})",
     )
-    pts.set_gid("models_data")
-    if data.rejected_t_since_t0_s.size:
-        (rej,) = ax.plot(
-            data.rejected_t_since_t0_s,
-            _within_line_range(ax, data.s_k_px, data.rejected_s_k_px),
-            "X",
-            color="#d62728",
-            ms=7,
-            ls="none",
-            clip_on=False,
-            label=f"outlier frames left out ({data.rejected_t_since_t0_s.size})",
-        )
-        rej.set_gid("models_rejected")
     for c in data.curves:
         colour, dashes = MODEL_STYLES.get(c.name, ("#555555", ":"))
         (line,) = ax.plot(

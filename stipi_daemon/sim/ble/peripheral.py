@@ -23,6 +23,7 @@ from collections.abc import Callable, Hashable
 from dataclasses import dataclass, field
 from typing import Any, Final
 
+from bumble.att import ATT_CID
 from bumble.core import UUID
 from bumble.device import Connection, Device, DeviceConfiguration
 from bumble.gatt import Characteristic, CharacteristicValue, Service
@@ -61,6 +62,8 @@ REASON_REMOTE_USER_TERMINATED: Final = 0x13
 #: HCI reason "connection failed to be established": the first connection events were
 #: missed (BlueZ reports it as ``le-connection-abort-by-local``).
 REASON_FAILED_TO_ESTABLISH: Final = 0x3E
+#: Longest a refused connection lasts when the central sends nothing [s].
+REFUSED_CONNECTION_S: Final = 1.0
 _MIN_TICK_WALL_S: Final = 0.002
 
 
@@ -218,6 +221,9 @@ class NusPeripheral:
         self.device.add_service(Service(UUID(NUS_SERVICE_UUID), [self._tx, self._rx]))
         self.device.on(Device.EVENT_CONNECTION, self._on_connection)
         self.device.on("characteristic_subscription", self._on_subscription)
+        #: Handles of refused connections, dropped at the central's first ATT request.
+        self._refusing: set[int] = set()
+        self.device.l2cap_channel_manager.register_fixed_channel(ATT_CID, self._on_att_pdu)
 
         self._connection: Connection | None = None
         self._subscribed = False
@@ -323,13 +329,37 @@ class NusPeripheral:
 
         The central's connection completes, then ends with HCI reason 0x3E (connection
         failed to be established; a controller that refuses that reason from its host
-        gets 0x13) before service discovery finishes - the transient failure of a
-        peripheral that misses the first connection events, which a central retries.
+        gets 0x13) under the central's first ATT request, which is never answered - the
+        transient failure of a peripheral that misses the first connection events, which a
+        central retries. (Dropping it as soon as it is made raced the central's own
+        connection-complete event across the loopback relay: its host then saw a
+        disconnection of a handle it did not know yet, and its discovery waited out
+        Bumble's 30 s GATT timeout.)
         Counted in ``counters.connections_refused``, not in ``counters.connections``.
         """
         if count < 0:
             raise ValueError(f"refused connection count must be >= 0, got {count}")
         self._refuse_left = count
+
+    def _on_att_pdu(self, handle: int, pdu: bytes) -> None:
+        """The device's ATT channel, except that a refused connection's first request is
+        never answered: the link drops under it (see :meth:`refuse_connections`)."""
+        if handle in self._refusing:
+            self._refusing.discard(handle)
+            connection = self.device.lookup_connection(handle)
+            if connection is not None:
+                asyncio.get_running_loop().create_task(self._drop_refused(connection))
+            return
+        self.device.on_gatt_pdu(handle, pdu)
+
+    async def _refuse(self, connection: Connection) -> None:
+        """Drop a refused connection at its first ATT request, or after
+        :data:`REFUSED_CONNECTION_S` if none comes."""
+        self._refusing.add(connection.handle)
+        await asyncio.sleep(REFUSED_CONNECTION_S)
+        if connection.handle in self._refusing:
+            self._refusing.discard(connection.handle)
+            await self._drop_refused(connection)
 
     async def _drop_refused(self, connection: Connection) -> None:
         try:
@@ -384,7 +414,7 @@ class NusPeripheral:
         if self._refuse_left > 0 and self._connection is None and not self._absent:
             self._refuse_left -= 1
             self.counters.connections_refused += 1
-            asyncio.get_running_loop().create_task(self._drop_refused(connection))
+            asyncio.get_running_loop().create_task(self._refuse(connection))
             return
         if self._connection is not None or self._absent:
             # The module serves one central; a second one (or one racing a disappearance)
