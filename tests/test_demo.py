@@ -30,9 +30,13 @@ def test_demo_config_runs_a_whole_measurement(tmp_path: Path) -> None:
     cfg["probe"]["transport"]["scene"] = scene
     cfg["camera"]["scene"] = scene
     cfg["storage"]["root"] = str(tmp_path / "sessions")
-    # The demo's 30 s lag bound is 3 s of wall time at speed 10: a suite running beside
-    # CPU hogs may stall a child that long. This test checks the measurement, not the
-    # lag policy (tests/daemon/ test it), so it allows the most, 6 s of wall time.
+    # The demo's speed 10 needs about 1.3 of this machine's 2 CPUs (docs/performance.md,
+    # "Demo speed"; measured by benchmarks/demo_speed.py, not here): beside the suite's
+    # other worker and a CPU hog on every core it fell 60 s behind and faulted, as it
+    # should. This test checks the measurement, so it runs the same config at speed 4
+    # and allows the longest lag bound (15 s of wall time); tests/daemon/ test the lag
+    # policy and test_speed_identity.py that speed changes no result.
+    cfg["run"]["speed"] = 4.0
     cfg["run"]["max_lag_s"] = 60.0
     path = tmp_path / "demo.yaml"
     path.write_text(yaml.safe_dump(cfg))

@@ -2,8 +2,11 @@
 
 The same short scene (grade I, 0.5 s approach, 3 s hold, 7 s recovery, 160x120 at 60 fps)
 is measured by the real daemon (emulated Feather on a pty, simulator camera) at speed 1
-and at speed 8. Everything computed from the frames (D_p, F_r, T_r, tau, severity,
-verdict) must agree to rounding of the session-time origin (1e-9). E and the viscosities
+and at speed 8. Everything computed from the frames (D_p, F_r, T_r, severity, verdict)
+must agree to rounding of the session-time origin (1e-9); tau, the end point of an
+iterative least-squares fit that stops at scipy's default tolerances (ftol = xtol = 1e-8
+relative), to 1e-4: inputs equal to rounding may stop it at different points of that
+band (seen once, 1.1e-5, with both CPUs hogged). E and the viscosities
 also depend on F_a, the mean of the force samples over the hold: the probe's sample timer
 starts when STREAM_START arrives, so its phase against the scene's force ramp differs
 between any two runs, at any speed (docs/performance.md, "Demo speed"); they are compared
@@ -84,7 +87,8 @@ async def test_results_at_speed_8_equal_those_at_speed_1(tmp_path: Path) -> None
     fast = await _measure(tmp_path, scene, FAST_SPEED)
     for key in ("severity", "verdict"):
         assert fast[key] == real_time[key], key
-    for key in ("depth_mm", "rebound_force_n", "recovery_time_s", "tau_s"):
+    for key in ("depth_mm", "rebound_force_n", "recovery_time_s"):
         assert fast[key] == pytest.approx(real_time[key], rel=1e-9), key
+    assert fast["tau_s"] == pytest.approx(real_time["tau_s"], rel=1e-4)
     for key in ("elasticity_kpa", "viscosity_paper", "viscosity_fit"):
         assert fast[key] == pytest.approx(real_time[key], rel=1e-3), key
