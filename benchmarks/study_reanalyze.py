@@ -40,7 +40,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import logging
 import multiprocessing
 import os
 import platform
@@ -73,19 +72,11 @@ CONFIGS: tuple[tuple[str, str | None, int | None], ...] = (
 
 
 def _cluster_start_stop_s(workers: int) -> float:
-    from distributed import Client, LocalCluster
+    """Wall time [s] to start and stop the embedded cluster ``study reanalyze`` uses."""
+    from stipi_daemon.study.reanalyze import dask_client
 
     t0 = time.perf_counter()
-    with (
-        LocalCluster(  # type: ignore[no-untyped-call]
-            n_workers=workers,
-            threads_per_worker=1,
-            processes=True,
-            dashboard_address=None,
-            silence_logs=logging.ERROR,
-        ) as cluster,
-        Client(cluster),  # type: ignore[no-untyped-call]
-    ):
+    with dask_client(None, workers):
         pass
     return time.perf_counter() - t0
 
