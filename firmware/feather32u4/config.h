@@ -53,6 +53,9 @@
 #define STIPI_ADC_CONV_BUDGET_US 115 // time reserved per conversion [us]
 #define STIPI_ADC_CONV_PERIOD_US 115 // start-to-start of chained conversions [us] (114.5 in simavr)
 #define STIPI_ADC_MARGIN_US 100      // left free per period for interrupt latency [us]
+// The supply reading is chained after a sample only if its conversion then ends this long before
+// the next sample instant (oversample.h supply_fits); otherwise it waits for a later sample.
+#define STIPI_ADC_SUPPLY_SLACK_US 40 // [us]
 // Extra bits on the wire: 0 keeps SAMPLES.adc in 10-bit counts (the averaged mean, rounded;
 // calibrations and the host's load-cell model stay valid); 2 sends 12-bit counts (sum of 16
 // conversions / 4) and GET_INFO reports adc_bits = 12 (recalibrate: zero and span change x4).

@@ -135,6 +135,11 @@ class HarnessLog:
         """Simulated instants the firmware started a load-cell conversion [s]."""
         return np.array([float(kv["sim_s"]) for kv in self.of("ADC")])
 
+    def other_conversion_times_s(self) -> np.ndarray:
+        """Simulated instants the firmware started a conversion of another channel (the
+        supply reading) [s]."""
+        return np.array([float(kv["sim_s"]) for kv in self.of("AUX")])
+
     def conversion_mv(self) -> np.ndarray:
         """Integer millivolts the harness fed at each of those conversions [mV]."""
         return np.array([int(kv["mv"]) for kv in self.of("ADC")], dtype=np.int64)

@@ -19,6 +19,8 @@
  *   TIME sim_s=.. wall_s=.. speed=.. cycles=..  every --report-interval simulated seconds
  *   ADC sim_s=.. channel=.. mv=..               every conversion of the load-cell channel
  *                                               starts (--log-adc)
+ *   AUX sim_s=.. channel=..                     every conversion of another channel starts
+ *                                               (--log-adc; e.g. the supply reading)
  *   REG sim_s=.. name=.. addr=0x.. value=..     a watched data byte changed (--watch)
  *   BLE sim_s=.. event=connected|summary ..      the central connected; module counters
  *                                               (summary, after EXIT) with --nrf51
@@ -389,6 +391,8 @@ static void adc_trigger_hook(struct avr_irq_t *irq, uint32_t value, void *param)
 	avr_raise_irq(H.adc_in, (uint32_t)imv);
 	if (H.log_adc && e.mux.kind == ADC_MUX_SINGLE && (int)e.mux.src == H.adc_channel)
 		printf("ADC sim_s=%.9f channel=%d mv=%ld\n", t, H.adc_channel, imv);
+	else if (H.log_adc && e.mux.kind == ADC_MUX_SINGLE)
+		printf("AUX sim_s=%.9f channel=%d\n", t, (int)e.mux.src);
 }
 
 static void uart_out_hook(struct avr_irq_t *irq, uint32_t value, void *param)

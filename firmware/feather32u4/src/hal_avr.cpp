@@ -81,7 +81,11 @@ ISR(ADC_vect) {
       return;
     }
     g_sampler.isr_push(oversample_output(g_sum, g_log2n, g_gain_q14), g_sample_t_us);
-    if (g_supply_wanted) {
+    // Timer1 (CTC, 1 us ticks) counts from this sample's instant; the supply reading is chained
+    // only if it lands before the next one (oversample.h), else it waits for a later sample.
+    if (g_supply_wanted &&
+        supply_fits(static_cast<uint16_t>(TCNT1 + 1u), static_cast<uint16_t>(OCR1A + 1u),
+                    (TIFR1 & _BV(OCF1A)) != 0)) {
       adc_select(g_supply_channel);  // chain the supply reading right after the sample
       g_adc_state = kAdcSupply;
       adc_start();

@@ -18,6 +18,27 @@ TEST(oversample_count_fits_the_period) {
   }
 }
 
+TEST(supply_reading_is_chained_only_when_it_lands_before_the_next_instant) {
+  const uint16_t p = 2058;  // 486 Hz
+  const uint16_t last = p - STIPI_ADC_CONV_BUDGET_US - STIPI_ADC_SUPPLY_SLACK_US;
+  CHECK(supply_fits(0, p, false));
+  CHECK(supply_fits(last, p, false));
+  CHECK(!supply_fits(last + 1, p, false));
+  CHECK(!supply_fits(p, p, false));
+  CHECK(!supply_fits(0xFFFF, 0xFFFF, false));  // no wrap in the sum
+  // The next instant has come (its flag pending; Timer1 has started again from 0): never.
+  CHECK(!supply_fits(0, p, true));
+  CHECK(!supply_fits(5, 62500, true));
+  // At every rate oversample_log2 allows, an on-time sample (its conversions plus the latency
+  // the margin is for) leaves room for the reading.
+  for (uint32_t q = 1000; q <= 65535; q += 7) {
+    const uint8_t k = oversample_log2(static_cast<uint16_t>(q));
+    const uint32_t done = (1u << k) * STIPI_ADC_CONV_BUDGET_US + STIPI_ADC_MARGIN_US -
+                          STIPI_ADC_SUPPLY_SLACK_US;
+    CHECK(supply_fits(static_cast<uint16_t>(done), static_cast<uint16_t>(q), false));
+  }
+}
+
 TEST(oversample_output_is_the_rounded_mean_on_the_wire_scale) {
   // 16 equal conversions of 700 give 700 (10-bit wire) whatever N is.
   for (uint8_t k = 0; k <= 4; ++k) {

@@ -40,6 +40,21 @@ inline uint8_t oversample_log2(uint16_t period_us) {
   return k;
 }
 
+// Whether the supply reading may be chained now, after a sample's last conversion, `since_us`
+// after that sample's instant, the next instant coming `period_us` after it [us]. The next
+// instant's timer interrupt outranks the ADC's: if the supply conversion has not landed by then,
+// the timer finds the ADC busy and loses that sample. The margin in oversample_log2 is meant for
+// this, but the interrupt latency spent in the sample's own conversions can use it up (at 486 Hz,
+// a sample every ~40 heartbeats was lost in simavr), so the clock decides: the reading goes
+// ahead only if its conversion ends STIPI_ADC_SUPPLY_SLACK_US before the next instant, and never
+// once that instant has passed (`instant_passed`: its flag is pending). Otherwise it stays
+// wanted and is tried after the next sample.
+inline bool supply_fits(uint16_t since_us, uint16_t period_us, bool instant_passed) {
+  return !instant_passed && static_cast<uint32_t>(since_us) + STIPI_ADC_CONV_BUDGET_US +
+                                    STIPI_ADC_SUPPLY_SLACK_US <=
+                                period_us;
+}
+
 // Offset from the sample instant (Timer1 compare) to the middle of its 2^log2n conversions
 // [us]: the mean of a linearly changing input is its value there, so that is the sample's
 // timestamp. Conversions are STIPI_ADC_CONV_PERIOD_US apart (104 us + the ISR's restart).
