@@ -160,7 +160,7 @@ def _loop_wall_s(processes: int) -> float:
 
 
 def _measure(directory: Path, n: int, repeat: int) -> dict[str, Any]:
-    session = record_session(directory)
+    session = record_session(directory, lossless=True)
     for i in range(n):
         clone_session(session, directory / "study-sessions", f"B{i:04d}", f"site {i % 3}")
     dataset = directory / "study"

@@ -1,8 +1,8 @@
 """Sessions with video for the re-analysis tests: one daemon recording, then clones.
 
 :func:`record_session` runs the real daemon (emulated probe, simulator camera, the short
-grade-I scene of ``tests/daemon/_support.py`` at 160x120, lossless video) once; the
-recording is kept under pytest's base temporary directory and reused by every test of the
+grade-I scene of ``tests/daemon/_support.py`` at 160x120, its MJPG video passed through)
+once; the recording is kept under pytest's base temporary directory and reused by every test of the
 run. :func:`clone_session` writes a new session with the storage writer from a recorded
 one: another session id and site, the same rows of every table (read back with the
 reader, in insertion order) and a copy of its video, so that each clone is a distinct
@@ -29,15 +29,26 @@ from stipi_daemon.storage.schema import (
     VIDEO_FRAMES,
 )
 from stipi_daemon.study.index import index_sessions
+from tests._offline import run_with_whole_video
 from tests.daemon._support import SHORT_MEASUREMENT, short_scene, write_config
 
 
-def record_session(directory: Path) -> Path:
-    """Record one session with video into ``directory/sessions`` (the daemon, for real)."""
-    from stipi_daemon.app.config import load_config
-    from stipi_daemon.app.daemon import run_measurement
+def record_session(directory: Path, lossless: bool = False) -> Path:
+    """Record one session with video into ``directory/sessions`` (the daemon, for real),
+    every frame in its video.
 
+    The tests' recording has an MJPG camera, whose JPEGs are stored as they came
+    (passthrough: muxed as they arrive, never left out, and recounted exactly as the camera
+    decoded them). ``lossless`` (the benchmark's): raw frames encoded with FFV1, whose
+    encoder thread leaves frames out when other load starves it (storage/video.py), so the
+    recording is made again until its video holds every frame
+    (:func:`tests._offline.run_with_whole_video`).
+    """
     scene = short_scene(directory, width=160, height=120)
+    if not lossless:
+        doc = yaml.safe_load(scene.read_text())
+        doc["camera"]["pixel_format"] = "mjpg"
+        scene.write_text(yaml.safe_dump(doc))
     doc = {
         "probe": {"transport": {"kind": "emulated", "scene": str(scene)}},
         "camera": {"kind": "simulator", "scene": str(scene)},
@@ -46,11 +57,9 @@ def record_session(directory: Path) -> Path:
     }
     path = write_config(directory, doc)
     cfg = yaml.safe_load(path.read_text())
-    cfg["storage"].update({"video": "lossless"})
+    cfg["storage"].update({"video": "lossless" if lossless else "passthrough"})
     path.write_text(yaml.safe_dump(cfg))
-    session = run_measurement(load_config(path), quiet=True).session_dir
-    assert session is not None
-    return Path(session)
+    return run_with_whole_video(path)
 
 
 def recorded_session(factory: pytest.TempPathFactory) -> Path:

@@ -6,7 +6,8 @@ The sessions are clones of one daemon recording with video (``_reanalyze_session
 the re-analysis counts S_k again from each video (``--recompute-sk``), so a task lasts
 long enough (about a second) for a kill to land while it runs. The analysis's own oracle
 is the daemon's recorded summary: the clones hold the live pipeline's S_k, and the
-recount of a lossless video must give the same results. No timing is asserted.
+recount of the stored video (the camera's JPEGs, decoded as the daemon decoded them) must
+give the same results. No timing is asserted.
 """
 
 from __future__ import annotations
@@ -74,8 +75,8 @@ def test_two_workers_give_the_serial_rows_and_collect_a_corrupt_session(
     # The corrupt session is a row with its error and no values.
     bad = a["R002"]
     assert bad["verdict"] == "unknown" and bad["depth_mm"] is None and "video" in bad["error"]
-    # Each good session reproduces what the daemon recorded live (the recount of a
-    # lossless video is the stored S_k).
+    # Each good session reproduces what the daemon recorded live (the recount of the
+    # stored JPEGs is the stored S_k).
     recorded = _rows(dataset, "recorded")
     for uid in ("R000", "R001", "R003", "R004"):
         assert a[uid]["error"] is None and a[uid]["verdict"] == recorded[uid]["verdict"]
