@@ -106,14 +106,17 @@ def _own_cpu_s() -> float:
 
 def _plain_task(args: tuple[str, str, str]) -> float:
     """In a plain process: analyse one session (as a Dask task does), with a Dask
-    worker's thread limits (BLAS/OpenMP and OpenCV one thread); its wall [s]."""
+    worker's thread limits (BLAS/OpenMP, OpenCV and the video decoder one thread); its
+    wall [s]."""
     import cv2
     from threadpoolctl import threadpool_limits
 
+    from stipi_daemon.storage.video import set_decode_threads
     from stipi_daemon.study.reanalyze import Plan, SessionTask, analyse_session
 
     threadpool_limits(1)
     cv2.setNumThreads(1)
+    set_decode_threads(1)
 
     dataset, version, task_json = args
     task = SessionTask(**json.loads(task_json))

@@ -445,6 +445,21 @@ def write_video_frame(
 
 # ------------------------------------------------------------------------------ reading
 
+#: Threads FFmpeg's decoder may use per video read (0: FFmpeg's choice, one per CPU).
+_decode_threads = 0
+
+
+def set_decode_threads(threads: int) -> None:
+    """Threads FFmpeg may use to decode a stored video (0: one per CPU, the default).
+
+    A process that is one of several sharing the CPUs (a study's Dask worker) sets 1: the
+    slice threads of each of its decodes would otherwise contend with the other processes
+    and hand each frame between threads (thousands of context switches per session)."""
+    global _decode_threads
+    if threads < 0:
+        raise ValueError(f"decode threads must be >= 0, not {threads}")
+    _decode_threads = threads
+
 
 def _open_input(path: Path) -> Any:
     import av
@@ -452,9 +467,33 @@ def _open_input(path: Path) -> Any:
     if not path.is_file():
         raise SessionError(f"{path}: video file is missing")
     try:
-        return av.open(str(path), "r")
+        container = av.open(str(path), "r")
     except (OSError, ValueError) as exc:
         raise SessionError(f"{path}: not a readable video ({exc})") from None
+    if _decode_threads:
+        for stream in container.streams.video:
+            stream.codec_context.thread_count = _decode_threads
+            if _decode_threads == 1:
+                stream.codec_context.thread_type = "NONE"
+    return container
+
+
+def _frame_image(frame: Any, gray: bool) -> Image:
+    """A decoded FFV1 frame as the daemon counted it: ``gray`` as stored, ``bgr0`` without
+    its padding byte (the recorder padded the BGR bytes: the same pixels). Read from the
+    frame's plane directly: PyAV's ``to_ndarray(format=...)`` makes a scaler per frame,
+    which cost more than the decode (0.6 ms per 160x120 frame, two threads started each)."""
+    import cv2
+
+    fmt = frame.format.name
+    if (fmt == "gray") == gray and fmt in ("gray", "bgr0"):
+        plane = frame.planes[0]
+        h, w, c = frame.height, frame.width, 1 if gray else 4
+        rows = np.frombuffer(plane, np.uint8).reshape(h, plane.line_size)[:, : w * c]
+        if gray:
+            return rows.copy()
+        return np.asarray(cv2.cvtColor(rows.reshape(h, w, 4), cv2.COLOR_BGRA2BGR))
+    return np.asarray(frame.to_ndarray(format="gray" if gray else "bgr24"))
 
 
 def _crop_tag(text: str | None) -> tuple[int, int, int, int] | None:
@@ -528,7 +567,7 @@ def iter_video_images(path: Path | str) -> Iterator[Image]:
                     yield np.asarray(img, dtype=np.uint8)
                     continue
                 for frame in stream.codec_context.decode(pkt):
-                    yield np.asarray(frame.to_ndarray(format="gray" if gray else "bgr24"))
+                    yield _frame_image(frame, gray)
         except (OSError, ValueError):
             return
     finally:
@@ -567,7 +606,7 @@ def read_video_image(path: Path | str, frame_index: int) -> Image:
                     if img is not None:
                         return np.asarray(img, dtype=np.uint8)
                 for frame in stream.codec_context.decode(pkt):
-                    return np.asarray(frame.to_ndarray(format="gray" if gray else "bgr24"))
+                    return _frame_image(frame, gray)
                 break
         except (OSError, ValueError):
             pass

@@ -180,8 +180,9 @@ def _analyse(task: SessionTask, plan: Plan) -> dict[str, Any]:
 
 def _one_thread_on_a_worker() -> None:
     """On a Dask worker (one task thread per process, BLAS and OpenMP held to one thread
-    by the nanny's environment), OpenCV's own thread pool held to one thread too, so
-    that the worker processes do not oversubscribe the CPUs (the serial path keeps it)."""
+    by the nanny's environment), OpenCV's own thread pool and FFmpeg's video decoder held
+    to one thread too, so that the worker processes do not oversubscribe the CPUs (the
+    serial path keeps them)."""
     try:
         from distributed import get_worker
 
@@ -190,8 +191,11 @@ def _one_thread_on_a_worker() -> None:
         return
     import cv2
 
+    from stipi_daemon.storage.video import set_decode_threads
+
     if cv2.getNumThreads() != 1:
         cv2.setNumThreads(1)
+    set_decode_threads(1)
 
 
 def analyse_session(task: SessionTask, plan: Plan) -> dict[str, Any]:

@@ -21,6 +21,7 @@ from stipi_daemon.storage.video import (
     iter_video_images,
     probe_video,
     read_video_image,
+    set_decode_threads,
 )
 
 OPTS = StorageOptions(min_free_bytes=0, background_commit=False)
@@ -67,8 +68,23 @@ def test_passthrough_stores_the_jpeg_packets_unchanged(tmp_path: Path) -> None:
         assert any(e.kind == "video_started" for e in r.events())
 
 
-@pytest.mark.parametrize("shape", [(40, 50), (40, 50, 3)])
-def test_lossless_reproduces_every_pixel(tmp_path: Path, shape: tuple[int, ...]) -> None:
+# Widths whose rows FFmpeg pads (50 and 61 px: gray rows of 64, bgr0 rows of 256 bytes),
+# decoded with FFmpeg's threads and with one (a study's worker).
+@pytest.mark.parametrize("threads", [0, 1])
+@pytest.mark.parametrize("shape", [(40, 50), (40, 50, 3), (33, 61), (33, 61, 3)])
+def test_lossless_reproduces_every_pixel(
+    tmp_path: Path, shape: tuple[int, ...], threads: int
+) -> None:
+    set_decode_threads(threads)
+    try:
+        _lossless_round_trip(tmp_path, shape)
+    finally:
+        set_decode_threads(0)
+    with pytest.raises(ValueError, match="decode threads"):
+        set_decode_threads(-1)
+
+
+def _lossless_round_trip(tmp_path: Path, shape: tuple[int, ...]) -> None:
     images = _images(6, shape)
     with _writer(tmp_path) as w:
         assert w.video_path is not None
