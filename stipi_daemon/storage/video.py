@@ -80,9 +80,12 @@ MUXER_OPTIONS: Final = {"flush_packets": "1"}
 #: (counted): recording never slows the measurement down.
 ENCODER_QUEUE_FRAMES: Final = 8
 #: Niceness of the encoder thread above the process's own [-] (capped at 19): the
-#: measurement's threads weigh about 9x as much, and the encoder still gets its share against
-#: other programs' ordinary (nice 0) load, which at nice 19 starved it (frames left out).
-ENCODER_NICE: Final = 10
+#: measurement's threads weigh about 3x as much, and the encoder still gets its share against
+#: the daemon's own threads and other programs' ordinary (nice 0) load. At 19 that load
+#: starved it; at 10, a 640x480 recording in real time left 104 of 1,127 frames out with
+#: nothing else running and 630 beside one busy process per CPU; at 5, 0 and 0 (2 beside
+#: three busy processes on the 2 CPUs). docs/performance.md, "Demo speed".
+ENCODER_NICE: Final = 5
 #: Matroska tag naming the pixel layout the daemon counted on (``gray`` or ``bgr``).
 TAG_IMAGE: Final = "STIPI_IMAGE"
 #: Matroska tag holding the stored rectangle ``x0,y0,x1,y1`` of the camera frame [px].
