@@ -25,22 +25,42 @@ from tests.conftest import REPO_ROOT
 SCENE = REPO_ROOT / "configs" / "scenes" / "demo_grade3.yaml"
 
 
+#: Clock speeds of the attempts at a run that sees every frame (see :func:`_run`).
+SPEEDS = (4.0, 2.0, 2.0)
+
+
+def _every_frame(summary: dict[str, Any]) -> bool:
+    """The run's camera delivered every frame: no stall (after which a live camera, as the
+    simulator is, resumes at the current time), nothing dropped."""
+    run, cam = summary["run"], summary["run"]["camera"]
+    return not (cam["stalls"] or cam["dropped"] or cam["queue_dropped"] or run["dropped_frames"])
+
+
 def _run(tmp_path: Path, transport: dict[str, Any], name: str) -> dict[str, Any]:
-    cfg = parse_config(
-        {
-            "probe": {"transport": transport, "rate_hz": 100},
-            "camera": {"kind": "simulator", "scene": str(SCENE)},
-            "storage": {"root": str(tmp_path / name), "min_free_mb": 0},
-            "run": {"speed": 4.0},
-        },
-        "test",
-    )
-    outcome = run_measurement(cfg, quiet=True)
-    assert outcome.exit_code == 0, outcome.summary.get("end_reason")
-    return outcome.summary
+    """One measurement whose camera delivered every frame. On a loaded machine the
+    renderer can stall (its frames are then skipped, the release frame among them, and the
+    results flagged: correct, but not the same frames as the other run), so a run that
+    lost frames is made again at a lower speed, at most ``len(SPEEDS)`` times."""
+    lost: list[dict[str, Any]] = []
+    for k, speed in enumerate(SPEEDS):
+        cfg = parse_config(
+            {
+                "probe": {"transport": transport, "rate_hz": 100},
+                "camera": {"kind": "simulator", "scene": str(SCENE)},
+                "storage": {"root": str(tmp_path / f"{name}-{k}"), "min_free_mb": 0},
+                "run": {"speed": speed},
+            },
+            "test",
+        )
+        outcome = run_measurement(cfg, quiet=True)
+        assert outcome.exit_code == 0, outcome.summary.get("end_reason")
+        if _every_frame(outcome.summary):
+            return outcome.summary
+        lost.append({k: v for k, v in outcome.summary["run"]["camera"].items() if k != "source"})
+    raise AssertionError(f"{name}: every run lost frames: {lost}")
 
 
-@pytest.mark.timeout(240)
+@pytest.mark.timeout(480)
 def test_ble_measurement_equals_serial(tmp_path: Path) -> None:
     serial = _run(tmp_path, {"kind": "emulated", "scene": str(SCENE)}, "serial")
     ble = _run(
