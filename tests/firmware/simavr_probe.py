@@ -264,6 +264,27 @@ class Harness:
         rows = self.log.of("TIME")
         return float(rows[-1]["sim_s"]) if rows else 0.0
 
+    def logged_through(self, t_s: float) -> bool:
+        """True once the log holds every line the harness printed up to simulated ``t_s``.
+
+        The harness prints in simulated-time order on one line-buffered pipe, so a TIME line
+        (every ``--report-interval``) at or past ``t_s`` comes after every ADC/AUX line
+        before it. The log is read by a thread that can lag the pty by many milliseconds
+        on a loaded machine; read a time range from it only once this holds."""
+        if self.sim_time_s() >= t_s:
+            return True
+        return bool(self.log.of("EXIT")) and not self._reader.is_alive()
+
+    def wait_logged_through(self, t_s: float, timeout_s: float = 20.0) -> None:
+        """Wait until :meth:`logged_through` holds for ``t_s`` (simulated seconds)."""
+        deadline = time.monotonic() + timeout_s
+        while not self.logged_through(t_s):
+            if time.monotonic() > deadline:
+                raise AssertionError(f"harness log did not reach simulated {t_s} s")
+            self.check_alive(f"the log through simulated {t_s} s")
+            self._new_line.wait(0.05)
+            self._new_line.clear()
+
     def read(self) -> bytes:
         """Bytes the firmware sent that are waiting on the pty (waits up to 20 ms)."""
         assert self.port is not None

@@ -139,9 +139,11 @@ async def test_probe_link_streams_the_real_firmware(
     assert sorted(idx + lost) == list(range(min(idx), max(idx) + 1)), "accounting not exact"
     assert link.accounting.lost == len(lost) and link.accounting.received == len(idx)
 
-    # every count is what the harness fed at that sample's conversion
-    conv, burst_t, burst_mv = h.log.bursts()
+    # every count is what the harness fed at that sample's conversion (once the harness's
+    # log, read by a thread that lags on a loaded machine, covers the last sample)
     t_mcu_s = np.array([r.t_mcu_us for r in got]) * 1e-6
+    await until(lambda: h.logged_through(t_mcu_s[-1] + 0.01), "the log of the last sample")
+    conv, burst_t, burst_mv = h.log.bursts()
     k = nearest(conv, t_mcu_s)
     offset_s = conv[k] - t_mcu_s
     # micros() ticks every 8 us at 8 MHz and the ISR's entry latency varies with the other

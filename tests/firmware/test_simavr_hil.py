@@ -147,6 +147,7 @@ def test_stream_follows_waveform_at_default_rate(
     assert np.all(s.period_us == round(1e6 / DEFAULT_RATE_HZ))
     # Rate in simulated time: from the probe's timestamps and from the harness's clock.
     assert abs(rate_hz(s) / DEFAULT_RATE_HZ - 1) < 0.01, rate_hz(s)
+    probe.wait_logged_through(s.t_us[-1] * 1e-6 + 0.01)
     conv, burst_t, burst_mv = probe.log.bursts()
     conv_rate = 1.0 / float(np.median(np.diff(conv)))
     assert abs(conv_rate / DEFAULT_RATE_HZ - 1) < 0.01, conv_rate
@@ -198,6 +199,7 @@ def test_commands_are_acked_and_take_effect(probe_factory: Callable[..., SimProb
     s = flatten(probe.collect_samples(250))
     assert np.all(s.period_us == 4000)
     assert abs(rate_hz(s) / 250 - 1) < 0.01, rate_hz(s)
+    probe.wait_logged_through(s.t_us[-1] * 1e-6 + 0.01)
     conv = probe.log.bursts()[0][n_conv + 5 :]
     assert abs(1.0 / float(np.median(np.diff(conv))) / 250 - 1) < 0.01
     assert np.all(s.adc == zero)
@@ -241,6 +243,7 @@ def test_max_rate_streams_without_drops(
     assert np.array_equal(np.diff(s.index), np.ones(len(s.index) - 1, dtype=np.int64))
     assert abs(rate_hz(s) / rate - 1) < 0.01, rate_hz(s)
     assert status.dropped == 0
+    probe.wait_logged_through(s.t_us[-1] * 1e-6 + 0.01)
     starts, _, burst_mv = probe.log.bursts()
     assert np.median([len(b) for b in burst_mv]) == n_conv
     assert not probe.link_faults(), probe.link_faults()

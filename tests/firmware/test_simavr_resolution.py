@@ -61,6 +61,7 @@ def _measure(elf: object, noise_lsb: float) -> tuple[float, float, int]:
         bits = probe.command(GetInfo()).info().adc_bits
         assert probe.command(StreamStart()).status == AckStatus.OK
         s = flatten(probe.collect_samples(400, timeout_s=60))
+        probe.wait_logged_through(s.t_us[-1] * 1e-6 + 0.01)
         starts, burst_t, burst_mv = probe.log.bursts()
     finally:
         probe.close()
