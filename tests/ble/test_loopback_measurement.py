@@ -14,7 +14,10 @@ What must hold (docs/bench.md, "One PC, no radio"):
 * the bench measurement is complete and every result valid, with the reference's
   measurement flags. A run whose STREAM_START the loaded host sent late must be flagged
   by the release's image/force check instead (never silently shifted); the bench is then
-  run again (:func:`_bench_on_time`);
+  run again (:func:`_bench_on_time`). A run (bench or reference) whose simulated camera
+  lost frames or whose acquisition fell behind on a loaded machine is made again, slower
+  (``SPEEDS``): the daemon flags or refuses what that changes, and it is not the same
+  measurement;
 * the probe's scene starts at the camera's scene origin: the session time of its first
   sample (the mock's scene time 0) on the converged clock map is at most
   :data:`MAX_OFFSET_S` after the origin the daemon recorded (``stream_start`` event). The
@@ -43,8 +46,9 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import pytest
 
-from tests.daemon._support import SHORT_MEASUREMENT, check_against_truth, short_scene
+from tests.daemon._support import SHORT_MEASUREMENT, check_against_truth, kept_up, short_scene
 
 from .conftest import REPO
 from .test_loopback_two_processes import mock_peripheral
@@ -58,9 +62,12 @@ CONFIG = REPO / "configs" / "probe-ble-loopback.yaml"
 #: time each, times the speed (docs/bench.md gives the measured figures).
 MAX_OFFSET_S = 0.25
 #: A bench run whose STREAM_START went out later than this [s of session time] may be
-#: flagged (and is then run again, at most ATTEMPTS times); an earlier one must be valid.
+#: flagged (and is then run again); an earlier one must be valid.
 LATE_S = 0.01
-ATTEMPTS = 3
+#: Session seconds per wall second of each attempt at a run (bench or reference): a run
+#: that did not keep up on a loaded machine (:func:`kept_up`), or whose STREAM_START went out
+#: late, is made again, slower (:func:`_bench_on_time`, :func:`_reference`).
+SPEEDS = (SPEED, SPEED / 2, SPEED / 2)
 
 
 @dataclass
@@ -85,8 +92,11 @@ class Run:
         return t
 
 
-def _daemon(tmp: Path, name: str, *sets: str) -> Run:
-    """Run ``stipi-daemon --config configs/probe-ble-loopback.yaml`` with these overrides."""
+def _daemon(tmp: Path, name: str, *sets: str, speed: float = SPEED) -> Run:
+    """Run ``stipi-daemon --config configs/probe-ble-loopback.yaml`` with these overrides.
+
+    Exit 1 is accepted when the session it wrote says why it has no results (an incomplete
+    verdict); any other failure fails here with the daemon's output."""
     root = tmp / name
     scene = short_scene(tmp)
     done = subprocess.run(
@@ -100,7 +110,7 @@ def _daemon(tmp: Path, name: str, *sets: str) -> Run:
             "--set",
             f"camera.scene={scene}",
             "--set",
-            f"run.speed={SPEED:g}",
+            f"run.speed={speed:g}",
             "--set",
             f"storage.root={root}",
             "--set",
@@ -121,7 +131,13 @@ def _daemon(tmp: Path, name: str, *sets: str) -> Run:
         timeout=600,
         check=False,
     )
-    assert done.returncode == 0, (done.stdout[-2000:], done.stderr[-3000:])
+    output = (done.returncode, done.stdout[-2000:], done.stderr[-3000:])
+    assert done.returncode in (0, 1), output
+    sessions = [p for p in root.iterdir() if p.is_dir()] if root.is_dir() else []
+    assert len(sessions) == 1 and (sessions[0] / "summary.json").is_file(), output
+    if done.returncode == 1:
+        verdict = json.loads((sessions[0] / "summary.json").read_text())["verdict"]
+        assert verdict["status"] != "complete", output
     (session,) = [p for p in root.iterdir() if p.is_dir()]
     db = sqlite3.connect(f"file:{session / 'session.sqlite'}?mode=ro", uri=True)
     try:
@@ -181,38 +197,61 @@ def _stream_start(run: Run) -> dict[str, Any]:
 
 
 def _bench_on_time(tmp: Path) -> Run:
-    """The bench measurement whose STREAM_START went out on time (up to three attempts).
+    """The bench measurement whose STREAM_START went out on time and which kept up with its
+    clock (up to ``len(SPEEDS)`` attempts).
 
     A host too busy to run the daemon when STREAM_START is due sends it late, and the
     probe's scene starts that much after the camera's. Such a run must say so: the
     release's image/force check flags it (``t0_image_force_disagree``) unless the lateness
-    stays within its bound. Then the bench is started again.
+    stays within its bound. A run whose simulated camera lost frames or that fell behind is
+    not the same measurement as the reference's either (:func:`kept_up`). Then the bench is
+    started again, slower.
     """
-    late: list[float] = []
-    for attempt in range(ATTEMPTS):
-        with mock_peripheral(scene=short_scene(tmp), speed=SPEED, seed=SEED) as (proc, port, _):
-            run = _daemon(tmp, f"bench{attempt}", f"probe.transport.hci=loopback:{port}")
+    failed: list[str] = []
+    for attempt, speed in enumerate(SPEEDS):
+        with mock_peripheral(scene=short_scene(tmp), speed=speed, seed=SEED) as (proc, port, _):
+            run = _daemon(
+                tmp, f"bench{attempt}", f"probe.transport.hci=loopback:{port}", speed=speed
+            )
             assert proc.poll() is None  # still serving
         late_s = float(_stream_start(run)["late_s"])
-        if run.summary["verdict"]["status"] == "complete":
+        if run.summary["verdict"]["status"] == "complete" and kept_up(run.summary):
             return run
-        assert late_s > LATE_S, (late_s, run.summary["verdict"], run.summary.get("release"))
-        assert "t0_image_force_disagree" in run.summary["release"]["flags"], run.summary
-        late.append(late_s)
-    raise AssertionError(f"STREAM_START late in every attempt (by {late} s): host overloaded")
+        if kept_up(run.summary):
+            assert late_s > LATE_S, (late_s, run.summary["verdict"], run.summary.get("release"))
+            assert "t0_image_force_disagree" in run.summary["release"]["flags"], run.summary
+            failed.append(f"STREAM_START late by {late_s} s")
+        else:
+            why = run.summary.get("end_reason")
+            failed.append(f"did not keep up: {why}, {run.summary['run']['camera']}")
+    raise AssertionError(f"no bench run on time that kept up (host overloaded): {failed}")
 
 
+def _reference(tmp: Path) -> Run:
+    """The same measurement with the emulated probe in the daemon's process, from a run
+    that kept up with its clock (up to ``len(SPEEDS)`` attempts, slower each)."""
+    missed: list[str] = []
+    for attempt, speed in enumerate(SPEEDS):
+        run = _daemon(
+            tmp,
+            f"reference{attempt}",
+            "probe.transport.hci=null",
+            f"probe.transport.emulate.scene={short_scene(tmp)}",
+            f"probe.transport.emulate.seed={SEED}",
+            speed=speed,
+        )
+        if kept_up(run.summary):
+            return run
+        missed.append(f"{run.summary.get('end_reason')}, {run.summary['run']['camera']}")
+    raise AssertionError(f"no reference run kept up (host overloaded): {missed}")
+
+
+@pytest.mark.timeout(480)  # up to 3 bench and 3 reference runs on a loaded machine
 def test_a_whole_measurement_over_the_loopback_radio_matches_the_in_process_probe(
     tmp_path: Path,
 ) -> None:
     bench = _bench_on_time(tmp_path)
-    reference = _daemon(
-        tmp_path,
-        "reference",
-        "probe.transport.hci=null",
-        f"probe.transport.emulate.scene={short_scene(tmp_path)}",
-        f"probe.transport.emulate.seed={SEED}",
-    )
+    reference = _reference(tmp_path)
 
     # Complete, every result valid, the same measurement flags as in one process.
     for name, run in (("bench", bench), ("reference", reference)):

@@ -22,6 +22,18 @@ SCENES = REPO_ROOT / "configs" / "scenes"
 SHORT_MEASUREMENT: dict[str, Any] = {"pitting_duration_s": 5.0, "recovery_max_s": 20.0}
 
 
+def kept_up(summary: dict[str, Any]) -> bool:
+    """The run kept up with its clock: its camera delivered every frame (no stall, after
+    which a live camera, as the simulator is, resumes at the current time; nothing dropped)
+    and the acquisition did not end for falling behind. On a loaded machine the simulated
+    camera at an accelerated speed can fall behind the session clock; the daemon then flags
+    or refuses what that changes, so a test comparing two runs frame by frame makes such a
+    run again (at a lower speed) instead of comparing it."""
+    run, cam = summary["run"], summary["run"]["camera"]
+    lost = cam["stalls"] or cam["dropped"] or cam["queue_dropped"] or run["dropped_frames"]
+    return not lost and not str(summary.get("end_reason") or "").startswith("falling behind")
+
+
 def short_scene(directory: Path, *, width: int = 320, height: int = 240) -> Path:
     """Write the short grade-I scene (smaller frames: faster rendering) and return its path."""
     doc = yaml.safe_load((SCENES / "grade1.yaml").read_text())
