@@ -138,7 +138,7 @@ def _daemon(tmp: Path, name: str, *sets: str, speed: float = SPEED) -> Run:
     if done.returncode == 1:
         verdict = json.loads((sessions[0] / "summary.json").read_text())["verdict"]
         assert verdict["status"] != "complete", output
-    (session,) = [p for p in root.iterdir() if p.is_dir()]
+    session = sessions[0]
     db = sqlite3.connect(f"file:{session / 'session.sqlite'}?mode=ro", uri=True)
     try:
         events = [
