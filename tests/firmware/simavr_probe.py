@@ -163,6 +163,14 @@ class HarnessLog:
             [mv[a:b] for a, b in zip(starts, ends, strict=True)],
         )
 
+    def burst_starts_from(self, t_s: float) -> np.ndarray:
+        """Starts of the bursts (:meth:`bursts`) at or after simulated ``t_s`` [s]: a
+        stream's samples chosen by time. A count of the bursts logged when a command's ACK
+        arrived is no boundary: on a loaded host the next sample's burst may already be
+        logged by then."""
+        starts = self.bursts()[0]
+        return starts[starts >= t_s]
+
     def last_speed(self) -> float:
         """Simulated seconds per wall second at the last TIME or EXIT line."""
         rows = self.of("TIME") + self.of("EXIT")
