@@ -86,9 +86,14 @@ def test_sampling_unaffected_while_sdep_runs(ble_probe: tuple[SimProbe, Path]) -
     s = flatten(frames)
     assert np.array_equal(np.diff(s.index), np.ones(len(s.index) - 1, dtype=np.int64))
     assert status.dropped == 0
-    # Batch timestamps advance by exactly 10 periods (micros() ticks 8 us).
+    # Batch timestamps advance by 10 periods. A sample's timestamp is micros() at the timer
+    # ISR's entry, where its conversions start too, so it moves with that ISR's entry latency
+    # (the other interrupts: Timer0, UART, the SPI of SDEP; the instants the host's bytes
+    # arrive decide which collide): the same 5 ticks of 8 us as the conversion offsets below
+    # and test_simavr_hil.py. (CI once saw +16/-16 us at one batch.) That the timestamp
+    # follows the real conversion instant is checked below against the harness's log.
     t0 = np.array([f.t_us_unwrapped for f in frames], dtype=np.int64)
-    assert np.all(np.abs(np.diff(t0) - BATCH * PERIOD_US) <= 8), np.diff(t0)
+    assert np.all(np.abs(np.diff(t0) - BATCH * PERIOD_US) < 5 * 8), np.diff(t0)
     # The sample instants in simulated time (the harness's log of each conversion burst):
     # one per 10 ms, at a constant offset from the sample's timestamp, jitter of the ISR only.
     conv = probe.log.burst_starts_from(s.t_us[0] * 1e-6 - PERIOD_US * 1e-6 / 2)
