@@ -33,6 +33,7 @@ from stipi_daemon.analysis.results import AnalysisSettings
 from stipi_daemon.analysis.severity import load_reference
 from stipi_daemon.app.config import load_config
 from stipi_daemon.app.daemon import run_daemon
+from stipi_daemon.errors import LinkLostError
 from stipi_daemon.measurement.outputs import Phase
 from stipi_daemon.measurement.pipeline import MeasurementPipeline
 from stipi_daemon.measurement.replay import Recording, ReplaySetup, replay
@@ -295,8 +296,12 @@ def test_every_shipped_scene_measures_with_the_demo_settings(path: Path) -> None
 @pytest.mark.parametrize("grade", ["grade1", "grade2", "grade4"])
 async def test_grade_scene_through_the_daemon_reaches_done(grade: str, tmp_path: Path) -> None:
     """configs/demo.yaml with only the scene changed. The run is accelerated as the demo
-    is; when this machine cannot keep up (the daemon faults "falling behind"), the run is
-    repeated at half the speed: the test measures the measurement, not spare CPU."""
+    is; when this machine cannot keep up, the run is repeated at half the speed: the test
+    measures the measurement, not spare CPU. Not keeping up is the daemon's fault "falling
+    behind", or the probe link lost at an accelerated speed: the link's timeouts are in
+    session time, so at speed 10 the 2.5 s heartbeat timeout is 0.25 s of wall time, which a
+    loaded host's hiccup can exceed (CI: "no frame from the probe for 2.5 s" during
+    STREAM_START)."""
     cfg = yaml.safe_load((REPO_ROOT / "configs" / "demo.yaml").read_text())
     scene = str(SCENES / f"{grade}.yaml")
     cfg["probe"]["transport"]["scene"] = scene
@@ -307,7 +312,13 @@ async def test_grade_scene_through_the_daemon_reaches_done(grade: str, tmp_path:
         cfg["run"]["speed"] = speed
         path = tmp_path / f"config-x{speed:g}.yaml"
         path.write_text(yaml.safe_dump(cfg))
-        outcome = await run_daemon(load_config(path), quiet=True)
+        try:
+            outcome = await run_daemon(load_config(path), quiet=True)
+        except LinkLostError:
+            if speed <= 1.0:
+                raise
+            speed /= 2.0
+            continue
         reason = str(outcome.summary.get("end_reason"))
         if outcome.phase is Phase.DONE or "falling behind" not in reason or speed <= 1.0:
             break
