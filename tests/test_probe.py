@@ -20,6 +20,7 @@ import pytest
 from stipi_daemon.clock import ScaledClock
 from stipi_daemon.errors import DeviceNotFoundError, LinkLostError
 from stipi_daemon.probe.link import (
+    LINK_MIN_WALL_S,
     ClockProbe,
     DecoderErrors,
     ForceRow,
@@ -30,6 +31,7 @@ from stipi_daemon.probe.link import (
     ProbeEvent,
     ProbeLink,
     StatusReport,
+    wall_floored_timeout_s,
 )
 from stipi_daemon.probe.transports.serial import SerialTransport, SerialTransportConfig
 from stipi_daemon.sim import Pipeline, load_scene
@@ -208,7 +210,8 @@ async def test_unplug_and_return_gives_linkdown_linkup_and_exact_gaps(probe: Fac
 
 
 async def test_silent_link_trips_the_watchdog(probe: Factory) -> None:
-    _link, feather, col, clock = await probe(heartbeat_timeout_s=2.5)
+    # No wall-time floor: the timeout is exactly 2.5 s of session time (see the next test).
+    _link, feather, col, clock = await probe(heartbeat_timeout_s=2.5, min_wall_s=0.0)
     await col.until(lambda: len(col.rows()) >= 100, "1 s of samples")
     t_silence = clock.now()
     feather.silence(4.0)
@@ -222,6 +225,43 @@ async def test_silent_link_trips_the_watchdog(probe: Factory) -> None:
     n = len(col.rows())
     await col.until(lambda: len(col.rows()) >= n + 50, "samples after the silence")
     assert_exact_accounting(col.rows(), col.of(Gap))
+
+
+def test_wall_floored_timeout_edges() -> None:
+    f = wall_floored_timeout_s
+    assert f(2.5, 1.0, 1.0) == 2.5  # real devices (speed 1): unchanged
+    assert f(2.5, 0.5, 1.0) == 2.5  # a slowed clock: unchanged
+    assert f(2.5, 10.0, 0.0) == 2.5  # no floor: scaled with the clock exactly
+    assert f(2.5, 10.0, 1.0) == 10.0  # 1 s of wall time
+    assert f(0.5, 10.0, 1.0) == 5.0  # a timeout shorter than the floor keeps its wall length
+    assert f(2.5, 2.0, 1.0) == 2.5  # 1.25 s of wall time is already above the floor
+    assert f(1e-9, 1e6, 1.0) == pytest.approx(1e-3)
+
+
+async def test_a_silence_shorter_than_the_wall_floor_keeps_the_link_at_speed_10(
+    probe: Factory,
+) -> None:
+    """At speed 10 the default 2.5 s heartbeat timeout is 0.25 s of wall time, less than a
+    loaded host's hiccup; with the floor (LINK_MIN_WALL_S, 1 s of wall time = 10 s of session
+    time) a 5 s silence is not a lost link; without it (min_wall_s=0), the same silence is."""
+    assert LINK_MIN_WALL_S == 1.0
+    for min_wall_s, lost in ((LINK_MIN_WALL_S, False), (0.0, True)):
+        _link, feather, col, clock = await probe(speed=10.0, min_wall_s=min_wall_s)
+        await col.until(lambda col=col: len(col.rows()) >= 100, "1 s of samples")
+        feather.silence(5.0)
+        t_end = clock.now() + 5.0
+        n = len(col.rows())
+        await col.until(
+            lambda col=col, n=n, clock=clock, t_end=t_end: (
+                clock.now() > t_end + 0.5 and len(col.rows()) > n + 20
+            ),
+            "samples after the silence",
+        )
+        downs = col.of(LinkDown)
+        assert bool(downs) is lost, [d.reason for d in downs]
+        if lost:
+            assert "no frame from the probe for 2.5 s" in downs[0].reason
+        assert_exact_accounting(col.rows(), col.of(Gap))
 
 
 async def test_garbage_and_bit_flips_lose_only_damaged_frames(probe: Factory) -> None:

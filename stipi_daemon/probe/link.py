@@ -16,7 +16,10 @@ Output: :meth:`ProbeLink.events`, an async iterator of :class:`ForceRows`, :clas
 :class:`ClockProbe`, :class:`LinkDown`, :class:`LinkUp`, :class:`StatusReport` and
 :class:`DecoderErrors`. All times are on the session clock
 (:class:`~stipi_daemon.clock.SessionClock`), including timeouts and the reconnect budget
-(the same as wall time for real devices, speed 1). It does not store, analyse or display
+(the same as wall time for real devices, speed 1). On an accelerated clock (simulated
+probes) the heartbeat and command timeouts are never shorter than ``min(timeout,
+min_wall_s)`` of wall time (:func:`wall_floored_timeout_s`): a loaded host's scheduling
+hiccup does not shrink with the speed-up. It does not store, analyse or display
 anything, and it knows nothing of pyserial or BLE.
 """
 
@@ -58,6 +61,7 @@ from stipi_daemon.protocol.timestamps import SeqEvent
 
 __all__ = [
     "FAULT_COUNTERS",
+    "LINK_MIN_WALL_S",
     "ClockProbe",
     "DecoderErrors",
     "ForceRow",
@@ -68,6 +72,7 @@ __all__ = [
     "ProbeEvent",
     "ProbeLink",
     "StatusReport",
+    "wall_floored_timeout_s",
 ]
 
 _U32: Final = 1 << 32
@@ -240,6 +245,22 @@ class _Restarted(Exception):
 
 # ============================================================================ the link
 
+#: Wall time below which the link's timeouts do not shrink on an accelerated clock [s].
+LINK_MIN_WALL_S: Final = 1.0
+
+
+def wall_floored_timeout_s(timeout_s: float, speed: float, min_wall_s: float) -> float:
+    """A timeout on a session clock running ``speed`` times wall time, floored in wall time.
+
+    Returns ``max(timeout_s, min(timeout_s, min_wall_s) * speed)`` [session s]: unchanged at
+    speed <= 1 or with ``min_wall_s`` 0, otherwise at least ``min(timeout_s, min_wall_s)``
+    of wall time, so that a host's hiccup of a fraction of a second, which lasts ``speed``
+    times longer in session time, is not taken for a silent probe (the camera's stall
+    timeout has the same kind of floor, ``cameras.stream.STALL_MIN_WALL_S``). Domain:
+    ``timeout_s`` > 0, ``speed`` > 0, ``min_wall_s`` >= 0, all finite.
+    """
+    return max(timeout_s, min(timeout_s, min_wall_s) * speed)
+
 
 class ProbeLink:
     """One probe over one transport: connect, configure, stream, watch, reconnect.
@@ -273,6 +294,10 @@ class ProbeLink:
         Use the given calibration even when the probe has one.
     clock_sync : ClockSyncConfig, optional
         Parameters of the clock fit.
+    min_wall_s : float
+        On an accelerated clock, the heartbeat and command timeouts last at least
+        ``min(timeout, min_wall_s)`` of wall time [s] (:func:`wall_floored_timeout_s`);
+        0 scales them with the clock exactly.
     """
 
     def __init__(
@@ -292,6 +317,7 @@ class ProbeLink:
         span_un_per_count: int | None = None,
         prefer_config_calibration: bool = False,
         clock_sync: ClockSyncConfig | None = None,
+        min_wall_s: float = LINK_MIN_WALL_S,
     ) -> None:
         if not RATE_MIN_HZ <= rate_hz <= RATE_MAX_HZ:
             raise ProtocolError(f"rate_hz={rate_hz} out of range {RATE_MIN_HZ}..{RATE_MAX_HZ}")
@@ -306,6 +332,8 @@ class ProbeLink:
         ):
             if not (math.isfinite(value) and value > 0):
                 raise ValueError(f"{name}={value} must be a positive number of seconds")
+        if not (math.isfinite(min_wall_s) and min_wall_s >= 0):
+            raise ValueError(f"min_wall_s={min_wall_s} must be a non-negative number of seconds")
         if command_retries < 0:
             raise ValueError(f"command_retries={command_retries} must not be negative")
         if (zero_counts is None) != (span_un_per_count is None):
@@ -318,6 +346,7 @@ class ProbeLink:
         self.reconnect_total_s = reconnect_total_s
         self.command_timeout_s = command_timeout_s
         self.command_retries = command_retries
+        self.min_wall_s = min_wall_s
         self.reconnect_initial_s = reconnect_initial_s
         self.reconnect_max_s = reconnect_max_s
         self._config_cal = (
@@ -460,6 +489,7 @@ class ProbeLink:
         if isinstance(command, Tare):
             tries = 1
             per_try += 1.5 * 16 / self.rate_hz
+        per_try = self._floored(per_try)
         loop = asyncio.get_running_loop()
         fut: asyncio.Future[Ack] = loop.create_future()
         seqs: list[int] = []
@@ -680,7 +710,7 @@ class ProbeLink:
 
     async def _watchdog(self) -> None:
         clock = self.clock
-        timeout = self.heartbeat_timeout_s
+        timeout = self._floored(self.heartbeat_timeout_s)
         while True:
             deadline = self._last_frame_s + timeout
             if clock.now() >= deadline:
@@ -693,6 +723,9 @@ class ProbeLink:
                     return
                 continue
             await clock.sleep_until(deadline)
+
+    def _floored(self, timeout_s: float) -> float:
+        return wall_floored_timeout_s(timeout_s, self.clock.speed, self.min_wall_s)
 
     async def _command_ok(self, command: Command) -> Ack:
         ack = await self.command(command)

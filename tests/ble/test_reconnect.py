@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from stipi_daemon.clock import ScaledClock
-from stipi_daemon.probe.link import ProbeLink
+from stipi_daemon.probe.link import LINK_MIN_WALL_S, ProbeLink, wall_floored_timeout_s
 from stipi_daemon.probe.transports import open_transport
 from stipi_daemon.probe.transports.ble import BleEmulationConfig, BleTransport, BleTransportConfig
 from stipi_daemon.sim.ble.radio import VirtualRadio
@@ -67,8 +67,11 @@ async def test_hundred_forced_disconnects(radio: VirtualRadio) -> None:
 
 async def test_silent_link_is_detected_within_the_heartbeat_timeout(radio: VirtualRadio) -> None:
     clock = ScaledClock(4.0)
-    timeout_s = 1.0
-    probe, transport = _ble_probe(radio, clock, heartbeat_timeout_s=timeout_s, reconnect_total_s=30)
+    # 1 s of session time is 0.25 s of wall time at speed 4: the link's wall-time floor makes
+    # it 1 s of wall time, 4 s of session time.
+    timeout_s = wall_floored_timeout_s(1.0, clock.speed, LINK_MIN_WALL_S)
+    assert timeout_s == 4.0
+    probe, transport = _ble_probe(radio, clock, heartbeat_timeout_s=1.0, reconnect_total_s=30)
     await probe.connect()
     await probe.start_stream()
     rec = ProbeRecorder(probe)
@@ -80,7 +83,7 @@ async def test_silent_link_is_detected_within_the_heartbeat_timeout(radio: Virtu
         peripheral.set_silent(True)  # connected, CCCD on, but no notifications
         await rec.until(lambda: len(rec.downs) == 1)
         down = rec.downs[0]
-        assert "no frame from the probe for 1 s" in down.reason
+        assert "no frame from the probe for 4 s" in down.reason
         # The last frame arrived at most one batch (0.1 s) before the silence began.
         assert timeout_s - 0.15 <= down.t_s - t_silent <= timeout_s + 0.1
         peripheral.set_silent(False)

@@ -299,9 +299,9 @@ async def test_grade_scene_through_the_daemon_reaches_done(grade: str, tmp_path:
     is; when this machine cannot keep up, the run is repeated at half the speed: the test
     measures the measurement, not spare CPU. Not keeping up is the daemon's fault "falling
     behind", or the probe link lost at an accelerated speed: the link's timeouts are in
-    session time, so at speed 10 the 2.5 s heartbeat timeout is 0.25 s of wall time, which a
-    loaded host's hiccup can exceed (CI: "no frame from the probe for 2.5 s" during
-    STREAM_START)."""
+    session time, floored at 1 s of wall time (``probe.link.LINK_MIN_WALL_S``; before that
+    floor, CI saw "no frame from the probe for 2.5 s", 0.25 s of wall time at speed 10,
+    during STREAM_START), which a badly loaded host's hiccup can still exceed."""
     cfg = yaml.safe_load((REPO_ROOT / "configs" / "demo.yaml").read_text())
     scene = str(SCENES / f"{grade}.yaml")
     cfg["probe"]["transport"]["scene"] = scene
