@@ -110,7 +110,9 @@ async def test_serial_transport_measures_the_ground_truth(rig: Rig, tmp_path: Pa
         assert reader.manifest["software"]["sk_kernel"] == sk_kernel()
         assert reader.integrity_check().ok
         assert str(reader.status) == "complete"
-        assert reader.counts()["gaps"] == 0
+        # No force gap. (A frame gap, a loaded machine's stall of the accelerated simulated
+        # camera, is the camera's, counted and flagged by the daemon; not this test's subject.)
+        assert not (reader.gaps()["stream"] == "force").any(), reader.gaps()
         force = reader.force_samples()
     index = force["sample_index"]
     assert (index[1:] - index[:-1] == 1).all()
