@@ -54,6 +54,9 @@ DEFAULT_COMMIT_INTERVAL_S: Final = 0.2
 #: Commits are due this fraction of the interval after the oldest buffered row, leaving the
 #: rest of the interval as headroom for thread wake-up latency and the commit itself.
 COMMIT_LEAD_FRACTION: Final = 0.75
+#: Shortest period at which the idle commit thread looks for a first row [s] (see
+#: :class:`SessionWriter`); shorter commit intervals wake it instead.
+IDLE_POLL_MIN_S: Final = 0.005
 
 Synchronous = Literal["NORMAL", "FULL"]
 
@@ -156,7 +159,11 @@ class SessionWriter:
         # few ms) cost more than the commit it was for. It finds a first row within a quarter
         # interval, before the row's commit is due (at ``_commit_after_s``, 3/4 of it): the
         # commit schedule is the same as with a wake-up.
-        self._idle_poll_s = (1.0 - COMMIT_LEAD_FRACTION) * options.commit_interval_s
+        # Below IDLE_POLL_MIN_S (commit intervals under 20 ms) the looks would cost more than
+        # the wake-ups: the thread then waits untimed and the first row wakes it.
+        poll_s = (1.0 - COMMIT_LEAD_FRACTION) * options.commit_interval_s
+        self._idle_poll_s: float | None = poll_s if poll_s >= IDLE_POLL_MIN_S else None
+        self._timer_idle = False  # the commit thread waits untimed for a first row
         self._thread: threading.Thread | None = None
         if options.background_commit:
             self._thread = threading.Thread(
@@ -385,6 +392,8 @@ class SessionWriter:
             now = time.monotonic()
             if self._pending_since is None:
                 self._pending_since = now  # the commit thread finds it at its next look
+                if self._timer_idle:  # ... or, when it does not look, is woken
+                    self._cond.notify_all()
             elif now - self._pending_since >= self._commit_after_s:
                 try:
                     self._commit_locked()
@@ -443,7 +452,9 @@ class SessionWriter:
         with self._cond:
             while not self._closed:
                 if self._pending_since is None:
+                    self._timer_idle = self._idle_poll_s is None
                     self._cond.wait(self._idle_poll_s)
+                    self._timer_idle = False
                     continue
                 remaining = self._pending_since + commit_after_s - time.monotonic()
                 if remaining > 0:

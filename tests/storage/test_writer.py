@@ -24,6 +24,7 @@ from stipi_daemon.storage import (
     SessionWriter,
     StorageOptions,
 )
+from stipi_daemon.storage.writer import COMMIT_LEAD_FRACTION, IDLE_POLL_MIN_S
 from tests.storage.conftest import (
     CALIBRATION,
     CONFIG,
@@ -204,6 +205,24 @@ def test_background_thread_commits_without_further_calls(tmp_path: Path) -> None
             assert reader.count("events") == 1
         assert writer.pending_rows == 0
         assert writer.stats.commits >= 1
+        writer.finish("complete")
+
+
+def test_background_thread_commits_at_a_commit_interval_too_short_to_poll(
+    tmp_path: Path,
+) -> None:
+    # 4 ms: a quarter interval is under IDLE_POLL_MIN_S, so the idle thread waits untimed and
+    # the first row must wake it (it would never commit otherwise).
+    options = StorageOptions(commit_interval_s=0.004, min_free_bytes=0)
+    assert (1.0 - COMMIT_LEAD_FRACTION) * options.commit_interval_s < IDLE_POLL_MIN_S
+    with SessionWriter.create(tmp_path, {}, {}, session_id="s", options=options) as writer:
+        time.sleep(0.05)  # the thread is idle
+        writer.add_event(1.0, "a", {})
+        with SessionReader(tmp_path / "s") as reader:
+            deadline = time.monotonic() + 5.0
+            while reader.count("events") == 0 and time.monotonic() < deadline:
+                time.sleep(0.01)
+            assert reader.count("events") == 1
         writer.finish("complete")
 
 
