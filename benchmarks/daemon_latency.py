@@ -93,6 +93,7 @@ def worker(config_path: Path, cpus: set[int], result_path: Path, nice: int) -> N
 
     clock = ScaledClock(1.0)
     stalls, stacks = time_loop_callbacks()
+    gc_times = time_gc_collections()
     doc = json.loads(config_path.read_text())
     scene_path = doc["probe"]["transport"].pop("scene")
     link = Path(tempfile.mkdtemp(prefix="stipi-bench-probe-")) / "ttyFEATHER"
@@ -123,11 +124,13 @@ def worker(config_path: Path, cpus: set[int], result_path: Path, nice: int) -> N
     import threading
 
     samples: list[tuple[float, float]] = []  # (time.monotonic(), process CPU) every 0.1 s
+    per_thread: list[dict[str, float]] = []  # CPU of the capture and loop threads [s], same
     done = threading.Event()
 
     def sample_cpu() -> None:
         while not done.wait(0.1):
             samples.append((time.monotonic(), time.process_time()))
+            per_thread.append(thread_cpu_s())
 
     sampler = threading.Thread(target=sample_cpu, daemon=True)
     sampler.start()
@@ -168,6 +171,14 @@ def worker(config_path: Path, cpus: set[int], result_path: Path, nice: int) -> N
     t_a, t_b = mono_end[0] + 1.0, mono_end[-1] - 0.5
     st, sc = np.array([x[0] for x in samples]), np.array([x[1] for x in samples])
     cpu_window_s = float(np.interp(t_b, st, sc) - np.interp(t_a, st, sc))
+    thread_ms = {
+        key: 1e3
+        * float(
+            np.interp(t_b, st, [x.get(key, 0.0) for x in per_thread])
+            - np.interp(t_a, st, [x.get(key, 0.0) for x in per_thread])
+        )
+        for key in ("capture", "loop")
+    }
     frames_window = int(np.count_nonzero((mono_end > t_a) & (mono_end <= t_b)))
     worst = np.argsort(to_disk)[-5:][::-1]
     run = outcome.summary["run"]
@@ -190,12 +201,14 @@ def worker(config_path: Path, cpus: set[int], result_path: Path, nice: int) -> N
         "nice": nice,
         "video": run.get("video"),
         "cpu_per_frame_ms": cpu_window_s / max(1, frames_window) * 1e3,
+        "thread_cpu_per_frame_ms": {k: v / max(1, frames_window) for k, v in thread_ms.items()},
         "window_frames": frames_window,
         "worst_frames": [[int(i), float(to_disk[i]) * 1e3] for i in worst],
         "floor_ms": decode_count_floor_ms(config),
         "cpus": len(cpus),
         "loop_stalls": summarize_stalls(stalls, t_a, t_b),
         "stall_stacks": sorted(stacks.items(), key=lambda kv: -kv[1])[:8],
+        "gc": summarize_gc(gc_times, t_a, t_b),
     }
     result_path.write_text(json.dumps(result))
 
@@ -234,6 +247,58 @@ def decode_count_floor_ms(config: Any, n: int = 600) -> float:
 
 #: Wall time from the worker's start of the probe process to the scene's t = 0 [s].
 PROBE_LEAD_S = 4.0
+
+
+def thread_cpu_s() -> dict[str, float]:
+    """CPU time so far [s] of this process's camera capture threads (``capture ...``) and of
+    the main thread (the event loop), from ``/proc/self/task/*/stat`` (utime + stime, in
+    clock ticks of 10 ms)."""
+    import threading
+
+    names = {t.native_id: t.name for t in threading.enumerate()}
+    tick_s = 1.0 / os.sysconf("SC_CLK_TCK")
+    out: dict[str, float] = {}
+    for tid in os.listdir("/proc/self/task"):
+        try:
+            stat = Path(f"/proc/self/task/{tid}/stat").read_text()
+        except OSError:  # the thread ended meanwhile
+            continue
+        fields = stat[stat.rindex(")") + 2 :].split()
+        name = names.get(int(tid), "")
+        key = "capture" if name.startswith("capture") else "loop" if name == "MainThread" else ""
+        if key:
+            out[key] = out.get(key, 0.0) + (int(fields[11]) + int(fields[12])) * tick_s
+    return out
+
+
+def time_gc_collections() -> list[tuple[float, int, float]]:
+    """Time every collection of Python's cyclic garbage collector from now on: (end
+    ``time.monotonic()``, generation, duration [s]); the thread collecting holds the GIL."""
+    import gc
+    import time
+
+    out: list[tuple[float, int, float]] = []
+    start = [0.0]
+
+    def cb(phase: str, info: dict[str, Any]) -> None:
+        now = time.monotonic()
+        if phase == "start":
+            start[0] = now
+        else:
+            out.append((now, int(info["generation"]), now - start[0]))
+
+    gc.callbacks.append(cb)
+    return out
+
+
+def summarize_gc(times: list[tuple[float, int, float]], t_a: float, t_b: float) -> dict[str, Any]:
+    """Per generation in the steady state [t_a, t_b] (monotonic): collections, total and
+    longest duration [ms]."""
+    out: dict[str, Any] = {}
+    for gen in (0, 1, 2):
+        d = [x[2] for x in times if x[1] == gen and t_a <= x[0] <= t_b]
+        out[str(gen)] = [len(d), 1e3 * sum(d), 1e3 * max(d, default=0.0)]
+    return out
 
 
 def time_loop_callbacks() -> tuple[list[tuple[float, float, str]], dict[str, int]]:
@@ -501,13 +566,16 @@ def markdown(info: dict[str, str], runs: dict[str, dict[str, Any]], costs: dict[
         "1 s after the first "
         "frame is stored to 0.5 s before the last: not start-up, analysis, report); "
         "floor = decode to gray + S_k of the same JPEGs in the same process, on the same "
-        "CPUs. Loop stalls = event-loop callbacks that ran longer than 1 ms in the steady "
+        "CPUs; of it, the camera's capture thread (read, wait, decode, S_k) and the event "
+        "loop's thread (muxing and commits included), from `/proc/self/task/*/stat` (10 ms "
+        "ticks). Loop stalls = event-loop callbacks that ran longer than 1 ms in the steady "
         "state (each one holds every frame behind it), their count and the longest.",
         "",
         "| frames | daemon CPUs | n | commits | to disk median / p99 / max [ms] | processed "
-        "median / p99 [ms] | CPU per frame [ms] | floor [ms] | CPU / floor | loop stalls > "
+        "median / p99 [ms] | CPU per frame [ms] | of it capture thread / event loop [ms] | "
+        "floor [ms] | CPU / floor | loop stalls > "
         "1 ms (longest [ms]) | dropped | video frames | goals met |",
-        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|:---:|",
+        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|:---:|",
     ]
     for label, r in runs.items():
         d, p = r["to_disk_ms"], r["processed_ms"]
@@ -517,10 +585,12 @@ def markdown(info: dict[str, str], runs: dict[str, dict[str, Any]], costs: dict[
             ok = ok and d[1] < P99_GOAL_MS
         video = r.get("video") or {}
         st = r["loop_stalls"]
+        th = r.get("thread_cpu_per_frame_ms") or {}
         lines.append(
             f"| {label.split()[0]} MJPG 60 fps | {r['cpus']} | {r['frames']} | {r['commits']} "
             f"| {d[0]:.1f} / {d[1]:.1f} "
             f"/ {d[2]:.1f} | {p[0]:.1f} / {p[1]:.1f} | {r['cpu_per_frame_ms']:.2f} "
+            f"| {th.get('capture', 0.0):.2f} / {th.get('loop', 0.0):.2f} "
             f"| {r['floor_ms']:.2f} | {ratio:.2f}x | {st['over_1ms']} ({st['max_ms']:.1f}) "
             f"| {r['dropped_frames']} "
             f"| {video.get('frames', '-')} | {'yes' if ok else 'no'} |"

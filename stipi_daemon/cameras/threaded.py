@@ -13,7 +13,6 @@ particular source: subclasses implement ``_open_source``, ``_read`` and ``_close
 from __future__ import annotations
 
 import asyncio
-import dataclasses
 import logging
 import threading
 import time
@@ -357,7 +356,7 @@ class ThreadedCamera(ABC, Generic[H]):
                         measured = hook(raw.image)
                     except Exception:  # the consumer computes it again and sees the error
                         measured = None
-                    raw = dataclasses.replace(raw, measured=measured)
+                    raw = RawFrame(raw.seq, raw.t_capture_s, raw.image, raw.packet, measured)
                 if not handoff.put(raw):
                     return
         except CameraError as exc:

@@ -395,9 +395,10 @@ class SessionReader:
         """The video against its ``video_frames`` rows.
 
         Frame indices must run 0, 1, 2, ...; a ``complete`` session's file holds exactly one
-        frame per row. An unfinished (killed) recording may hold a frame or two more than
-        rows, or lack the newest frames, by at most one commit interval of capture time
-        (the muxer keeps the newest block until the next frame arrives).
+        frame per row. An unfinished (killed) recording may hold more frames than rows (the
+        recorder hands its rows over in batches of half a commit interval), or lack the
+        newest frames, by at most one commit interval of capture time (the muxer keeps the
+        newest block until the next frame arrives).
         """
         rows = self.iter_rows(VIDEO_FRAMES)
         table = [(int(r[1]), float(r[3])) for r in rows]

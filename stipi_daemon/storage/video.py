@@ -17,8 +17,12 @@ encodes) at a lower CPU priority (:data:`ENCODER_NICE`), at most
 :data:`ENCODER_QUEUE_FRAMES` behind; a frame
 arriving when the encoder lags further is left out of the video and counted, so recording
 never slows the measurement. Every stored frame is tied to its ``frames`` row by a
-``video_frames`` row (``seq, frame_index, pts_ms, t_capture_host_s``) added to the session
-as the frame is muxed. The muxer flushes its I/O after every packet (``flush_packets=1``),
+``video_frames`` row (``seq, frame_index, pts_ms, t_capture_host_s``), made as the frame is
+muxed and handed to the session writer in batches, once the oldest waiting row is
+:data:`ROW_BATCH_FRACTION` of its commit interval old (a second table in every frame's
+commit cost about 10 us per frame, docs/performance.md); a killed recording's video may
+therefore hold a few frames more than rows, and :meth:`VideoRecorder.close` hands over the
+rest. The muxer flushes its I/O after every packet (``flush_packets=1``),
 so a process killed at any moment leaves a file that FFmpeg opens and plays up to the
 newest frame but one (the muxer holds the newest block until the next arrives), within one
 commit interval of the newest committed ``frames`` row. When writing fails (disk full), the
@@ -39,6 +43,7 @@ import math
 import os
 import queue
 import threading
+import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from fractions import Fraction
@@ -79,6 +84,13 @@ MUXER_OPTIONS: Final = {"flush_packets": "1"}
 #: than the default commit interval. When it is full the frame is left out of the video
 #: (counted): recording never slows the measurement down.
 ENCODER_QUEUE_FRAMES: Final = 8
+#: ``video_frames`` rows are handed to the session writer once the oldest one waiting is this
+#: fraction of its ``commit_interval_s`` old [-] (and when the recorder closes): the rows are
+#: an index into the video, read after the run, so they need not be in every frame's commit.
+ROW_BATCH_FRACTION: Final = 0.5
+
+#: The clock the row batches are timed on [s] (a name of its own, for tests).
+_monotonic = time.monotonic
 #: Niceness of the encoder thread above the process's own [-] (capped at 19): the
 #: measurement's threads weigh about 3x as much, and the encoder still gets its share against
 #: the daemon's own threads and other programs' ordinary (nice 0) load. At 19 that load
@@ -186,6 +198,9 @@ class VideoRecorder:
         self._closed = False
         self._queue: queue.Queue[tuple[int, float, Image] | None] | None = None
         self._thread: threading.Thread | None = None
+        self._rows: list[tuple[int, int, int, float]] = []  # video_frames rows not handed yet
+        self._rows_since = 0.0  # time.monotonic() of the oldest of them [s]
+        self._row_batch_s = ROW_BATCH_FRACTION * writer.options.commit_interval_s
         #: Frames stored [-].
         self.frames = 0
         #: Frames left out because the encoder could not keep up [-] (no row either).
@@ -255,8 +270,21 @@ class VideoRecorder:
         pts = max(self._last_pts + 1, round((t_capture_s - self._t0_s) * 1000.0))
         self._mux(pts, image, packet)
         self._last_pts = pts
-        self._writer.add_video_frames([(seq, self.frames, pts, t_capture_s)])
+        rows = self._rows
+        rows.append((seq, self.frames, pts, t_capture_s))
         self.frames += 1
+        now = _monotonic()
+        if len(rows) == 1:
+            self._rows_since = now
+        elif now - self._rows_since >= self._row_batch_s:
+            self._hand_rows()
+
+    def _hand_rows(self) -> None:
+        """Give the ``video_frames`` rows made so far to the session writer (may raise
+        :class:`SessionError` when the writer has failed)."""
+        rows, self._rows = self._rows, []
+        if rows:
+            self._writer.add_video_frames(rows)
 
     def _encode_loop(self, q: queue.Queue[tuple[int, float, Image] | None]) -> None:
         """The FFV1 encoder thread (PyAV releases the GIL while FFmpeg encodes), at a lower CPU
@@ -358,6 +386,10 @@ class VideoRecorder:
             return
         self._closed = True
         self._close_container()
+        try:
+            self._hand_rows()
+        except SessionError as exc:  # the session failed first: its error is already reported
+            _log.debug("video_frames rows not stored: %s", exc)
         if self.left_out:
             _log.warning(
                 "%s: %d frames left out of the video (the encoder could not keep up)",

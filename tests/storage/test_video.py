@@ -305,3 +305,41 @@ def test_report_reads_representative_frames_from_the_video(tmp_path: Path) -> No
     (frame,) = read_representative_frames(session)
     assert frame.seq == 103 and np.array_equal(frame.image, images[3])
     assert np.array_equal(read_video_image(session / "video.mkv", 3), images[3])
+
+
+def test_video_frames_rows_reach_the_writer_in_batches_and_all_at_close(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A ``video_frames`` row waits until the oldest waiting one is ROW_BATCH_FRACTION of
+    the commit interval old (not one more table in every frame's commit); close hands over
+    the rest, so a finished session has one row per stored frame."""
+    from stipi_daemon.storage import video as video_module
+
+    now = [100.0]
+    monkeypatch.setattr(video_module, "_monotonic", lambda: now[0])
+    images = _images(9, (48, 64))
+    packets = [cv2.imencode(".jpg", im)[1].tobytes() for im in images]
+    with _writer(tmp_path) as w:
+        assert w.video_path is not None
+        rec = VideoRecorder(w.video_path, w, "passthrough")
+        batch_s = video_module.ROW_BATCH_FRACTION * OPTS.commit_interval_s
+
+        def rows_after(k: int, dt_s: float) -> int:
+            now[0] += dt_s
+            assert rec.record(k, k / 60, images[k], packets[k])
+            w.commit()
+            return w.stats.rows["video_frames"]
+
+        assert [rows_after(k, 0.25 * batch_s) for k in range(4)] == [0, 0, 0, 0]
+        assert rows_after(4, 0.25 * batch_s) == 5  # the oldest is batch_s old: all 5 go
+        assert rows_after(5, 0.0) == 5
+        assert rows_after(6, 0.99 * batch_s) == 5
+        assert rows_after(7, 0.01 * batch_s) == 8
+        assert rows_after(8, 0.0) == 8
+        rec.close()
+        w.commit()
+        assert w.stats.rows["video_frames"] == 9
+        w.finish("complete")
+    with SessionReader(tmp_path / "s") as r:
+        assert r.video_frames()["seq"].tolist() == list(range(9))
+        assert r.integrity_check().ok
