@@ -395,6 +395,13 @@ def _recount_stored(
         saturation_limit_fraction=settings.saturation_limit_fraction,
     )
     n_video = min(video.s_k_px.size, data.video_seq.size)
+    if video.s_k_px.size > data.video_seq.size:
+        notes.append(
+            f"the video holds {video.s_k_px.size - data.video_seq.size} frame(s) more than its "
+            f"video_frames rows ({data.video_seq.size}; an interrupted recording whose last "
+            "rows were not committed): those frames are not tied to a stored frame and are "
+            "not used"
+        )
     by_seq = dict(zip(data.video_seq[:n_video].tolist(), video.s_k_px[:n_video], strict=True))
     keep = np.array([int(s) in by_seq for s in data.frame_seq], dtype=bool)
     if not keep.all():

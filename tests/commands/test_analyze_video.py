@@ -109,3 +109,30 @@ def imaging_of_default_output(session: Path) -> dict[str, Any]:
     doc = json.loads(outputs[-1].read_text())
     imaging: dict[str, Any] = doc["settings"]["imaging"]
     return imaging
+
+
+def test_recompute_sk_names_video_frames_without_their_rows(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A killed recording's video may hold frames whose ``video_frames`` rows were not
+    committed yet (the recorder hands them over in batches): the recount leaves them and
+    their stored frames out, and says so, rather than pairing them by guess."""
+    import sqlite3
+
+    session = _record(tmp_path, {"kind": "file", "pace": True}, {})
+    with SessionReader(session) as reader:
+        n_rows = reader.count("video_frames")
+    cut = 5
+    with sqlite3.connect(session / "session.sqlite") as conn:  # the last batch, never handed
+        conn.execute("DELETE FROM video_frames WHERE frame_index >= ?", (n_rows - cut,))
+    conn.close()
+    out = tmp_path / "re.json"
+    assert main(["analyze", str(session), "--recompute-sk", "--out", str(out)]) == 0
+    doc = json.loads(out.read_text())
+    assert doc["settings"]["imaging"]["s_k_vs_stored"]["frames_without_video"] == cut
+    assert doc["settings"]["imaging"]["s_k_vs_stored"]["differing"] == 0
+    assert any(
+        f"the video holds {cut} frame(s) more than its video_frames rows" in note
+        for note in doc["notes"]
+    ), doc["notes"]
+    capsys.readouterr()
