@@ -5,20 +5,21 @@ with four asyncio tasks until the state machine finishes:
 
 * the probe pump: force samples (with raw, unwrapped and clock-synchronised times), gaps,
   clock probes and link events from the probe;
-* the camera pump: every frame's S_k (Eqs. 1-2) measured as it arrives
-  (:class:`FrameMeasurer`, which also offers the raw image to the representative-frame
-  keeper, :mod:`stipi_daemon.measurement.representative_frames`, so images go no further),
-  and camera stalls; the queue carries a :class:`FrameResult` per frame (a
-  :class:`LateFrame` for a frame too late to measure);
+* the camera pump: every frame's S_k (Eqs. 1-2), video frame and ``frames`` row, made in
+  the camera's capture thread as it arrives (:class:`FrameMeasurer`,
+  :mod:`stipi_daemon.app.frame_measurer`: committed at once, at most every
+  :data:`COMMIT_SPACING_WALL_S` of wall time), and camera stalls; the queue carries a
+  :class:`FrameResult` per frame (a :class:`LateFrame` for a frame too late to measure), and
+  the raw image goes to the representative-frame keeper
+  (:mod:`stipi_daemon.measurement.representative_frames`) and no further;
 * a ticker, so timeouts fire when nothing else arrives;
 * the loop itself, which takes each event to its handler (one per event type, in a table),
-  streams every row into the session (:mod:`stipi_daemon.storage`) as it arrives (frame
-  rows are committed as soon as the queue is empty, at most every
-  :data:`COMMIT_SPACING_WALL_S` of wall time: one commit per frame in real time, one per
-  batch of frames when the loop runs behind or the clock is accelerated), feeds samples and frames
-  in time order (:class:`~stipi_daemon.measurement.merge.TimeOrderedMerger`, as an offline
-  replay does) into the pure :class:`~stipi_daemon.measurement.pipeline.MeasurementPipeline`,
-  stores live parameters and keeps the operator console current.
+  streams every other row into the session (:mod:`stipi_daemon.storage`) as it arrives,
+  feeds samples and frames in time order
+  (:class:`~stipi_daemon.measurement.merge.TimeOrderedMerger`, as an offline replay does)
+  into the pure :class:`~stipi_daemon.measurement.pipeline.MeasurementPipeline`, stores live
+  parameters and keeps the operator console current. When the measurement ends, frames are
+  no longer stored.
 
 Falling behind. The queue is bounded (:data:`QUEUE_MAX_EVENTS`; images never enter it),
 so memory stays bounded at any ``run.speed``: a full queue holds the pumps back, and the
@@ -27,7 +28,7 @@ one). The lag - session time when a frame is handled minus its capture time - is
 on every frame and stored (``summary.json`` ``run.lag_s``). Samples and ticks reach the
 measurement no further ahead than the camera (the merger's clock and the ticks run the
 lag behind), so the session never ends while frames of its window are still queued.
-Frames measured more than half of ``run.max_lag_s`` late are not measured but stored as
+Frames delivered more than half of ``run.max_lag_s`` late are not measured but stored as
 gaps (reason ``processing_behind``, missing frames to the analysis, never silent); a lag
 above ``run.max_lag_s`` ends the run with a fault and one line (:attr:`Acquisition.fault_line`).
 
@@ -45,24 +46,22 @@ import time
 from collections import deque
 from collections.abc import AsyncIterator, Callable, Coroutine
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
 from typing import Any
 
-import numpy as np
-import numpy.typing as npt
-
-from stipi_daemon.analysis.imaging import CircleROI, FrameProcessor, RectROI
 from stipi_daemon.app.config import DaemonConfig
 from stipi_daemon.app.console import OperatorConsole
 from stipi_daemon.app.devices import DaemonHandles, Devices
-from stipi_daemon.cameras import CameraFrame
+from stipi_daemon.app.frame_measurer import (
+    COMMIT_SPACING_WALL_S,
+    FrameMeasurer,
+    FrameResult,
+    LateFrame,
+)
 from stipi_daemon.cameras import CameraRecovered as CamRecovered
 from stipi_daemon.cameras import CameraStalled as CamStalled
 from stipi_daemon.cameras.threaded import ThreadedCamera
-from stipi_daemon.clock import ScaledClock
 from stipi_daemon.measurement.merge import TimeOrderedMerger
 from stipi_daemon.measurement.pipeline import LiveParameters, MeasurementPipeline, compute_live
-from stipi_daemon.measurement.representative_frames import RepresentativeFrames
 from stipi_daemon.measurement.state_machine import (
     Advisory,
     CameraRecovered,
@@ -76,7 +75,6 @@ from stipi_daemon.measurement.state_machine import (
     Tick,
 )
 from stipi_daemon.probe.link import ClockProbe, ForceRows, Gap, LinkDown, LinkUp
-from stipi_daemon.storage.video import VideoRecorder
 
 __all__ = [
     "COMMIT_SPACING_WALL_S",
@@ -100,11 +98,6 @@ MERGE_HOLD_S = 0.5
 QUEUE_MAX_EVENTS = 2048
 #: Gap reason of frames that arrived too late to be measured.
 LATE_GAP_REASON = "processing_behind"
-#: Shortest wall time between two commits the loop makes for frame rows [s]. In real time
-#: (60 fps: a frame every 16.7 ms) each frame's row is committed as soon as it is handled;
-#: faster (an accelerated demo, a backlog) the frames of up to this long share one commit.
-#: The writer's own commit interval (``storage.commit_interval_s``) bounds every row anyway.
-COMMIT_SPACING_WALL_S = 0.005
 #: Shortest wall time between two frames' S_k shown on the console [s] (it redraws at 4 Hz).
 CONSOLE_FRAME_INTERVAL_WALL_S = 0.05
 #: Live computations (snapshots taken every LIVE_INTERVAL_S) waiting on the worker thread
@@ -119,152 +112,12 @@ OnRunning = Callable[[DaemonHandles], Coroutine[Any, Any, None]]
 """An async callback run as a task while the daemon records (see :class:`DaemonHandles`)."""
 
 
-@dataclass(frozen=True, slots=True)
-class FrameResult:
-    """One frame's measurement, as the camera pump queues it (no image).
-
-    Attributes
-    ----------
-    seq : int
-        The camera's frame number.
-    t_capture_s, t_processed_s : float
-        Capture time and the time S_k was measured, on the session clock [s].
-    s_k : int
-        S_k, Eq. (2) [px].
-    flags : tuple of str
-        The frame's imaging flags (e.g. saturation), sorted.
-    dropped_before : int
-        Frames the camera dropped just before this one.
-    """
-
-    seq: int
-    t_capture_s: float
-    t_processed_s: float
-    s_k: int
-    flags: tuple[str, ...]
-    dropped_before: int
-
-
-@dataclass(frozen=True, slots=True)
-class LateFrame:
-    """A frame that arrived too late to be measured: stored as a gap, never fed.
-
-    Attributes
-    ----------
-    seq : int
-        The camera's frame number.
-    t_capture_s : float
-        Capture time on the session clock [s].
-    lag_s : float
-        Session time when it was handled minus its capture time [s].
-    dropped_before : int
-        Frames the camera dropped just before this one.
-    """
-
-    seq: int
-    t_capture_s: float
-    lag_s: float
-    dropped_before: int
-
-
 class _Stop:
     """Sentinel: a pump ended (its source is exhausted or failed)."""
 
     def __init__(self, who: str, error: BaseException | None = None) -> None:
         self.who = who
         self.error = error
-
-
-class FrameMeasurer:
-    """The camera side: each frame's S_k measured as it arrives, its image offered to the keeper.
-
-    Parameters
-    ----------
-    clock : ScaledClock
-        Session clock (the processing time stamp).
-    threshold_p : int
-        Threshold p of Eq. (1) [8-bit intensity].
-    roi : CircleROI or RectROI or None
-        Where S_k is counted (None: the whole frame).
-    saturation_limit_fraction : float
-        Saturated fraction of the ROI above which a frame is flagged.
-    keeper : RepresentativeFrames
-        Chooses the raw frames the session keeps.
-    pipeline : MeasurementPipeline
-        The live measurement, whose phase and times the keeper's choice depends on.
-    skip_late_s : float or None
-        A frame handled more than this after its capture [s of session time] is not
-        measured: a :class:`LateFrame` instead (None: every frame is measured).
-    """
-
-    #: Stores each measured frame in the session video (set by the daemon; None: no video).
-    recorder: VideoRecorder | None = None
-
-    def __init__(
-        self,
-        clock: ScaledClock,
-        threshold_p: int,
-        roi: CircleROI | RectROI | None,
-        saturation_limit_fraction: float,
-        keeper: RepresentativeFrames,
-        pipeline: MeasurementPipeline,
-        skip_late_s: float | None = None,
-    ) -> None:
-        self._clock = clock
-        self._threshold_p = threshold_p
-        self._roi = roi
-        self._saturation_limit_fraction = saturation_limit_fraction
-        self._keeper = keeper
-        self._pipeline = pipeline
-        self._skip_late_s = skip_late_s
-        self._processor: FrameProcessor | None = None
-        self._thread_processor: FrameProcessor | None = None
-        self._thread_shape: tuple[int, ...] = ()
-
-    def _new_processor(self, shape: tuple[int, ...]) -> FrameProcessor:
-        return FrameProcessor(
-            shape,
-            self._threshold_p,
-            self._roi,
-            saturation_limit_fraction=self._saturation_limit_fraction,
-        )
-
-    def measure_image(self, image: npt.NDArray[np.uint8]) -> tuple[int, tuple[str, ...]]:
-        """S_k [px] and the sorted imaging flags of one frame: the camera's ``frame_hook``,
-        run in its capture thread (with a processor of its own: processors keep scratch
-        buffers), so that counting runs beside the event loop."""
-        proc = self._thread_processor
-        if proc is None or self._thread_shape != image.shape:
-            proc = self._thread_processor = self._new_processor(image.shape)
-            self._thread_shape = image.shape
-        m = proc.measure(image)
-        return int(m.s_k_px), tuple(sorted(m.flags))
-
-    def __call__(self, ev: object) -> object:
-        """A :class:`FrameResult` for a camera frame (a :class:`LateFrame` when it is too
-        late to measure); other camera events as they are."""
-        if not isinstance(ev, CameraFrame):
-            return ev
-        lag_s = self._clock.now() - ev.t_capture_s
-        if self._skip_late_s is not None and lag_s > self._skip_late_s:
-            return LateFrame(ev.seq, ev.t_capture_s, lag_s, ev.dropped_before)
-        measured = ev.measured
-        if not isinstance(measured, tuple):  # not measured in the capture thread
-            if self._processor is None:
-                self._processor = self._new_processor(ev.image.shape)
-            m = self._processor.measure(ev.image)
-            measured = (int(m.s_k_px), tuple(sorted(m.flags)))
-        s_k, flags = measured
-        if self.recorder is not None:  # the session video: the frame S_k was counted on
-            self.recorder.record(ev.seq, ev.t_capture_s, ev.image, ev.packet)
-        result = FrameResult(
-            ev.seq, ev.t_capture_s, self._clock.now(), s_k, flags, ev.dropped_before
-        )
-        st = self._pipeline.state
-        self._keeper.offer(
-            ev.seq, ev.t_capture_s, ev.image, result.s_k, st.phase, st.t_pit_start_s, st.t_release_s
-        )
-        return result
 
 
 def _feed(pipeline: MeasurementPipeline, kind: str, value: tuple[float, float]) -> list[Output]:
@@ -320,11 +173,12 @@ class Acquisition:
         self._pipeline = pipeline
         self._console = console
         self._measurer = measurer
-        # S_k is counted in the camera's capture thread, beside the event loop (frames that
-        # come before this is set are measured on the loop).
+        # S_k is counted and the video stored in the camera's capture thread, beside the
+        # event loop (frames that come before this is set are measured on the loop).
         source = getattr(devices.camera, "camera", None)
         if isinstance(source, ThreadedCamera):
-            source.frame_hook = measurer.measure_image
+            source.frame_hook = measurer.on_capture
+            measurer.wait_for_encoder = source.waits_for_consumer
         self._queue: asyncio.Queue[object] = asyncio.Queue(maxsize=QUEUE_MAX_EVENTS)
         self._tasks: list[asyncio.Task[None]] = []
         self._next_live_s = 0.0
@@ -342,8 +196,6 @@ class Acquisition:
         self.latencies_s: list[float] = []
         self.lag_s: list[float] = []
         self._lag_now_s = 0.0
-        self._frames_uncommitted = False
-        self._last_commit_wall_s = float("-inf")
         self._next_console_wall_s = float("-inf")
         self.fault_line: str | None = None
         # Samples and frames reach the pipeline in time order (as on replay), each held at
@@ -408,8 +260,6 @@ class Acquisition:
         clock, pipeline = self._clock, self._pipeline
         queue, handlers, merger = self._queue, self._handlers, self.merger
         while True:
-            if self._frames_uncommitted and queue.empty():
-                self._commit_frames()
             ev = await queue.get()
             handler = handlers.get(type(ev))
             outputs: list[Output] = handler(ev) if handler is not None else []
@@ -422,22 +272,12 @@ class Acquisition:
             if outputs:
                 self._record(outputs)
             if pipeline.finished:
+                self._measurer.stop_storing()  # frames after the end are not stored
                 await self._drain_live(wait=True)
                 return
             self._store_live()
             if self._live_pending:
                 await self._drain_live(wait=len(self._live_pending) > LIVE_BACKLOG_MAX)
-
-    def _commit_frames(self) -> None:
-        """Commit the buffered frame rows (and whatever else is buffered) when the queue is
-        empty, at most every :data:`COMMIT_SPACING_WALL_S`: a frame is on disk about a
-        millisecond after it is handled in real time, and a backlog costs one commit per
-        batch rather than one per frame."""
-        now = time.monotonic()
-        if now - self._last_commit_wall_s >= COMMIT_SPACING_WALL_S:
-            self._writer.commit()
-            self._last_commit_wall_s = now
-            self._frames_uncommitted = False
 
     def _start_tasks(self, on_running: OnRunning | None) -> None:
         devices = self._devices
@@ -457,6 +297,8 @@ class Acquisition:
     async def stop(self) -> None:
         """Cancel the pumps, the ticker and the ``on_running`` task, and wait for them; end
         the live fit's worker thread (live rows not yet stored are left out)."""
+        if self._measurer is not None:  # None only in unit tests of the handlers
+            self._measurer.stop_storing()
         tasks, self._tasks = self._tasks, []
         pool, self._live_pool = self._live_pool, None
         if pool is not None:
@@ -588,7 +430,6 @@ class Acquisition:
 
     def _on_late_frame(self, ev: LateFrame) -> list[Output]:
         self.counts["late_frames"] += 1
-        self._frames_uncommitted = True
         self._camera_gaps(ev.seq, ev.t_capture_s, ev.dropped_before)
         self._writer.add_gap("frames", ev.seq, 1, ev.t_capture_s, LATE_GAP_REASON)
         return self._lag(ev.t_capture_s)
@@ -601,17 +442,14 @@ class Acquisition:
             )
 
     def _on_frame(self, ev: FrameResult) -> list[Output]:
-        writer = self._writer
-        writer.add_frames([(ev.seq, ev.t_capture_s, ev.t_processed_s, ev.s_k, ev.flags)])
+        if ev.error is not None:  # its row or video frame could not be stored
+            raise ev.error
+        # The frame's row is stored and committed already (FrameMeasurer, capture thread).
         now = self._clock.now()
         self.latencies_s.append(now - ev.t_capture_s)
         self.counts["frames"] += 1
         if ev.dropped_before:
             self._camera_gaps(ev.seq, ev.t_capture_s, ev.dropped_before)
-        # Committed by the loop as soon as the queue is empty (run()): a frame is on disk
-        # before the next is due, against up to 3/4 of storage.commit_interval_s of waiting
-        # for the commit thread (docs/performance.md, "Live daemon latency").
-        self._frames_uncommitted = True
         self.merger.push("frame", ev.t_capture_s, (ev.t_capture_s, float(ev.s_k)), now)
         wall_s = time.monotonic()
         if wall_s >= self._next_console_wall_s:  # the console shows a few frames a second

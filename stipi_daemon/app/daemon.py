@@ -29,7 +29,7 @@ from threadpoolctl import threadpool_limits
 
 from stipi_daemon.analysis.severity import load_reference
 from stipi_daemon.analysis.validity import assess_validity
-from stipi_daemon.app.acquisition import Acquisition, FrameMeasurer, OnRunning
+from stipi_daemon.app.acquisition import Acquisition, OnRunning
 from stipi_daemon.app.config import DaemonConfig
 from stipi_daemon.app.console import OperatorConsole
 from stipi_daemon.app.devices import (
@@ -46,6 +46,7 @@ from stipi_daemon.app.finish import (
     session_summary,
     storage_failure,
 )
+from stipi_daemon.app.frame_measurer import FrameMeasurer
 from stipi_daemon.app.imaging import resolve_imaging
 from stipi_daemon.clock import ScaledClock
 from stipi_daemon.errors import SessionError
@@ -198,7 +199,9 @@ async def run_daemon(
     saturation = config.imaging.saturation_limit_fraction
     # Frames later than half the lag bound are not measured (gaps) so the run can catch up.
     skip_late_s = config.run.max_lag_s / 2.0
-    measurer = FrameMeasurer(clock, threshold, roi, saturation, keeper, pipeline, skip_late_s)
+    measurer = FrameMeasurer(
+        clock, threshold, roi, saturation, keeper, pipeline, skip_late_s, writer=writer
+    )
     measurer.recorder = devices.recorder  # the session video (storage.video)
     acquisition = Acquisition(config, devices, pipeline, console, measurer)
     status = "aborted"

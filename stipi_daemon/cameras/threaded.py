@@ -91,6 +91,15 @@ class FrameHandoff(Generic[T]):
     def closed(self) -> bool:
         return self._closed
 
+    def full(self) -> bool:
+        """Whether the hand-off holds ``capacity`` items (producer side)."""
+        return len(self._items) >= self._capacity
+
+    def count_dropped(self) -> None:
+        """Count an item the producer left out itself (the hand-off was full)."""
+        with self._cond:
+            self.dropped += 1
+
     def put(self, item: T, *, force: bool = False) -> bool:
         """Producer side (any thread): add ``item``; False once the hand-off is closed.
 
@@ -168,8 +177,10 @@ class ThreadedCamera(ABC, Generic[H]):
     drop_oldest : bool
         Hand-off policy (see :class:`FrameHandoff`).
     paced : bool
-        Deliver each frame no earlier than its ``t_capture_s`` on the session clock
-        (the producer thread reads ahead, up to ``capacity`` frames).
+        Deliver each frame no earlier than its ``t_capture_s`` on the session clock: the
+        capture thread waits for that time before the frame goes on (a file's JPEG is
+        decoded then, as a camera delivers it; the hand-off only absorbs the consumer's
+        jitter).
     """
 
     def __init__(
@@ -208,10 +219,21 @@ class ThreadedCamera(ABC, Generic[H]):
     @abstractmethod
     def _close_source(self, handle: H) -> None: ...
 
-    #: Called in the capture thread with each frame's image; what it returns travels with
-    #: the frame (:attr:`~.base.CameraFrame.measured`). The daemon measures S_k there, beside
-    #: the event loop rather than on it. None: nothing is computed.
-    frame_hook: Callable[[npt.NDArray[np.uint8]], object] | None = None
+    #: Called in the capture thread with each frame as it is delivered (a paced source's at
+    #: or after its capture time, never a frame an injected stall swallows); what it returns
+    #: travels with the frame (:attr:`~.base.CameraFrame.measured`). The daemon measures S_k
+    #: and records the session video there, beside the event loop rather than on it, and a
+    #: source that waits for its consumer (a file, the simulator) then also waits for the
+    #: video's encoder. A hooked live source whose hand-off is full leaves out the newest
+    #: frame before the hook, so that every frame the hook saw reaches the consumer. None:
+    #: nothing is computed.
+    frame_hook: Callable[[RawFrame], object] | None = None
+
+    @property
+    def waits_for_consumer(self) -> bool:
+        """True for a source that waits when its consumer lags (a file, the simulator),
+        False for a live camera, which leaves frames out instead."""
+        return not self._drop_oldest
 
     def _first_seq(self) -> int:
         """``seq`` the very first frame would have (gaps before it count as dropped)."""
@@ -262,15 +284,23 @@ class ThreadedCamera(ABC, Generic[H]):
     def stall(self, duration_s: float) -> None:
         """Fault injection: deliver nothing for ``duration_s`` of session time [s].
 
-        Frames captured or due for delivery meanwhile are lost (they show up as
+        Frames captured meanwhile, or due meanwhile, are lost (they show up as
         ``dropped_before`` on the first frame after the stall), exactly as when a real camera
-        freezes; reopening does not end the stall early. Meant for reliability tests of
+        freezes (a frame handed over before the freeze still arrives); reopening does not
+        end the stall early. Meant for reliability tests of
         the stream's stall handling.
         """
         if not duration_s >= 0.0:
             raise ValueError(f"stall duration must be >= 0 s, got {duration_s}")
         now = self._clock.now()
         self._stall_from_s, self._stall_until_s = now, now + duration_s
+
+    def _stalled(self, t_capture_s: float) -> bool:
+        """Whether an injected stall swallows a frame captured at ``t_capture_s`` and due
+        now (it is delivered while frozen, or was captured while frozen)."""
+        return self._clock.now() < self._stall_until_s or (
+            self._stall_from_s <= t_capture_s < self._stall_until_s
+        )
 
     async def open(self) -> None:
         if self._thread is not None:
@@ -317,14 +347,8 @@ class ThreadedCamera(ABC, Generic[H]):
                 if item.error is not None:
                     raise item.error
                 return
-            if self._paced:
-                await clock.sleep_until(item.t_capture_s)
-            now = clock.now()
+            now = clock.now()  # a paced frame is due: the capture thread waited for it
             self._stats.queue_dropped = self._queue_dropped_closed + handoff.dropped
-            if now < self._stall_until_s or (
-                self._stall_from_s <= item.t_capture_s < self._stall_until_s
-            ):
-                continue  # injected stall: delivered nothing, or captured while frozen
             last = self._last_seq if self._last_seq is not None else item.seq - 1
             frame = CameraFrame(
                 seq=item.seq,
@@ -350,10 +374,17 @@ class ThreadedCamera(ABC, Generic[H]):
                 raw = self._read(handle)
                 if raw is None:
                     break
+                if self._paced and not self._wait_until(raw.t_capture_s):
+                    return  # closed while waiting for the frame's capture time
+                if self._stalled(raw.t_capture_s):
+                    continue  # injected stall: delivered nothing, or captured while frozen
                 hook = self.frame_hook
                 if hook is not None:
+                    if self._drop_oldest and handoff.full():
+                        handoff.count_dropped()  # the newest, before the hook saw it
+                        continue
                     try:
-                        measured = hook(raw.image)
+                        measured = hook(raw)
                     except Exception:  # the consumer computes it again and sees the error
                         measured = None
                     raw = RawFrame(raw.seq, raw.t_capture_s, raw.image, raw.packet, measured)

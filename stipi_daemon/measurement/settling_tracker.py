@@ -29,10 +29,11 @@ What it tracks (times on the host's monotonic clock [s], S_k in pixels):
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import Final
 
 from stipi_daemon.analysis.settling_rules import LineSums, still_rising, truncation_hold_factor
+from stipi_daemon.measurement.evolve import evolve
 
 __all__ = ["LEVELS_PER_BAND", "SettlingTracker"]
 
@@ -51,7 +52,7 @@ class _Run:
     """The rise's sums before that frame was added."""
 
 
-@dataclass(frozen=True, slots=True)
+@dataclass(frozen=True)
 class SettlingTracker:
     """Rise, peak and plateau of a recovery's S_k so far (see the module docstring).
 
@@ -121,7 +122,7 @@ class SettlingTracker:
         before = self.sums
         sums = before.add(t_s - self.rise_start_s, s_px - self.rise_start_px)
         base, runs = _ladder(peak, f, self.runs, self.level_base, t_s, s_px, before)
-        return replace(
+        return evolve(
             self,
             floor_px=min(self.floor_px, s_px),
             peak_px=peak,

@@ -115,7 +115,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from enum import StrEnum
 from typing import Final, Literal
 
@@ -136,6 +136,7 @@ from stipi_daemon.measurement.events import (
     SessionClosed,
     Tick,
 )
+from stipi_daemon.measurement.evolve import evolve
 from stipi_daemon.measurement.outputs import (
     FAULT_PHASES,
     TERMINAL_PHASES,
@@ -230,9 +231,10 @@ CAMERA_POLICY: Final[dict[Phase, Policy]] = {
 # --------------------------------------------------------------------------- state
 
 
-@dataclass(frozen=True, slots=True)
+@dataclass(frozen=True)
 class MachineState:
-    """Everything the machine knows; immutable, replaced on every transition.
+    """Everything the machine knows; immutable, replaced on every transition (by
+    :func:`~.evolve.evolve`, hence no slots).
 
     Times are host monotonic [s]; ``None`` means "not yet" / "not active".
     """
@@ -303,7 +305,7 @@ def _prompt(state: MachineState, text: str) -> Result:
     """Emit ``text`` unless it is already the current prompt."""
     if text == state.last_prompt:
         return state, []
-    return replace(state, last_prompt=text), [OperatorPrompt(text)]
+    return evolve(state, last_prompt=text), [OperatorPrompt(text)]
 
 
 def _goto(
@@ -316,12 +318,12 @@ def _goto(
     """Enter ``new`` at ``state.now_s``; faults also emit :class:`Fault`."""
     t = state.now_s
     out: list[Output] = [PhaseChanged(state.phase, new, t, reason)]
-    nxt = replace(state, phase=new, phase_entered_s=t, **changes)  # type: ignore[arg-type]
+    nxt = evolve(state, phase=new, phase_entered_s=t, **changes)
     if new in FAULT_PHASES:
         out.append(Fault(new, reason, t))
-        nxt = replace(nxt, end_reason=reason)
+        nxt = evolve(nxt, end_reason=reason)
     elif new is Phase.DONE:
-        nxt = replace(nxt, end_reason=reason)
+        nxt = evolve(nxt, end_reason=reason)
     nxt, prompt = _prompt(nxt, _phase_prompt(nxt, config))
     return nxt, out + prompt
 
@@ -380,7 +382,7 @@ def _in_band(force_n: float, config: MeasurementConfig) -> bool:
 
 
 def _with_flag(state: MachineState, flag: str) -> MachineState:
-    return replace(state, flags=state.flags | {flag})
+    return evolve(state, flags=state.flags | {flag})
 
 
 # --------------------------------------------------------------------------- timer rules
@@ -482,7 +484,7 @@ def _pitting_clock(state: MachineState, config: MeasurementConfig) -> Result:
     if state.oob_since_s is not None and t_acc > accounted_s:
         total = state.oob_total_s + (t_acc - accounted_s)
         run = t_acc - state.oob_since_s
-        state = replace(
+        state = evolve(
             state,
             oob_total_s=total,
             oob_accounted_to_s=t_acc,
@@ -511,7 +513,7 @@ def _pitting_clock(state: MachineState, config: MeasurementConfig) -> Result:
                 config,
             )
     else:
-        state = replace(state, oob_accounted_to_s=max(accounted_s, t_acc))
+        state = evolve(state, oob_accounted_to_s=max(accounted_s, t_acc))
     if now >= t_complete:
         # a force already below the release threshold ended the hold where it dropped
         dropped = state.below_release_since_s
@@ -536,7 +538,7 @@ def _release_overrun(state: MachineState, config: MeasurementConfig) -> Result:
     waited_s = state.now_s - state.t_pit_end_s
     if state.overrun_warned or not waited_s > config.release_overrun_warn_s:
         return state, []
-    state = replace(_with_flag(state, MeasurementFlag.PITTING_OVERRUN), overrun_warned=True)
+    state = evolve(_with_flag(state, MeasurementFlag.PITTING_OVERRUN), overrun_warned=True)
     return state, [
         Advisory(
             AdvisoryKind.RELEASE_OVERRUN,
@@ -597,7 +599,7 @@ def _start_analysis(
         # the paper's protocol: the whole window is the normal end; whether S_k settled in
         # it is the analysis' call (Eq. (6), its own NOT_SETTLED flag)
         reason = f"recovery window complete ({config.recovery_max_s:g} s)"
-    state = replace(state, t_recovery_end_s=t_end_s)
+    state = evolve(state, t_recovery_end_s=t_end_s)
     state, out = _goto(state, Phase.ANALYSIS, reason, config)
     start = StartAnalysis(
         t0_s=t0_s,
@@ -650,7 +652,7 @@ def _session_closed(state: MachineState, event: Event, config: MeasurementConfig
 def _link_lost(state: MachineState, event: Event, config: MeasurementConfig) -> Result:
     if state.link_down_since_s is not None:
         return state, []
-    state = replace(state, link_down_since_s=event.t_s)
+    state = evolve(state, link_down_since_s=event.t_s)
     return state, [Advisory(AdvisoryKind.LINK_DOWN, f"probe link down in {state.phase}", event.t_s)]
 
 
@@ -658,7 +660,7 @@ def _link_restored(state: MachineState, event: Event, config: MeasurementConfig)
     if state.link_down_since_s is None:
         return state, []
     down_s = state.now_s - state.link_down_since_s
-    state = replace(state, link_down_since_s=None)
+    state = evolve(state, link_down_since_s=None)
     return state, [
         Advisory(AdvisoryKind.LINK_RESTORED, f"probe link back after {down_s:.2f} s", state.now_s)
     ]
@@ -667,7 +669,7 @@ def _link_restored(state: MachineState, event: Event, config: MeasurementConfig)
 def _camera_stalled(state: MachineState, event: Event, config: MeasurementConfig) -> Result:
     if state.camera_stalled_since_s is not None:
         return state, []
-    state = replace(state, camera_stalled_since_s=event.t_s)
+    state = evolve(state, camera_stalled_since_s=event.t_s)
     return state, [
         Advisory(AdvisoryKind.CAMERA_STALLED, f"camera stalled in {state.phase}", event.t_s)
     ]
@@ -677,7 +679,7 @@ def _camera_recovered(state: MachineState, event: Event, config: MeasurementConf
     if state.camera_stalled_since_s is None:
         return state, []
     stall_s = state.now_s - state.camera_stalled_since_s
-    state = replace(state, camera_stalled_since_s=None)
+    state = evolve(state, camera_stalled_since_s=None)
     return state, [
         Advisory(AdvisoryKind.CAMERA_RECOVERED, f"camera back after {stall_s:.2f} s", state.now_s)
     ]
@@ -699,7 +701,7 @@ def _take_force(state: MachineState, event: Event) -> tuple[MachineState, list[O
             ],
             False,
         )
-    return replace(state, last_force_t_s=event.t_s, last_force_n=event.force_n), [], True
+    return evolve(state, last_force_t_s=event.t_s, last_force_n=event.force_n), [], True
 
 
 def _force_idle(state: MachineState, event: Event, config: MeasurementConfig) -> Result:
@@ -717,7 +719,7 @@ def _force_armed(state: MachineState, event: Event, config: MeasurementConfig) -
         # pitting starts at this sample; the clock and band accounting start here
         oob = None if f <= config.band_high_n else event.t_s
         state, more = _goto(
-            replace(state, contact=True),
+            evolve(state, contact=True),
             Phase.PITTING,
             f"force reached the band ({f:.1f} N)",
             config,
@@ -741,11 +743,11 @@ def _force_armed(state: MachineState, event: Event, config: MeasurementConfig) -
         return state, out
     if f >= config.contact_force_n:
         state, more = _prompt(
-            replace(state, contact=True),
+            evolve(state, contact=True),
             f"Keep pressing: {f:.1f} N of {config.target_force_n:.1f} N",
         )
         return state, out + more
-    state, more = _prompt(replace(state, contact=False), _press_prompt(config))
+    state, more = _prompt(evolve(state, contact=False), _press_prompt(config))
     return state, out + more
 
 
@@ -759,12 +761,12 @@ def _force_pitting(state: MachineState, event: Event, config: MeasurementConfig)
     state = _track_release_crossing(before, state, event, config)
     if _in_band(f, config):
         if state.oob_since_s is not None:
-            state = replace(state, oob_since_s=None)
+            state = evolve(state, oob_since_s=None)
         state, more = _pitting_clock(state, config)
         return state, out + more
     if state.oob_since_s is None:
         state = _with_flag(
-            replace(
+            evolve(
                 state,
                 oob_since_s=event.t_s,
                 oob_accounted_to_s=max(event.t_s, state.oob_accounted_to_s or event.t_s),
@@ -810,10 +812,10 @@ def _track_release_crossing(
     """``state`` with ``below_release_since_s`` at the force's downward crossing of
     ``release_force_n`` (None again once the force is back at or above it)."""
     if event.force_n >= config.release_force_n:
-        return replace(state, below_release_since_s=None, below_release_first_s=None)
+        return evolve(state, below_release_since_s=None, below_release_first_s=None)
     if state.below_release_since_s is not None:
         return state
-    return replace(
+    return evolve(
         state,
         below_release_since_s=_release_crossing_s(before, event, config),
         below_release_first_s=event.t_s,
@@ -951,21 +953,21 @@ def _frame_recovery(state: MachineState, event: Event, config: MeasurementConfig
     t0_s = state.t_release_s
     if event.t_s < t0_s:
         # a frame taken before T_0 that arrived late: not part of the recovery
-        return replace(state, last_frame_t_s=event.t_s), []
+        return evolve(state, last_frame_t_s=event.t_s), []
     tracker = state.settling
     tracker = (
         SettlingTracker.first(event.t_s, event.s_k, config.settle_fraction)
         if tracker is None
         else tracker.add(event.t_s, event.s_k)
     )
-    state = replace(state, last_frame_t_s=event.t_s, settling=tracker)
+    state = evolve(state, last_frame_t_s=event.t_s, settling=tracker)
     if config.stop_when_settled and tracker.settled(
         t0_s,
         hold_s=config.settle_hold_s,
         bias_fraction=config.settle_bias_fraction,
         window_end_s=t0_s + config.recovery_max_s,
     ):
-        state = replace(state, t_settled_s=event.t_s)
+        state = evolve(state, t_settled_s=event.t_s)
         return _start_analysis(state, event.t_s, config, settled=True)
     return state, []
 
@@ -1093,7 +1095,7 @@ def transition(state: MachineState, event: Event, config: MeasurementConfig) -> 
         return handler(state, event, config)
     out: list[Output] = []
     if event.t_s > state.now_s:
-        state = replace(state, now_s=event.t_s)
+        state = evolve(state, now_s=event.t_s)
     # clock step: time-driven rules, repeated while they change the phase
     while True:
         before = state.phase

@@ -1,9 +1,9 @@
 """The scene simulator as a live camera, paced on the session clock.
 
 This module owns turning :meth:`stipi_daemon.sim.pipeline.Pipeline.frames` into a camera:
-frames are rendered in the capture thread (a few frames ahead), stamped
-``t0 + t_frame`` on the session clock (``t0`` = session time of scene time 0, by default
-the first open) and delivered no earlier than that time, so a clock running at speed 4
+each frame is rendered in the capture thread as soon as the previous one is delivered,
+stamped ``t0 + t_frame`` on the session clock (``t0`` = session time of scene time 0, by
+default the first open) and delivered no earlier than that time, so a clock running at speed 4
 replays a 120 s scene in 30 s of wall time. Frames the scene's effects drop (for example
 ``dropped_frames``) are missing from the stream and show as ``seq`` gaps. A Motion-JPEG
 scene (``camera.pixel_format: mjpg`` or the ``jpeg_compression`` effect) delivers each frame
@@ -31,7 +31,7 @@ from stipi_daemon.sim.scene import Scene, load_scene
 
 __all__ = ["SimulatorCamera"]
 
-#: Frames rendered ahead of delivery [-].
+#: Frames the hand-off holds for a lagging consumer [-].
 PREFETCH_FRAMES = 8
 
 

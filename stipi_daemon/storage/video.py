@@ -13,10 +13,12 @@ one video stream in one of two ways:
   to 32 bits); optionally only a rectangle of it (the gray bounding box of the ROI).
 
 FFV1 frames are encoded in a thread of their own (PyAV releases the GIL while FFmpeg
-encodes) at a lower CPU priority (:data:`ENCODER_NICE`), at most
-:data:`ENCODER_QUEUE_FRAMES` behind; a frame
-arriving when the encoder lags further is left out of the video and counted, so recording
-never slows the measurement. Every stored frame is tied to its ``frames`` row by a
+encodes; FFmpeg starts no threads of its own, :data:`ENCODER_THREADS`) at a lower CPU
+priority (:data:`ENCODER_NICE`), at most :data:`ENCODER_QUEUE_FRAMES` behind. A frame
+arriving when the encoder lags further is left out of the video and counted, so that
+recording never slows a live camera's measurement; a source that can wait (a video file,
+the simulator) waits for the encoder instead (``record(..., wait=True)``), so its video
+holds every frame. Every stored frame is tied to its ``frames`` row by a
 ``video_frames`` row (``seq, frame_index, pts_ms, t_capture_host_s``), made as the frame is
 muxed and handed to the session writer in batches, once the oldest waiting row is
 :data:`ROW_BATCH_FRACTION` of its commit interval old (a second table in every frame's
@@ -84,6 +86,9 @@ MUXER_OPTIONS: Final = {"flush_packets": "1"}
 #: than the default commit interval. When it is full the frame is left out of the video
 #: (counted): recording never slows the measurement down.
 ENCODER_QUEUE_FRAMES: Final = 8
+#: How often a caller waiting for the encoder (``record(wait=True)``) looks whether recording
+#: stopped meanwhile [s of wall time].
+ENCODER_WAIT_POLL_S: Final = 0.1
 #: ``video_frames`` rows are handed to the session writer once the oldest one waiting is this
 #: fraction of its ``commit_interval_s`` old [-] (and when the recorder closes): the rows are
 #: an index into the video, read after the run, so they need not be in every frame's commit.
@@ -98,6 +103,8 @@ _monotonic = time.monotonic
 #: nothing else running and 630 beside one busy process per CPU; at 5, 0 and 0 (2 beside
 #: three busy processes on the 2 CPUs). docs/performance.md, "Demo speed".
 ENCODER_NICE: Final = 5
+#: FFmpeg threads of the FFV1 encoder [-] (1: it runs in the recorder's encoder thread only).
+ENCODER_THREADS: Final = 1
 #: Matroska tag naming the pixel layout the daemon counted on (``gray`` or ``bgr``).
 TAG_IMAGE: Final = "STIPI_IMAGE"
 #: Matroska tag holding the stored rectangle ``x0,y0,x1,y1`` of the camera frame [px].
@@ -225,13 +232,23 @@ class VideoRecorder:
             "error": self._failed,
         }
 
-    def record(self, seq: int, t_capture_s: float, image: Image, packet: bytes | None) -> bool:
+    def record(
+        self,
+        seq: int,
+        t_capture_s: float,
+        image: Image,
+        packet: bytes | None,
+        *,
+        wait: bool = False,
+    ) -> bool:
         """Store one frame and its ``video_frames`` row.
 
         Returns False when the frame is not stored: recording has stopped, or the FFV1
         encoder thread lags :data:`ENCODER_QUEUE_FRAMES` behind and the frame is left out
-        (counted in :attr:`left_out`). FFV1 frames are encoded in that thread; a failure
-        there stops recording and shows at the session writer's next call.
+        (counted in :attr:`left_out`) - unless ``wait``, where the caller waits for the
+        encoder instead (a source that can wait: a file, the simulator). FFV1 frames are
+        encoded in that thread; a failure there stops recording and shows at the session
+        writer's next call.
 
         Parameters
         ----------
@@ -250,10 +267,8 @@ class VideoRecorder:
             if self._container is None:
                 self._open(t_capture_s, image, packet)
             if self._queue is not None:  # FFV1: encoded in the encoder thread
-                try:
-                    self._queue.put_nowait((seq, t_capture_s, image))
-                except queue.Full:  # the encoder cannot keep up: leave this frame out
-                    self.left_out += 1
+                if not self._enqueue(self._queue, (seq, t_capture_s, image), wait):
+                    self.left_out += 1  # the encoder cannot keep up: leave this frame out
                     return False
                 return self._failed is None
             self._store(seq, t_capture_s, image, packet)
@@ -264,6 +279,22 @@ class VideoRecorder:
             self._stop(f"{self.path}: video recording stopped: {exc}")
             return False
         return True
+
+    def _enqueue(
+        self,
+        q: queue.Queue[tuple[int, float, Image] | None],
+        item: tuple[int, float, Image],
+        wait: bool,
+    ) -> bool:
+        """Hand a frame to the encoder thread: at once or not at all, or, with ``wait``, as
+        soon as the encoder takes one (False: recording stopped meanwhile)."""
+        while True:
+            try:
+                q.put(item, block=wait, timeout=ENCODER_WAIT_POLL_S if wait else None)
+                return True
+            except queue.Full:
+                if not wait or self._failed is not None or self._closed:
+                    return False
 
     def _store(self, seq: int, t_capture_s: float, image: Image, packet: bytes | None) -> None:
         """Mux one frame and add its ``video_frames`` row (raises on failure)."""
@@ -436,6 +467,11 @@ def open_video_file(
             # the encoder's own time base (PyAV's default is 1/24 s): frames are rebased
             # onto it before encoding, which would round 60 fps pts to 42 ms steps
             stream.codec_context.time_base = PTS_TIME_BASE
+            # FFmpeg's own threads off: the recorder already encodes in a thread of its own
+            # (at its niceness, which threads FFmpeg starts would not share), and FFV1's
+            # slice threads cost CPU: 3.5 ms per 420x420 gray frame with them, 1.9 ms
+            # without (docs/performance.md, "Demo speed").
+            stream.codec_context.thread_count = ENCODER_THREADS
         if frame_rate is not None:
             stream.codec_context.framerate = frame_rate
         stream.width, stream.height = size

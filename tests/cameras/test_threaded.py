@@ -1,13 +1,16 @@
-"""FrameHandoff: the bounded thread-to-asyncio queue, driven by real threads."""
+"""FrameHandoff (the bounded thread-to-asyncio queue) and the capture thread's hook, driven by
+real threads."""
 
 from __future__ import annotations
 
 import asyncio
 import threading
 
+import numpy as np
 import pytest
 
-from stipi_daemon.cameras.threaded import FrameHandoff
+from stipi_daemon.cameras.threaded import FrameHandoff, RawFrame, ThreadedCamera
+from stipi_daemon.clock import ScaledClock
 
 
 async def test_drop_oldest_keeps_newest_and_counts() -> None:
@@ -62,3 +65,83 @@ async def test_consumer_wakes_on_put_from_thread() -> None:
 async def test_capacity_must_be_positive() -> None:
     with pytest.raises(ValueError, match="capacity"):
         FrameHandoff(asyncio.get_running_loop(), 0, drop_oldest=True)
+
+
+# ------------------------------------------------------------- the capture thread's hook
+
+
+class _Counter(ThreadedCamera[list[int]]):
+    """A source of ``n`` 4x4 frames, frame k captured at k / fps on the session clock."""
+
+    def __init__(self, clock: ScaledClock, n: int, *, live: bool, paced: bool) -> None:
+        super().__init__(clock, capacity=4, drop_oldest=live, paced=paced)
+        self.n, self.fps = n, 100.0
+
+    @property
+    def name(self) -> str:
+        return "counter"
+
+    @property
+    def nominal_fps(self) -> float:
+        return self.fps
+
+    def _open_source(self) -> list[int]:
+        return [0]
+
+    def _read(self, handle: list[int]) -> RawFrame | None:
+        k = handle[0]
+        if k >= self.n:
+            return None
+        handle[0] += 1
+        return RawFrame(k, k / self.fps, np.full((4, 4), k % 256, np.uint8))
+
+    def _close_source(self, handle: list[int]) -> None:
+        pass
+
+
+async def test_a_paced_frame_reaches_the_hook_at_its_capture_time() -> None:
+    clock = ScaledClock(speed=5.0)
+    cam = _Counter(clock, 20, live=False, paced=True)
+    seen: list[tuple[int, float, float]] = []  # seq, capture time, session time at the hook
+    cam.frame_hook = lambda raw: seen.append((raw.seq, raw.t_capture_s, clock.now()))
+    await cam.open()
+    got = [f async for f in cam.frames()]
+    await cam.close()
+    assert [f.seq for f in got] == [s for s, _, _ in seen] == list(range(20))
+    assert all(now >= t - 1e-9 for _, t, now in seen)  # never before it is captured
+    assert cam.waits_for_consumer
+
+
+async def test_a_live_source_leaves_out_a_frame_before_its_hook_never_after() -> None:
+    """A full hand-off of a hooked live source drops the newest frame before the hook: every
+    frame the hook measured and stored reaches the consumer, and the others are counted."""
+    clock = ScaledClock(speed=1.0)
+    cam = _Counter(clock, 200, live=True, paced=False)  # as fast as the thread reads
+    hooked: list[int] = []
+    cam.frame_hook = lambda raw: hooked.append(raw.seq)
+    await cam.open()
+    got: list[int] = []
+    async for f in cam.frames():
+        got.append(f.seq)
+        await asyncio.sleep(0.002)  # a slow consumer: the hand-off of 4 fills up
+    await cam.close()
+    assert got == hooked  # nothing the hook saw was dropped afterwards
+    assert len(got) < 200 and cam.stats.queue_dropped == 200 - len(got)
+    assert not cam.waits_for_consumer
+
+
+async def test_an_injected_stall_swallows_frames_before_the_hook() -> None:
+    clock = ScaledClock(speed=4.0)
+    cam = _Counter(clock, 60, live=False, paced=True)
+    hooked: list[int] = []
+    cam.frame_hook = lambda raw: hooked.append(raw.seq)
+    await cam.open()
+    got: list[int] = []
+    async for f in cam.frames():
+        got.append(f.seq)
+        if f.seq == 10:
+            cam.stall(0.2)  # 20 frame periods of session time
+    await cam.close()
+    assert got == hooked and 10 in got and len(got) < 60
+    missing = sorted(set(range(60)) - set(got))
+    assert missing and all(11 <= k <= 32 for k in missing)  # within the stall, and after

@@ -1,0 +1,162 @@
+"""The camera side: a frame's S_k, video frame and row made together in the capture thread.
+
+Real parts throughout: a session writer on disk, the passthrough video recorder (PyAV), the
+S_k kernel, and a thread of its own as the camera's capture thread.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from pathlib import Path
+from types import SimpleNamespace
+from typing import Any
+
+import cv2
+import numpy as np
+import pytest
+
+from stipi_daemon.app.acquisition import Acquisition
+from stipi_daemon.app.frame_measurer import FrameMeasurer, FrameResult, LateFrame
+from stipi_daemon.cameras import CameraFrame
+from stipi_daemon.cameras.threaded import RawFrame
+from stipi_daemon.clock import ScaledClock
+from stipi_daemon.errors import SessionError
+from stipi_daemon.measurement.representative_frames import RepresentativeFrames
+from stipi_daemon.measurement.state_machine import Phase
+from stipi_daemon.storage import SessionReader, SessionWriter, StorageOptions
+from stipi_daemon.storage.video import VideoRecorder
+
+OPTS = StorageOptions(min_free_bytes=0, background_commit=False)
+
+
+def _frame(k: int) -> tuple[np.ndarray, bytes]:
+    """A 48x64 frame whose S_k (p = 128) is 64 * k px, its JPEG, and the JPEG's decode."""
+    image = np.full((48, 64), 200, np.uint8)
+    image[:k] = 20
+    packet = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, 100])[1].tobytes()
+    gray = cv2.imdecode(np.frombuffer(packet, np.uint8), cv2.IMREAD_GRAYSCALE)
+    return np.asarray(gray, np.uint8), packet
+
+
+def _measurer(tmp_path: Path, clock: ScaledClock) -> tuple[FrameMeasurer, SessionWriter]:
+    writer = SessionWriter.create(tmp_path, {}, {}, session_id="s", video=True, options=OPTS)
+    assert writer.video_path is not None
+    pipeline = SimpleNamespace(
+        state=SimpleNamespace(phase=Phase.PITTING, t_pit_start_s=0.0, t_release_s=None)
+    )
+    keeper = RepresentativeFrames(pitting_duration_s=2.0)
+    measurer = FrameMeasurer(
+        clock,
+        128,
+        None,
+        0.5,
+        keeper,
+        pipeline,
+        skip_late_s=5.0,
+        writer=writer,  # type: ignore[arg-type]
+    )
+    measurer.recorder = VideoRecorder(writer.video_path, writer, "passthrough")
+    return measurer, writer
+
+
+def _in_thread(measurer: FrameMeasurer, raws: list[RawFrame], period_s: float = 0.0) -> list[Any]:
+    """``on_capture`` of each frame, in a thread of its own (as the camera's), one every
+    ``period_s`` of wall time."""
+    out: list[Any] = []
+
+    def capture() -> None:
+        for r in raws:
+            out.append(measurer.on_capture(r))
+            time.sleep(period_s)
+
+    t = threading.Thread(target=capture)
+    t.start()
+    t.join(10.0)
+    return out
+
+
+def test_the_frame_row_and_video_frame_are_made_where_the_frame_arrives(tmp_path: Path) -> None:
+    clock = ScaledClock(1.0)
+    measurer, writer = _measurer(tmp_path, clock)
+    frames = [_frame(k) for k in range(1, 6)]
+    raws = [RawFrame(10 + k, clock.now(), gray, pk) for k, (gray, pk) in enumerate(frames)]
+    # a 50 fps camera: each frame comes more than COMMIT_SPACING_WALL_S after the previous
+    captured = _in_thread(measurer, raws, period_s=0.02)
+    # on disk before the loop has seen anything: committed by the capture thread
+    with SessionReader(writer.directory) as r:
+        rows = r.frames()
+    assert rows["seq"].tolist() == [10, 11, 12, 13, 14]
+    assert rows["s_k"].tolist() == [int(np.count_nonzero(g <= 128)) for g, _ in frames]
+    results = [
+        measurer(CameraFrame(raw.seq, raw.t_capture_s, raw.image, 0, raw.packet, c))
+        for raw, c in zip(raws, captured, strict=True)
+    ]
+    assert all(isinstance(x, FrameResult) and x.error is None for x in results)
+    assert [x.s_k for x in results] == rows["s_k"].tolist()
+    assert [x.t_processed_s for x in results] == rows["t_host_s"].tolist()
+    assert measurer.recorder is not None
+    measurer.recorder.close()
+    writer.finish("complete")
+    writer.close()
+    with SessionReader(tmp_path / "s") as r:
+        assert r.video_frames()["seq"].tolist() == [10, 11, 12, 13, 14]
+        assert r.integrity_check().ok
+
+
+def test_after_the_measurement_ends_frames_are_no_longer_stored(tmp_path: Path) -> None:
+    clock = ScaledClock(1.0)
+    measurer, writer = _measurer(tmp_path, clock)
+    gray, pk = _frame(3)
+    _in_thread(measurer, [RawFrame(0, clock.now(), gray, pk)])
+    measurer.stop_storing()
+    (late,) = _in_thread(measurer, [RawFrame(1, clock.now(), gray, pk)])
+    result = measurer(CameraFrame(1, late.t_done_s, gray, 0, pk, late))
+    assert isinstance(result, FrameResult) and result.s_k == 3 * 64  # measured all the same
+    assert measurer.recorder is not None
+    measurer.recorder.close()
+    writer.commit()
+    with SessionReader(writer.directory) as r:
+        assert r.frames()["seq"].tolist() == [0]
+        assert r.video_frames()["seq"].tolist() == [0]
+    writer.close()
+
+
+def test_a_late_frame_is_neither_measured_nor_stored(tmp_path: Path) -> None:
+    clock = ScaledClock(1.0)
+    measurer, writer = _measurer(tmp_path, clock)
+    gray, pk = _frame(2)
+    (c,) = _in_thread(measurer, [RawFrame(4, clock.now() - 6.0, gray, pk)])  # 6 s > 5 s
+    late = measurer(CameraFrame(4, clock.now() - 6.0, gray, 1, pk, c))
+    assert isinstance(late, LateFrame) and late.lag_s > 5.0 and late.dropped_before == 1
+    writer.commit()
+    with SessionReader(writer.directory) as r:
+        assert r.frames().size == 0 and r.video_frames().size == 0
+    assert measurer.recorder is not None
+    measurer.recorder.close()
+    writer.close()
+
+
+def test_a_storage_failure_travels_with_the_frame_and_stops_the_run(tmp_path: Path) -> None:
+    """A full disk seen in the capture thread (the writer's or the video's error) reaches the
+    loop with the frame's result; the loop raises it, and nothing more is stored."""
+    clock = ScaledClock(1.0)
+    measurer, writer = _measurer(tmp_path, clock)
+    gray, pk = _frame(1)
+    _in_thread(measurer, [RawFrame(0, clock.now(), gray, pk)])
+    writer.fail(SessionError("session.sqlite: database or disk is full"))
+    failed = _in_thread(measurer, [RawFrame(k, clock.now(), gray, pk) for k in (1, 2)])
+    assert all(c.error is not None for c in failed)
+    result = measurer(CameraFrame(1, clock.now(), gray, 0, pk, failed[0]))
+    assert isinstance(result, FrameResult) and result.error is not None
+    devices = SimpleNamespace(clock=clock, writer=writer, camera=None, probe=None)
+    config = SimpleNamespace(run=SimpleNamespace(speed=1.0, max_lag_s=5.0))
+    acq = Acquisition(config, devices, None, None, measurer)  # type: ignore[arg-type]
+    with pytest.raises(SessionError, match="disk is full"):
+        acq._on_frame(result)
+    assert measurer.recorder is not None
+    assert measurer.recorder.frames == 1  # the video stopped with the rows
+    measurer.recorder.close()
+    writer.close()
+    with SessionReader(tmp_path / "s") as r:
+        assert r.frames()["seq"].tolist() == [0]
