@@ -97,7 +97,7 @@ def worker(config_path: Path, cpus: set[int], result_path: Path, nice: int) -> N
 
     clock = ScaledClock(1.0)
     recording_s = time_recording()
-    stalls, stacks = time_loop_callbacks()
+    stalls = time_loop_callbacks()
     gc_times = time_gc_collections()
     doc = json.loads(config_path.read_text())
     scene_path = doc["probe"]["transport"].pop("scene")
@@ -213,7 +213,6 @@ def worker(config_path: Path, cpus: set[int], result_path: Path, nice: int) -> N
         "video_mode": config.storage.video,
         "cpus": len(cpus),
         "loop_stalls": summarize_stalls(stalls, t_a, t_b),
-        "stall_stacks": sorted(stacks.items(), key=lambda kv: -kv[1])[:8],
         "gc": summarize_gc(gc_times, t_a, t_b),
     }
     result_path.write_text(json.dumps(result))
@@ -354,47 +353,29 @@ def summarize_gc(times: list[tuple[float, int, float]], t_a: float, t_b: float) 
     return out
 
 
-def time_loop_callbacks() -> tuple[list[tuple[float, float, str]], dict[str, int]]:
+def time_loop_callbacks() -> list[tuple[float, float, str]]:
     """Time every event-loop callback from now on: (end, duration [s], name) of those
-    longer than 0.5 ms (what holds the loop, and with it the frames, that long); and, from
-    a watchdog thread sampling every 5 ms, the loop thread's stacks while a callback has run
-    for more than 10 ms (where the long ones spend their time)."""
+    longer than 0.5 ms (what holds the loop that long). (A watchdog thread that sampled the
+    loop thread's stack with ``sys._current_frames()`` during long callbacks was removed:
+    CPython 3.11 crashed in ``_PyFrame_MakeAndSetFrameObject`` under it, once in 14 runs.)"""
     import asyncio.events
-    import threading
     import time
-    import traceback
-    from collections import Counter
 
     stalls: list[tuple[float, float, str]] = []
-    stacks: Counter[str] = Counter()
-    running: list[float | None] = [None]
-    loop_thread = threading.get_ident()
     run = asyncio.events.Handle._run
 
     def timed(handle: asyncio.events.Handle) -> None:
-        t0 = running[0] = time.monotonic()
+        t0 = time.monotonic()
         run(handle)
         t1 = time.monotonic()
-        running[0] = None
         if t1 - t0 > 5e-4:
             cb = getattr(handle, "_callback", None)
             task = getattr(cb, "__self__", None)
             name = task.get_name() if isinstance(task, asyncio.Task) else repr(cb)[:60]
             stalls.append((t1, t1 - t0, name))
 
-    def watchdog() -> None:
-        while True:
-            time.sleep(0.005)
-            t0 = running[0]
-            if t0 is not None and time.monotonic() - t0 > 0.01:
-                frame = sys._current_frames().get(loop_thread)
-                if frame is not None:
-                    where = traceback.extract_stack(frame)[-6:]
-                    stacks[" < ".join(f"{f.name}:{f.lineno}" for f in reversed(where))] += 1
-
     asyncio.events.Handle._run = timed  # type: ignore[method-assign,assignment]
-    threading.Thread(target=watchdog, daemon=True).start()
-    return stalls, stacks
+    return stalls
 
 
 def summarize_stalls(stalls: list[tuple[float, float, str]], t_a: float, t_b: float) -> Any:
@@ -723,8 +704,7 @@ NOTES = (
     "not pass the event loop, which gets the frame's S_k for the measurement. The live "
     "parameters are computed on a worker thread from a snapshot of the series; while "
     "measuring, Python's thread switch interval is 0.5 ms (`SWITCH_INTERVAL_S`). The "
-    "benchmark counts every loop callback over 0.5 ms (`time_loop_callbacks`) and samples "
-    "the loop thread's stack while one runs over 10 ms (printed with the JSON of each run).",
+    "benchmark counts every loop callback over 0.5 ms (`time_loop_callbacks`).",
 )
 
 

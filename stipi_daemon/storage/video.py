@@ -39,11 +39,9 @@ It computes nothing about the images.
 
 from __future__ import annotations
 
-import contextlib
 import logging
 import math
 import os
-import queue
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -56,6 +54,7 @@ import numpy as np
 import numpy.typing as npt
 
 from stipi_daemon.errors import SessionError
+from stipi_daemon.storage.ordered_workers import OrderedWorkers
 
 if TYPE_CHECKING:
     from stipi_daemon.storage.writer import SessionWriter
@@ -86,9 +85,12 @@ MUXER_OPTIONS: Final = {"flush_packets": "1"}
 #: than the default commit interval. When it is full the frame is left out of the video
 #: (counted): recording never slows the measurement down.
 ENCODER_QUEUE_FRAMES: Final = 8
-#: How often a caller waiting for the encoder (``record(wait=True)``) looks whether recording
-#: stopped meanwhile [s of wall time].
-ENCODER_WAIT_POLL_S: Final = 0.1
+#: Longest a caller that can wait (``record(wait=True)``) waits for the encoders to take a
+#: frame [s of wall time] before leaving it out: shorter than a camera stream's shortest stall
+#: timeout (``cameras.stream.STALL_MIN_WALL_S``, 0.125 s), so that waiting for the encoders
+#: never reads as a stalled camera; a machine that cannot keep up falls behind (the
+#: acquisition's lag) and, past this, leaves frames out of the video, counted.
+ENCODER_WAIT_MAX_S: Final = 0.1
 #: ``video_frames`` rows are handed to the session writer once the oldest one waiting is this
 #: fraction of its ``commit_interval_s`` old [-] (and when the recorder closes): the rows are
 #: an index into the video, read after the run, so they need not be in every frame's commit.
@@ -103,8 +105,13 @@ _monotonic = time.monotonic
 #: nothing else running and 630 beside one busy process per CPU; at 5, 0 and 0 (2 beside
 #: three busy processes on the 2 CPUs). docs/performance.md, "Demo speed".
 ENCODER_NICE: Final = 5
-#: FFmpeg threads of the FFV1 encoder [-] (1: it runs in the recorder's encoder thread only).
+#: FFmpeg threads of an FFV1 encoder [-] (1: it runs in the recorder's encoder thread only).
 ENCODER_THREADS: Final = 1
+#: FFV1 encoders working at once, each in a thread of its own, on alternate frames (FFmpeg
+#: threads FFV1 only by slices, at 1.8x the CPU; whole frames in parallel cost nothing more).
+ENCODER_WORKERS: Final = max(1, min(2, os.cpu_count() or 1))
+#: The FFV1 encoder's options: level 3 (a configuration record in the file), a CRC per slice.
+FFV1_OPTIONS: Final = {"level": "3", "slicecrc": "1"}
 #: Matroska tag naming the pixel layout the daemon counted on (``gray`` or ``bgr``).
 TAG_IMAGE: Final = "STIPI_IMAGE"
 #: Matroska tag holding the stored rectangle ``x0,y0,x1,y1`` of the camera frame [px].
@@ -112,6 +119,17 @@ TAG_CROP: Final = "STIPI_CROP"
 
 Image = npt.NDArray[np.uint8]
 Crop = tuple[int, int, int, int]
+
+
+@dataclass(frozen=True, slots=True)
+class _Lossless:
+    """A frame on its way to an FFV1 encoder: its ``seq``, capture time [s], presentation
+    time [ms] and image (None: the previous frame's image again)."""
+
+    seq: int
+    t_capture_s: float
+    pts: int
+    image: Image | None
 
 
 @dataclass(frozen=True)
@@ -203,8 +221,10 @@ class VideoRecorder:
         self._last_pts = -1
         self._failed: str | None = None
         self._closed = False
-        self._queue: queue.Queue[tuple[int, float, Image] | None] | None = None
-        self._thread: threading.Thread | None = None
+        self._encoders: OrderedWorkers[_Lossless, list[Any]] | None = None
+        self._extra_contexts: list[Any] = []  # encoders beside the stream's own
+        self._last_image: Image | None = None  # the image last handed to the encoders
+        self._last_payloads: list[bytes] = []  # and its packets' payload, once muxed
         self._rows: list[tuple[int, int, int, float]] = []  # video_frames rows not handed yet
         self._rows_since = 0.0  # time.monotonic() of the oldest of them [s]
         self._row_batch_s = ROW_BATCH_FRACTION * writer.options.commit_interval_s
@@ -246,9 +266,9 @@ class VideoRecorder:
         Returns False when the frame is not stored: recording has stopped, or the FFV1
         encoder thread lags :data:`ENCODER_QUEUE_FRAMES` behind and the frame is left out
         (counted in :attr:`left_out`) - unless ``wait``, where the caller waits for the
-        encoder instead (a source that can wait: a file, the simulator). FFV1 frames are
-        encoded in that thread; a failure there stops recording and shows at the session
-        writer's next call.
+        encoders instead (a source that can wait: a file, the simulator), up to
+        :data:`ENCODER_WAIT_MAX_S`. FFV1 frames are encoded in those threads; a failure
+        there stops recording and shows at the session writer's next call.
 
         Parameters
         ----------
@@ -266,11 +286,8 @@ class VideoRecorder:
         try:
             if self._container is None:
                 self._open(t_capture_s, image, packet)
-            if self._queue is not None:  # FFV1: encoded in the encoder thread
-                if not self._enqueue(self._queue, (seq, t_capture_s, image), wait):
-                    self.left_out += 1  # the encoder cannot keep up: leave this frame out
-                    return False
-                return self._failed is None
+            if self._encoders is not None:  # FFV1: encoded in the encoder threads
+                return self._submit(seq, t_capture_s, image, wait)
             self._store(seq, t_capture_s, image, packet)
         except SessionError as exc:  # the database failed: stop the video with the rows
             self._stop(str(exc), exc)
@@ -280,27 +297,20 @@ class VideoRecorder:
             return False
         return True
 
-    def _enqueue(
-        self,
-        q: queue.Queue[tuple[int, float, Image] | None],
-        item: tuple[int, float, Image],
-        wait: bool,
-    ) -> bool:
-        """Hand a frame to the encoder thread: at once or not at all, or, with ``wait``, as
-        soon as the encoder takes one (False: recording stopped meanwhile)."""
-        while True:
-            try:
-                q.put(item, block=wait, timeout=ENCODER_WAIT_POLL_S if wait else None)
-                return True
-            except queue.Full:
-                if not wait or self._failed is not None or self._closed:
-                    return False
+    def _next_pts(self, t_capture_s: float) -> int:
+        """The presentation time of the next frame [ms]: its capture time since the first
+        frame's, and after the previous frame's."""
+        return max(self._last_pts + 1, round((t_capture_s - self._t0_s) * 1000.0))
 
     def _store(self, seq: int, t_capture_s: float, image: Image, packet: bytes | None) -> None:
-        """Mux one frame and add its ``video_frames`` row (raises on failure)."""
-        pts = max(self._last_pts + 1, round((t_capture_s - self._t0_s) * 1000.0))
-        self._mux(pts, image, packet)
+        """Mux one JPEG packet and add its ``video_frames`` row (raises on failure)."""
+        pts = self._next_pts(t_capture_s)
+        write_video_frame(self._container, self._stream, pts, image, packet)
         self._last_pts = pts
+        self._add_row(seq, pts, t_capture_s)
+
+    def _add_row(self, seq: int, pts: int, t_capture_s: float) -> None:
+        """The stored frame's ``video_frames`` row, handed to the writer in batches."""
         rows = self._rows
         rows.append((seq, self.frames, pts, t_capture_s))
         self.frames += 1
@@ -317,22 +327,79 @@ class VideoRecorder:
         if rows:
             self._writer.add_video_frames(rows)
 
-    def _encode_loop(self, q: queue.Queue[tuple[int, float, Image] | None]) -> None:
-        """The FFV1 encoder thread (PyAV releases the GIL while FFmpeg encodes), at a lower CPU
-        priority (Linux: the process's niceness + :data:`ENCODER_NICE` for this thread), so
-        the measurement's threads come first."""
-        with contextlib.suppress(OSError, AttributeError):
-            base = os.getpriority(os.PRIO_PROCESS, 0)
-            os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), min(19, base + ENCODER_NICE))
-        while (item := q.get()) is not None:
-            if self._failed is not None:
-                continue  # drain, so that record() never blocks on a dead encoder
-            try:
-                self._store(*item, None)
-            except SessionError as exc:
-                self._stop(str(exc), exc, join=False)
-            except (OSError, ValueError) as exc:
-                self._stop(f"{self.path}: video recording stopped: {exc}", join=False)
+    def _submit(self, seq: int, t_capture_s: float, image: Image, wait: bool) -> bool:
+        """Hand a frame to the FFV1 encoders (see :meth:`record`). A frame that is the very
+        read-only image of the frame before it (a clean simulated scene repeats its picture
+        while S_k stays on the same pixel count) is not encoded again: its packet is the
+        previous frame's payload (FFV1 codes every frame on its own, so encoding it again
+        would give the same bytes)."""
+        assert self._encoders is not None
+        repeat = image is self._last_image and not image.flags.writeable
+        pts = self._next_pts(t_capture_s)
+        item = _Lossless(seq, t_capture_s, pts, None if repeat else image)
+        if not self._encoders.submit(item, wait_s=ENCODER_WAIT_MAX_S if wait else 0.0):
+            self.left_out += 1  # the encoders cannot keep up: leave this frame out
+            self._last_image = None
+            return False
+        self._last_pts = pts
+        self._last_image = image
+        return self._failed is None
+
+    def _encoder(self, context: Any) -> Callable[[_Lossless], list[Any]]:
+        """Work of one encoder thread: a frame (cropped, as gray where asked) encoded by
+        ``context`` (PyAV releases the GIL while FFmpeg encodes); nothing for a repeat."""
+
+        def encode(item: _Lossless) -> list[Any]:
+            if item.image is None:
+                return []
+            return encode_video_frame(context, item.pts, self._stored_image(item.image))
+
+        return encode
+
+    def _deliver(self, item: _Lossless, packets: list[Any]) -> None:
+        """Mux an encoded frame's packets (in frame order; a repeat: the previous frame's
+        payload at this frame's time) and add its row."""
+        if item.image is None:
+            packets = [_packet(payload, item.pts) for payload in self._last_payloads]
+        else:
+            self._last_payloads = [bytes(p) for p in packets]
+        for pkt in packets:
+            pkt.stream = self._stream
+            self._container.mux_one(pkt)
+        self._add_row(item.seq, item.pts, item.t_capture_s)
+
+    def _encoder_failed(self, exc: BaseException) -> None:
+        """An encoder or the muxing failed (an FFmpeg error is an OSError or ValueError; a
+        SessionError is the writer's): recording stops, with the rows."""
+        if isinstance(exc, SessionError):
+            self._stop(str(exc), exc, join=False)
+            return
+        what = str(exc) if isinstance(exc, (OSError, ValueError)) else repr(exc)
+        self._stop(f"{self.path}: video recording stopped: {what}", join=False)
+
+    def _start_encoders(self, layout: str, size: tuple[int, int]) -> None:
+        """The FFV1 encoder threads: the stream's own encoder and up to
+        :data:`ENCODER_WORKERS` - 1 more with the same settings, each kept only if its
+        configuration record (the file's extradata) is the stream's byte for byte, so that
+        its frames decode as part of the one stream."""
+        self._container.start_encoding()
+        own = self._stream.codec_context
+        contexts = [own]
+        for _ in range(ENCODER_WORKERS - 1):
+            ctx = ffv1_encoder(layout, size, self._frame_rate)
+            if bytes(ctx.extradata or b"") != bytes(own.extradata or b""):
+                _log.info("%s: a second FFV1 encoder differs; encoding with one", self.path)
+                break
+            contexts.append(ctx)
+        self._extra_contexts = contexts[1:]
+        self._encoders = OrderedWorkers(
+            [self._encoder(c) for c in contexts],
+            self._deliver,
+            self._encoder_failed,
+            capacity=ENCODER_QUEUE_FRAMES,
+            name=f"video encoder {self.path}",
+            nice=ENCODER_NICE,
+        )
 
     def _open(self, t_capture_s: float, image: Image, packet: bytes | None) -> None:
         passthrough = self.mode == "passthrough" and packet is not None
@@ -356,12 +423,7 @@ class VideoRecorder:
         self._codec = "mjpeg" if passthrough else "ffv1"
         self._t0_s = t_capture_s
         if not passthrough:
-            q: queue.Queue[tuple[int, float, Image] | None] = queue.Queue(ENCODER_QUEUE_FRAMES)
-            self._queue = q
-            self._thread = threading.Thread(
-                target=self._encode_loop, args=(q,), name=f"video encoder {self.path}", daemon=True
-            )
-            self._thread.start()
+            self._start_encoders(layout, (w, h))
         self._writer.add_event(
             t_capture_s,
             "video_started",
@@ -376,13 +438,14 @@ class VideoRecorder:
             },
         )
 
-    def _mux(self, pts: int, image: Image, packet: bytes | None) -> None:
-        if self._codec != "mjpeg" and self._crop is not None:
-            x0, y0, x1, y1 = self._crop  # crop, then convert the crop (per pixel: the same)
-            image = image[y0:y1, x0:x1]
-            if self._to_gray is not None:
-                image = self._to_gray(image)
-        write_video_frame(self._container, self._stream, pts, image, packet)
+    def _stored_image(self, image: Image) -> Image:
+        """What a lossless frame stores of ``image``: the crop (converted to gray where
+        asked: crop, then convert, per pixel the same) or all of it."""
+        if self._crop is None:
+            return image
+        x0, y0, x1, y1 = self._crop
+        image = image[y0:y1, x0:x1]
+        return self._to_gray(image) if self._to_gray is not None else image
 
     def _stop(self, reason: str, error: SessionError | None = None, *, join: bool = True) -> None:
         self._failed = reason
@@ -391,21 +454,19 @@ class VideoRecorder:
         if join:
             self._close_container()
 
-    def _join_encoder(self) -> None:
-        q, thread, self._queue, self._thread = self._queue, self._thread, None, None
-        if q is not None and thread is not None:
-            q.put(None)
-            thread.join()
-
     def _close_container(self) -> None:
-        self._join_encoder()
+        encoders, self._encoders = self._encoders, None
+        if encoders is not None and threading.current_thread() not in encoders.threads:
+            encoders.close()  # every frame handed over is encoded and muxed
         container, self._container = self._container, None
         if container is None:
             return
         try:
             if self._codec == "ffv1" and self._failed is None:
-                for out in self._stream.encode(None):
-                    container.mux_one(out)
+                for ctx in [self._stream.codec_context, *self._extra_contexts]:
+                    for out in ctx.encode(None):  # FFV1 holds no frames back; to be sure
+                        out.stream = self._stream
+                        container.mux_one(out)
             container.close()
         except (OSError, ValueError) as exc:
             if self._failed is None:
@@ -461,17 +522,8 @@ def open_video_file(
             stream = container.add_stream("mjpeg")
             stream.pix_fmt = "yuvj420p"
         else:
-            stream = container.add_stream("ffv1", options={"level": "3", "slicecrc": "1"})
-            stream.pix_fmt = "gray" if layout == "gray" else "bgr0"
-            stream.codec_context.gop_size = 1
-            # the encoder's own time base (PyAV's default is 1/24 s): frames are rebased
-            # onto it before encoding, which would round 60 fps pts to 42 ms steps
-            stream.codec_context.time_base = PTS_TIME_BASE
-            # FFmpeg's own threads off: the recorder already encodes in a thread of its own
-            # (at its niceness, which threads FFmpeg starts would not share), and FFV1's
-            # slice threads cost CPU: 3.5 ms per 420x420 gray frame with them, 1.9 ms
-            # without (docs/performance.md, "Demo speed").
-            stream.codec_context.thread_count = ENCODER_THREADS
+            stream = container.add_stream("ffv1", options=dict(FFV1_OPTIONS))
+            _set_ffv1(stream.codec_context, layout, size, frame_rate)
         if frame_rate is not None:
             stream.codec_context.framerate = frame_rate
         stream.width, stream.height = size
@@ -485,6 +537,58 @@ def open_video_file(
     return container, stream
 
 
+def _set_ffv1(ctx: Any, layout: str, size: tuple[int, int], frame_rate: Fraction | None) -> None:
+    """The session video's FFV1 encoder settings on codec context ``ctx`` (not yet open)."""
+    ctx.pix_fmt = "gray" if layout == "gray" else "bgr0"
+    ctx.width, ctx.height = size
+    ctx.gop_size = 1  # every frame intra: any frame decodes alone, a killed file plays
+    # the encoder's own time base (PyAV's default is 1/24 s): frames are rebased onto it
+    # before encoding, which would round 60 fps pts to 42 ms steps
+    ctx.time_base = PTS_TIME_BASE
+    # FFmpeg's own threads off: the recorder encodes in threads of its own (at their
+    # niceness, which threads FFmpeg starts would not share), and FFV1's slice threads cost
+    # CPU: 3.5 ms per 420x420 gray frame with them, 1.9 ms without (docs/performance.md).
+    ctx.thread_count = ENCODER_THREADS
+    if frame_rate is not None:
+        ctx.framerate = frame_rate
+
+
+def ffv1_encoder(layout: str, size: tuple[int, int], frame_rate: Fraction | None) -> Any:
+    """An open FFV1 encoder with the settings of a session video's stream
+    (:func:`open_video_file`), beside the stream's own: its frames belong to that stream
+    when its configuration record (``extradata``) is the stream encoder's."""
+    import av
+
+    ctx = av.CodecContext.create("ffv1", "w")
+    _set_ffv1(ctx, layout, size, frame_rate)
+    ctx.options = dict(FFV1_OPTIONS)
+    ctx.open()
+    return ctx
+
+
+def encode_video_frame(ctx: Any, pts: int, image: Image) -> list[Any]:
+    """The packets of ``image`` (gray ``(H, W)`` or BGR ``(H, W, 3)``) encoded at ``pts``
+    [ms] by the FFV1 encoder ``ctx``; FFmpeg errors propagate (``OSError``/``ValueError``)."""
+    import av
+
+    fmt = "gray" if image.ndim == 2 else "bgr24"
+    frame = av.VideoFrame.from_ndarray(np.ascontiguousarray(image), format=fmt)
+    frame.pts = pts
+    frame.time_base = PTS_TIME_BASE
+    return list(ctx.encode(frame))
+
+
+def _packet(payload: bytes, pts: int) -> Any:
+    """A keyframe packet of ``payload`` at ``pts`` [ms] (:data:`PTS_TIME_BASE`)."""
+    import av
+
+    pkt = av.Packet(payload)
+    pkt.time_base = PTS_TIME_BASE
+    pkt.pts = pkt.dts = pts
+    pkt.is_keyframe = True
+    return pkt
+
+
 def write_video_frame(
     container: Any, stream: Any, pts: int, image: Image, packet: bytes | None
 ) -> None:
@@ -494,23 +598,16 @@ def write_video_frame(
     decoding it; an ``ffv1`` stream encodes ``image`` (gray ``(H, W)`` or BGR ``(H, W, 3)``).
     FFmpeg errors propagate (``OSError`` or ``ValueError``).
     """
-    import av
 
     if stream.codec_context.name == "mjpeg":
         if packet is None:
             raise ValueError("a frame without its JPEG packet in an MJPG recording")
-        pkt = av.Packet(packet)
+        pkt = _packet(packet, pts)
         pkt.stream = stream
-        pkt.time_base = PTS_TIME_BASE
-        pkt.pts = pkt.dts = pts
-        pkt.is_keyframe = True
         container.mux_one(pkt)
         return
-    fmt = "gray" if image.ndim == 2 else "bgr24"
-    frame = av.VideoFrame.from_ndarray(np.ascontiguousarray(image), format=fmt)
-    frame.pts = pts
-    frame.time_base = PTS_TIME_BASE
-    for out in stream.encode(frame):
+    for out in encode_video_frame(stream.codec_context, pts, image):
+        out.stream = stream
         container.mux_one(out)
 
 

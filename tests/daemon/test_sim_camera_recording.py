@@ -92,3 +92,9 @@ def test_raw_scene_is_recorded_losslessly(
     video = json.loads((session / "summary.json").read_text())["run"]["video"]
     assert (video["mode"], video["codec"]) == ("lossless", "ffv1") and video["frames"] > 0
     assert "ffv1 160x120" in _show(session, capsys)
+    # The simulator waits for the video's encoders: every measured frame is in the video.
+    with SessionReader(session) as reader:
+        assert reader.integrity_check().ok
+        seqs = reader.frames()["seq"].tolist()
+        assert reader.video_frames()["seq"].tolist() == seqs and len(seqs) > 100
+    assert video["left_out"] == 0 and video["frames"] == len(seqs)

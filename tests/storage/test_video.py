@@ -7,6 +7,8 @@ import signal
 import subprocess
 import sys
 import textwrap
+import threading
+import time
 from pathlib import Path
 
 import cv2
@@ -16,7 +18,9 @@ import pytest
 from stipi_daemon.errors import SessionError
 from stipi_daemon.storage import SessionReader, SessionWriter, StorageOptions
 from stipi_daemon.storage.video import (
+    ENCODER_NICE,
     ENCODER_QUEUE_FRAMES,
+    ENCODER_WORKERS,
     VideoRecorder,
     iter_video_images,
     probe_video,
@@ -382,9 +386,10 @@ def _threads() -> set[int]:
     not Path("/proc/self/task").is_dir() or (os.cpu_count() or 1) < 2,
     reason="counts threads in /proc on a machine where FFmpeg would start some",
 )
-def test_ffv1_encodes_in_the_recorders_thread_only(tmp_path: Path) -> None:
+def test_ffv1_encodes_in_the_recorders_threads_only(tmp_path: Path) -> None:
     """FFmpeg's own slice threads would cost CPU (3.5 against 1.9 ms per 420x420 frame) and
-    run at the daemon's priority rather than the encoder thread's: none is started."""
+    run at the daemon's priority rather than the encoder threads': none is started, only the
+    recorder's encoder threads (whole frames in parallel), each at the lower priority."""
     images = _noise(6, (420, 420))
     with _writer(tmp_path) as w:
         assert w.video_path is not None
@@ -393,7 +398,78 @@ def test_ffv1_encodes_in_the_recorders_thread_only(tmp_path: Path) -> None:
         for k, im in enumerate(images):
             assert rec.record(k, k / 60, im, None, wait=True)
         started = _threads() - before
+        nice = {os.getpriority(os.PRIO_PROCESS, tid) for tid in started}
         rec.close()
         w.finish("complete")
-    assert len(started) == 1  # the recorder's encoder thread, nothing of FFmpeg's
+    assert len(started) == ENCODER_WORKERS == 2  # the recorder's encoders, nothing of FFmpeg's
+    assert nice == {min(19, os.getpriority(os.PRIO_PROCESS, 0) + ENCODER_NICE)}
     assert probe_video(tmp_path / "s" / "video.mkv").frames == len(images)
+
+
+def test_a_repeated_read_only_frame_is_stored_with_the_bytes_encoding_would_give(
+    tmp_path: Path,
+) -> None:
+    """A clean simulated scene hands the same read-only picture while S_k stays on one
+    pixel count: it is encoded once, and each repeat stores that payload again. Encoding it
+    again gives the same bytes (shown here by a writable frame, which is always encoded), so
+    the file is what encoding every frame would have written."""
+    a, b, c = _images(3, (40, 52))
+    a.flags.writeable = False
+    b.flags.writeable = False
+    sequence = [a, a, a, b, b, c, c.copy()]  # c: writable, encoded each time
+    with _writer(tmp_path) as w:
+        assert w.video_path is not None
+        rec = VideoRecorder(w.video_path, w, "lossless")
+        for k, im in enumerate(sequence):
+            assert rec.record(k, k / 60, im, None, wait=True)
+        rec.close()
+        w.finish("complete")
+    path = tmp_path / "s" / "video.mkv"
+    back = list(iter_video_images(path))
+    assert len(back) == len(sequence)
+    assert all(np.array_equal(x, y) for x, y in zip(back, sequence, strict=True))
+    import av
+
+    with av.open(str(path)) as container:
+        payloads = [bytes(p) for p in container.demux(video=0) if p.size]
+    assert payloads[0] == payloads[1] == payloads[2] and payloads[3] == payloads[4]
+    assert payloads[5] == payloads[6]  # encoded twice: the same bytes
+    assert len(set(payloads)) == 3
+    with SessionReader(tmp_path / "s") as r:
+        assert r.video_frames()["seq"].tolist() == list(range(7))
+        assert r.integrity_check().ok
+
+
+def test_waiting_for_the_encoders_is_bounded_below_a_camera_stall(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Encoders that take no frame for longer than ENCODER_WAIT_MAX_S (starved of CPU) make
+    a waiting caller leave the frame out, counted, rather than hold its camera long enough
+    to read as stalled."""
+    from stipi_daemon.cameras.stream import STALL_MIN_WALL_S
+    from stipi_daemon.storage import video as video_module
+
+    assert video_module.ENCODER_WAIT_MAX_S < STALL_MIN_WALL_S
+    encode = video_module.encode_video_frame
+    release = threading.Event()
+
+    def starved(ctx: object, pts: int, image: np.ndarray) -> list[object]:
+        release.wait(10.0)
+        return encode(ctx, pts, image)
+
+    monkeypatch.setattr(video_module, "encode_video_frame", starved)
+    images = _images(3 * ENCODER_QUEUE_FRAMES, (24, 32))
+    with _writer(tmp_path) as w:
+        assert w.video_path is not None
+        rec = VideoRecorder(w.video_path, w, "lossless")
+        waits = []
+        for k, im in enumerate(images):
+            t0 = time.monotonic()
+            rec.record(k, k / 60, im, None, wait=True)
+            waits.append(time.monotonic() - t0)
+        release.set()
+        rec.close()
+        w.finish("complete")
+    assert rec.left_out > 0 and rec.frames + rec.left_out == len(images)
+    # about ENCODER_WAIT_MAX_S each (a loaded machine adds its scheduling), never the 10 s
+    assert 0.9 * video_module.ENCODER_WAIT_MAX_S < sorted(waits)[-rec.left_out] < 1.0
