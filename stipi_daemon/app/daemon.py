@@ -48,6 +48,7 @@ from stipi_daemon.app.finish import (
 )
 from stipi_daemon.app.frame_measurer import FrameMeasurer
 from stipi_daemon.app.imaging import resolve_imaging
+from stipi_daemon.app.memory import hold_heap, return_free_memory
 from stipi_daemon.clock import ScaledClock
 from stipi_daemon.errors import SessionError
 from stipi_daemon.measurement.pipeline import MeasurementPipeline
@@ -119,8 +120,10 @@ def run_measurement(
 
     BLAS runs single-threaded meanwhile: its only work is the live fits' small solves, and
     OpenBLAS's worker threads spin between calls, taking CPU the capture thread, the event
-    loop and the video encoder need (2.5 s of CPU in a 125 s demo at speed 10).
+    loop and the video encoder need (2.5 s of CPU in a 125 s demo at speed 10). The C
+    heap is held to mmapped frame buffers and two arenas (:mod:`.memory`).
     """
+    hold_heap()  # frame buffers mmapped and unmapped, two arenas: a lower peak RSS
     with threadpool_limits(limits=1, user_api="blas"):
         return asyncio.run(
             run_daemon(config, speed=speed, out=out, quiet=quiet, live=live, on_session=on_session)
@@ -228,6 +231,7 @@ async def run_daemon(
     finally:
         await acquisition.stop()
         await close_devices(devices)
+        return_free_memory()  # before the analysis and the report: the frames are gone
         summary["run"] = run_stats(
             devices,
             speed=clock.speed,

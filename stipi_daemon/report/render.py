@@ -16,6 +16,7 @@ from collections.abc import Sequence
 from typing import Any, Final
 
 import numpy as np
+import numpy.typing as npt
 from matplotlib.artist import Artist
 from matplotlib.axes import Axes
 from matplotlib.backends.backend_agg import FigureCanvasAgg
@@ -736,6 +737,13 @@ def _roi_patch(roi: RectROI | CircleROI) -> Circle | Rectangle:
     )
 
 
+def _rgba(image: npt.NDArray[np.uint8]) -> npt.NDArray[np.uint8]:
+    """A gray ``(H, W)`` or BGR ``(H, W, 3)`` uint8 image as opaque 8-bit RGBA."""
+    out = np.full((*image.shape[:2], 4), 255, dtype=np.uint8)
+    out[:, :, :3] = image[:, :, None] if image.ndim == 2 else image[:, :, 2::-1]
+    return out
+
+
 def draw_frames(panels: Sequence[FramePanel], title: str = "") -> Figure:
     """Each representative frame: raw (left) and Eq. (1) thresholded with the ROI (right).
 
@@ -747,15 +755,15 @@ def draw_frames(panels: Sequence[FramePanel], title: str = "") -> Figure:
     FigureCanvasAgg(fig)
     axes = fig.subplots(rows, 2, squeeze=False)
     for (ax_raw, ax_bin), p in zip(axes, panels, strict=False):
-        raw = p.raw if p.raw.ndim == 2 else p.raw[:, :, 2::-1]  # BGR -> RGB
-        im = ax_raw.imshow(
-            raw, cmap="gray" if p.raw.ndim == 2 else None, vmin=0, vmax=255, interpolation="nearest"
-        )
+        # 8-bit RGBA, drawn as it is: a gray level v is the gray colour map's entry v, and
+        # matplotlib resamples it in float32, where a colour-mapped or RGB image is float64
+        # (tens of MB for six frames: the report's peak memory)
+        im = ax_raw.imshow(_rgba(p.raw), interpolation="nearest")
         im.set_gid(f"raw_{p.kind}")
         when = "" if p.t_since_t0_s is None else f", {p.t_since_t0_s:+.2f} s from $T_0$"
         ax_raw.set_title(f"raw frame {p.seq} ({p.caption}{when})", fontsize=9)
         shown = np.where(p.binary > 0, np.where(p.roi_mask, 255, 110), 0).astype(np.uint8)
-        bim = ax_bin.imshow(shown, cmap="gray", vmin=0, vmax=255, interpolation="nearest")
+        bim = ax_bin.imshow(_rgba(shown), interpolation="nearest")
         bim.set_gid(f"binary_{p.kind}")
         if p.roi is not None:
             ax_raw.add_patch(_roi_patch(p.roi))

@@ -11,6 +11,7 @@ atomically (written to ``*.tmp``, then renamed) so a reader never sees half a pa
 
 from __future__ import annotations
 
+import gc
 import os
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -150,6 +151,11 @@ def _make_figures(
             (out_dir / f"{name}.png").unlink(missing_ok=True)
             continue
         png = r.png_bytes(result)
+        # A figure's artists refer to each other: only the cyclic collector frees them, and
+        # the figures of a report piled up until it ran (20 MB of the demo's peak RSS).
+        result.clear()
+        del result
+        gc.collect()
         path = out_dir / f"{name}.png"
         _write_atomic(path, png)
         written[name] = path

@@ -629,7 +629,9 @@ def set_decode_threads(threads: int) -> None:
     _decode_threads = threads
 
 
-def _open_input(path: Path) -> Any:
+def _open_input(path: Path, threads: int | None = None) -> Any:
+    """``path`` opened for reading, its decoder with ``threads`` threads (default: the
+    :func:`set_decode_threads` setting; 0: FFmpeg's choice)."""
     import av
 
     if not path.is_file():
@@ -638,10 +640,11 @@ def _open_input(path: Path) -> Any:
         container = av.open(str(path), "r")
     except (OSError, ValueError) as exc:
         raise SessionError(f"{path}: not a readable video ({exc})") from None
-    if _decode_threads:
+    threads = _decode_threads if threads is None else threads
+    if threads:
         for stream in container.streams.video:
-            stream.codec_context.thread_count = _decode_threads
-            if _decode_threads == 1:
+            stream.codec_context.thread_count = threads
+            if threads == 1:
                 stream.codec_context.thread_type = "NONE"
     return container
 
@@ -756,7 +759,7 @@ def read_video_image(path: Path | str, frame_index: int) -> Image:
     import cv2
 
     p = Path(path)
-    container = _open_input(p)
+    container = _open_input(p, threads=1)  # one frame: no decoder threads to start
     try:
         stream = container.streams.video[0]
         gray = dict(container.metadata).get(TAG_IMAGE, "bgr") == "gray"

@@ -13,7 +13,8 @@ residuals instead, keeping the dependence inside each block. This module owns
   The same flat-top-kernel estimate gives the long-run variance of the residuals, and its
   ratio to their variance is the *variance inflation* c (>= 1) that
   :mod:`.selection` uses for QAICc;
-* :func:`moving_block_indices`: the resampling (seeded numpy ``Generator``).
+* :func:`moving_block_indices`: the resampling (seeded numpy ``Generator``), or its draws
+  (:func:`moving_block_starts`) expanded a few resamples at a time (:func:`block_indices`).
 
 Domain: at least :data:`MIN_SERIES` residuals (shorter series get block length 1 and
 inflation 1: too few lags to estimate a dependence); a constant residual series (a perfect
@@ -31,7 +32,14 @@ from numpy.typing import NDArray
 
 from stipi_daemon.analysis.recovery_models.base import FloatArray
 
-__all__ = ["MIN_SERIES", "BlockLength", "block_length", "moving_block_indices"]
+__all__ = [
+    "MIN_SERIES",
+    "BlockLength",
+    "block_indices",
+    "block_length",
+    "moving_block_indices",
+    "moving_block_starts",
+]
 
 #: Fewest residuals for which the block length is estimated [-].
 MIN_SERIES = 12
@@ -113,6 +121,25 @@ def block_length(residuals: FloatArray) -> BlockLength:
     return BlockLength(optimal, length, m, inflation)
 
 
+def moving_block_starts(
+    n: int, length: int, replicates: int, rng: np.random.Generator
+) -> tuple[NDArray[np.int64], int]:
+    """The block starts of ``replicates`` moving-block resamples of a series of ``n``
+    samples, shape (replicates, ceil(n / length)), each uniform in [0, n - length], and the
+    block length used (``length`` within [1, n]); :func:`block_indices` expands them."""
+    length = max(1, min(length, n))
+    blocks = -(-n // length)
+    return rng.integers(0, n - length + 1, size=(replicates, blocks)), length
+
+
+def block_indices(starts: NDArray[np.int64], length: int, n: int) -> NDArray[np.intp]:
+    """Indices of the resamples with block ``starts`` (rows of :func:`moving_block_starts`):
+    each concatenates its blocks of ``length`` consecutive indices, cut to ``n``. Rows can be
+    expanded a few at a time: a whole bootstrap's indices (200 x n) need not exist at once."""
+    idx = (starts[:, :, None] + np.arange(length)[None, None, :]).reshape(starts.shape[0], -1)
+    return idx[:, :n]
+
+
 def moving_block_indices(
     n: int, length: int, replicates: int, rng: np.random.Generator
 ) -> NDArray[np.intp]:
@@ -121,8 +148,5 @@ def moving_block_indices(
     Each resample concatenates ceil(n / length) blocks of ``length`` consecutive indices,
     each starting uniformly in [0, n - length], and is cut to ``n``.
     """
-    length = max(1, min(length, n))
-    blocks = -(-n // length)
-    starts = rng.integers(0, n - length + 1, size=(replicates, blocks))
-    idx = (starts[:, :, None] + np.arange(length)[None, None, :]).reshape(replicates, -1)
-    return idx[:, :n]
+    starts, length = moving_block_starts(n, length, replicates, rng)
+    return block_indices(starts, length, n)

@@ -39,6 +39,8 @@ __all__ = ["EXPONENT_RANGE", "PowerLaw"]
 #: Search range of the exponent n [-].
 EXPONENT_RANGE = (0.01, 1000.0)
 _GRID_TAU = 31
+#: Grid rows computed at once [-] (a block's arrays: 5 MB at 105 s of 60 fps).
+_GRID_BLOCK = 100
 _GRID_N = (0.02, 0.05, 0.1, 0.2, 0.5, 1.0, 2.0, 5.0, 20.0, 200.0)
 
 
@@ -90,17 +92,27 @@ class PowerLaw(RecoveryModel):
             _GRID_TAU,
         )
         u = np.array([(lt, math.log(n)) for lt in log_tau for n in _GRID_N])
-        # g of shape() without its derivatives, in place: the grid is 310 rows x the
-        # recovery's frames, 16 MB per array at 105 s of 60 fps
+        # g of shape() without its derivatives, in place, a block of the grid's rows at a
+        # time: the whole grid is 310 rows x the recovery's frames, 16 MB per array at 105 s
+        # of 60 fps, and it made the analysis's peak memory (each row is solved on its own:
+        # the same numbers in blocks)
+        parts = [
+            self._grid_fit(u[k : k + _GRID_BLOCK], x, z) for k in range(0, len(u), _GRID_BLOCK)
+        ]
+        ssr, offset, amplitude = (np.concatenate(a) for a in zip(*parts, strict=True))
+        i = int(np.argmin(ssr))
+        return np.array([offset[i], amplitude[i], *u[i]])
+
+    @staticmethod
+    def _grid_fit(u: FloatArray, x: FloatArray, z: FloatArray) -> tuple[FloatArray, ...]:
+        """:func:`linear_least_squares_grid` of the grid rows ``u`` (log tau, log n)."""
         with np.errstate(under="ignore", over="ignore"):
             n = np.exp(u[:, 1])[:, None]
             basis = x[None, :] / (n * np.exp(u[:, 0])[:, None])
             np.log1p(basis, out=basis)
             np.multiply(-n, basis, out=basis)
             np.exp(basis, out=basis)
-        ssr, offset, amplitude = linear_least_squares_grid(basis, z)
-        i = int(np.argmin(ssr))
-        return np.array([offset[i], amplitude[i], *u[i]])
+        return linear_least_squares_grid(basis, z)
 
     def time_to_remaining(self, u: FloatArray, level: float) -> float:
         """n tau expm1(-ln(level)/n) [s]; inf past the float range."""
