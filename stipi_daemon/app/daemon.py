@@ -27,6 +27,7 @@ from typing import Any, TextIO
 
 from threadpoolctl import threadpool_limits
 
+from stipi_daemon.analysis.imaging import CircleROI, RectROI
 from stipi_daemon.analysis.severity import load_reference
 from stipi_daemon.analysis.validity import assess_validity
 from stipi_daemon.app.acquisition import Acquisition, OnRunning
@@ -35,6 +36,7 @@ from stipi_daemon.app.console import OperatorConsole
 from stipi_daemon.app.devices import (
     SCENE_LEAD_WALL_S,
     DaemonHandles,
+    Devices,
     close_devices,
     open_devices,
 )
@@ -105,6 +107,30 @@ def _fell_behind(pipeline: MeasurementPipeline, line: str) -> dict[str, Any]:
             analysis_error=pipeline.analysis_error,
         ),
     }
+
+
+def _frame_measurer(
+    config: DaemonConfig,
+    devices: Devices,
+    threshold: int,
+    roi: CircleROI | RectROI | None,
+    keeper: RepresentativeFrames,
+    pipeline: MeasurementPipeline,
+) -> FrameMeasurer:
+    """The camera side: S_k counted, frames stored in the session and its video."""
+    measurer = FrameMeasurer(
+        devices.clock,
+        threshold,
+        roi,
+        config.imaging.saturation_limit_fraction,
+        keeper,
+        pipeline,
+        # frames later than half the lag bound are not measured (gaps): the run catches up
+        skip_late_s=config.run.max_lag_s / 2.0,
+        writer=devices.writer,
+    )
+    measurer.recorder = devices.recorder  # the session video (storage.video)
+    return measurer
 
 
 def run_measurement(
@@ -197,15 +223,9 @@ async def run_daemon(
         reference=reference,
         t_start_s=clock.now(),
     )
-    # A few raw frames kept for the report (the session stores S_k, not video).
+    # Which frames the report shows (their pictures are read from the session video).
     keeper = RepresentativeFrames(config.measurement.pitting_duration_s)
-    saturation = config.imaging.saturation_limit_fraction
-    # Frames later than half the lag bound are not measured (gaps) so the run can catch up.
-    skip_late_s = config.run.max_lag_s / 2.0
-    measurer = FrameMeasurer(
-        clock, threshold, roi, saturation, keeper, pipeline, skip_late_s, writer=writer
-    )
-    measurer.recorder = devices.recorder  # the session video (storage.video)
+    measurer = _frame_measurer(config, devices, threshold, roi, keeper, pipeline)
     acquisition = Acquisition(config, devices, pipeline, console, measurer)
     status = "aborted"
     # Until the measurement ends: an interruption (Ctrl-C) or an unexpected error leaves

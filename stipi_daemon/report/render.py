@@ -755,9 +755,9 @@ def draw_frames(panels: Sequence[FramePanel], title: str = "") -> Figure:
     FigureCanvasAgg(fig)
     axes = fig.subplots(rows, 2, squeeze=False)
     for (ax_raw, ax_bin), p in zip(axes, panels, strict=False):
-        # 8-bit RGBA, drawn as it is: a gray level v is the gray colour map's entry v, and
-        # matplotlib resamples it in float32, where a colour-mapped or RGB image is float64
-        # (tens of MB for six frames: the report's peak memory)
+        # 8-bit RGBA, which matplotlib resamples in float32, where a colour-mapped or RGB
+        # image is float64 (tens of MB for six frames: the report's peak memory); a gray
+        # frame is drawn within one level of the gray colour map's picture
         im = ax_raw.imshow(_rgba(p.raw), interpolation="nearest")
         im.set_gid(f"raw_{p.kind}")
         when = "" if p.t_since_t0_s is None else f", {p.t_since_t0_s:+.2f} s from $T_0$"

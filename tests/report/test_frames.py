@@ -130,3 +130,30 @@ def test_daemon_stores_frames_that_reproduce_the_recorded_s_k(demo_session: Path
     assert chosen["recovery_start"].s_k_px == s_k[t >= hold[0]].min()
     assert abs(chosen["recovery_start"].t_s - pit["t0_s"]) < 0.1
     assert chosen["recovered"].s_k_px == s_k[t >= pit["t0_s"]].max() >= pit["s_max_px"]
+
+
+def test_frames_drawn_as_8_bit_rgba_look_as_through_the_gray_colour_map() -> None:
+    """The frames figure draws gray and BGR frames as 8-bit RGBA (matplotlib then resamples
+    in float32, not float64): a BGR frame's pixels are those of its RGB drawing, a gray
+    frame's within one level of the gray colour map's (vmin 0, vmax 255: the float32
+    rounding of the resampling; the recount is made on the frame, not on the picture)."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    from stipi_daemon.report.render import _rgba
+
+    rng = np.random.default_rng(4)
+    gray = rng.integers(0, 256, (61, 83), dtype=np.uint8)
+    bgr = rng.integers(0, 256, (61, 83, 3), dtype=np.uint8)
+
+    def drawn(image: np.ndarray, **kwargs: object) -> np.ndarray:
+        fig = Figure(figsize=(3.1, 2.3), dpi=100)
+        canvas = FigureCanvasAgg(fig)
+        fig.add_axes((0, 0, 1, 1)).imshow(image, interpolation="nearest", **kwargs)
+        canvas.draw()
+        return np.asarray(canvas.buffer_rgba()).astype(np.int16)
+
+    mapped = drawn(gray, cmap="gray", vmin=0, vmax=255)
+    assert np.abs(drawn(_rgba(gray)) - mapped).max() <= 1
+    assert np.array_equal(drawn(_rgba(bgr)), drawn(bgr[:, :, ::-1]))
+    assert _rgba(gray).dtype == np.uint8 and (_rgba(gray)[:, :, 3] == 255).all()

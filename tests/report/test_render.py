@@ -131,10 +131,11 @@ def test_frames_figure_shows_raw_and_thresholded(inp: ReportInput) -> None:
     images = {im.get_gid(): im for ax in fig.axes for im in ax.get_images()}
     for p in panels:
         raw = np.asarray(images[f"raw_{p.kind}"].get_array())
-        np.testing.assert_array_equal(raw, p.raw[:, :, ::-1])  # shown as RGB
+        np.testing.assert_array_equal(raw[:, :, :3], p.raw[:, :, ::-1])  # shown as RGB(A)
+        assert raw.shape[2] == 4 and (raw[:, :, 3] == 255).all()
         shown = np.asarray(images[f"binary_{p.kind}"].get_array())
         # White = occluded inside the ROI: exactly the S_k pixels.
-        assert int(np.count_nonzero(shown == 255)) == p.s_k_recount_px
+        assert int(np.count_nonzero(shown[:, :, 0] == 255)) == p.s_k_recount_px
     titles = [ax.get_title() for ax in fig.axes]
     assert any("recorded" in t for t in titles)
     # The ROI is drawn on both images of each row.
