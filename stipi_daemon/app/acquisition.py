@@ -299,6 +299,7 @@ class Acquisition:
         the live fit's worker thread (live rows not yet stored are left out)."""
         if self._measurer is not None:  # None only in unit tests of the handlers
             self._measurer.stop_storing()
+            self.counts["frames"] = max(self.counts["frames"], self._measurer.stored)
         tasks, self._tasks = self._tasks, []
         pool, self._live_pool = self._live_pool, None
         if pool is not None:
@@ -447,7 +448,7 @@ class Acquisition:
         # The frame's row is stored and committed already (FrameMeasurer, capture thread).
         now = self._clock.now()
         self.latencies_s.append(now - ev.t_capture_s)
-        self.counts["frames"] += 1
+        self.counts["frames"] += 1  # stop() counts the rows stored after the last one seen
         if ev.dropped_before:
             self._camera_gaps(ev.seq, ev.t_capture_s, ev.dropped_before)
         self.merger.push("frame", ev.t_capture_s, (ev.t_capture_s, float(ev.s_k)), now)

@@ -168,6 +168,8 @@ class FrameMeasurer:
         self._storing = True
         self._error: SessionError | None = None
         self._last_commit_wall_s = float("-inf")
+        #: Frames whose rows were stored [-] (also those stored after the loop's last look).
+        self.stored = 0
 
     def stop_storing(self) -> None:
         """Store no more frames (the measurement has ended); a frame being stored right
@@ -256,6 +258,7 @@ class FrameMeasurer:
             # the row first: a writer that has failed (a full disk) takes neither
             if self._writer is not None:
                 self._writer.add_frames([row])
+                self.stored += 1
             if self.recorder is not None:  # the session video: the frame S_k was counted on
                 wait = in_thread and self.wait_for_encoder
                 self.recorder.record(row[0], row[1], image, packet, wait=wait)
