@@ -41,6 +41,8 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import io
+import logging
 import sys
 import time
 from collections import deque
@@ -107,6 +109,11 @@ LIVE_BACKLOG_MAX = 4
 #: the GIL back (the event loop after each select, read, commit) waits for the holder (the
 #: live fit's thread) at most this long, so the fit cannot convoy the loop.
 SWITCH_INTERVAL_S = 0.0005
+#: Wall time :meth:`Acquisition.stop` waits for its tasks before it logs which of them do
+#: not end, and where each waits (again every six times as long) [s].
+STOP_WARN_WALL_S = 5.0
+
+_log = logging.getLogger(__name__)
 
 OnRunning = Callable[[DaemonHandles], Coroutine[Any, Any, None]]
 """An async callback run as a task while the daemon records (see :class:`DaemonHandles`)."""
@@ -306,10 +313,11 @@ class Acquisition:
             pool.shutdown(wait=False, cancel_futures=True)
         self._live_pending.clear()
         pending = set(tasks)
+        t_warn = time.monotonic() + STOP_WARN_WALL_S
         while pending:
-            # A cancellation can be swallowed (asyncio.wait_for in a camera's read racing
-            # its result): cancel again until each task is done, and empty the bounded
-            # queue so that no pump waits on it meanwhile.
+            if time.monotonic() > t_warn:  # a task that does not end: say which, and where
+                t_warn = time.monotonic() + 6 * STOP_WARN_WALL_S
+                _log.warning("still waiting for task(s) to end: %s", _task_stacks(pending))
             for t in pending:
                 t.cancel()
             while not self._queue.empty():
@@ -509,3 +517,12 @@ class Acquisition:
         for kind, value in self.merger.drain():
             outputs += _feed(self._pipeline, kind, value)
         return outputs + self._pipeline.close(self._clock.now())
+
+
+def _task_stacks(tasks: set[asyncio.Task[None]]) -> str:
+    """Each task's name and the stack it waits in, for a log line."""
+    buf = io.StringIO()
+    for t in sorted(tasks, key=lambda t: t.get_name()):
+        buf.write(f"\n{t.get_name()}: ")
+        t.print_stack(file=buf)
+    return buf.getvalue()

@@ -147,9 +147,9 @@ def run_measurement(
     BLAS runs single-threaded meanwhile: its only work is the live fits' small solves, and
     OpenBLAS's worker threads spin between calls, taking CPU the capture thread, the event
     loop and the video encoder need (2.5 s of CPU in a 125 s demo at speed 10). The C
-    heap is held to mmapped frame buffers and two arenas (:mod:`.memory`).
+    heap reuses frame buffers and has two arenas meanwhile (:mod:`.memory`).
     """
-    hold_heap()  # frame buffers mmapped and unmapped, two arenas: a lower peak RSS
+    hold_heap()  # frame buffers reused from the heap, two arenas (app/memory.py)
     with threadpool_limits(limits=1, user_api="blas"):
         return asyncio.run(
             run_daemon(config, speed=speed, out=out, quiet=quiet, live=live, on_session=on_session)
@@ -251,7 +251,7 @@ async def run_daemon(
     finally:
         await acquisition.stop()
         await close_devices(devices)
-        return_free_memory()  # before the analysis and the report: the frames are gone
+        return_free_memory()  # before the analysis and the report: large blocks mmapped
         summary["run"] = run_stats(
             devices,
             speed=clock.speed,

@@ -173,3 +173,35 @@ def test_the_queue_is_bounded() -> None:
 
     acq, _, _ = _acquisition(_Clock(0.0))
     assert acq._queue.maxsize == QUEUE_MAX_EVENTS > 0
+
+
+async def test_stop_names_a_task_that_does_not_end_and_where_it_waits(
+    monkeypatch: Any, caplog: Any
+) -> None:
+    """A task that swallows its cancellation is cancelled again until it ends, and once the
+    wait passes STOP_WARN_WALL_S the log names it and the line it waits at."""
+    import asyncio
+    import logging
+
+    from stipi_daemon.app import acquisition as acq_mod
+
+    monkeypatch.setattr(acq_mod, "STOP_WARN_WALL_S", 0.05)
+    acq, _, _ = _acquisition(_Clock(0.0))
+    swallowed = 0
+
+    async def stubborn() -> None:
+        nonlocal swallowed
+        while swallowed < 4:  # ends at the fifth cancellation
+            try:
+                await asyncio.sleep(10.0)
+            except asyncio.CancelledError:
+                swallowed += 1
+
+    task = asyncio.create_task(stubborn(), name="stubborn")
+    await asyncio.sleep(0)
+    acq._tasks = [task]
+    with caplog.at_level(logging.WARNING, logger=acq_mod.__name__):
+        await asyncio.wait_for(acq.stop(), 10.0)
+    assert task.done() and swallowed == 4
+    lines = [r.getMessage() for r in caplog.records if "still waiting" in r.getMessage()]
+    assert lines and "stubborn" in lines[0] and "await asyncio.sleep(10.0)" in lines[0]
