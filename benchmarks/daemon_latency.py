@@ -227,13 +227,19 @@ def decode_count_floor(config: Any, n: int = 600) -> dict[str, Any]:
     and clocks go cold while it sleeps this costs more than back to back, so it is the
     floor of a pipeline fed at 60 fps); ``paced_latency_ms``: median and p99 wall time from
     the frame's due time to its S_k in the paced pass, the part of frame-to-disk latency
-    no pipeline can avoid."""
+    no pipeline can avoid. The C heap is set as the daemon's acquisition had it
+    (:func:`~stipi_daemon.app.memory.hold_heap`): after the run the daemon has set it for
+    its analysis, where a 1080p frame would be mmapped and faulted in anew each time
+    ("Heap settings and frame CPU")."""
     import time
 
     import cv2
     import numpy as np
 
     from stipi_daemon.analysis.imaging import CircleROI, FrameProcessor
+    from stipi_daemon.app.memory import hold_heap
+
+    hold_heap()
 
     cap = cv2.VideoCapture(str(config.camera.path), cv2.CAP_FFMPEG)
     cap.set(cv2.CAP_PROP_FORMAT, -1)
@@ -609,9 +615,10 @@ def markdown(
         "(`VideoRecorder.record`, thread CPU time). Floor = decode to gray + S_k of the same "
         "JPEGs in the same process, on the same CPU: *hot* back to back, *paced* one every "
         "1/60 s with the thread sleeping between, as a camera's frames come (both measured "
-        "after each run); decode + S_k latency = wall time from a paced frame's due time to "
-        "its S_k, the part of frame-to-disk latency that no pipeline avoids. Loop stalls = "
-        "event-loop callbacks over 1 ms in the steady state, their count and the longest.",
+        "after each run, with the C heap set as during the acquisition); decode + S_k "
+        "latency = wall time from a paced frame's due time to its S_k, the part of "
+        "frame-to-disk latency that no pipeline avoids. Loop stalls = event-loop callbacks "
+        "over 1 ms in the steady state, their count and the longest.",
         "",
         "| frames | daemon CPUs | n | to disk median / p99 / max [ms] | processed median / p99 "
         "[ms] | decode + S_k latency median / p99 [ms] | CPU per frame [ms] | of it capture "
@@ -712,21 +719,6 @@ def _cpus(text: str) -> set[int]:
     return {int(x) for x in text.split(",")}
 
 
-def write_section(text: str) -> None:
-    """Replace (or append) the section in docs/performance.md, keeping other sections."""
-    if DOC.exists():
-        old = DOC.read_text()
-    else:
-        old = "# Performance\n\nMeasured figures of stipi-daemon; each section names its command.\n"
-    start = old.find(SECTION)
-    if start < 0:
-        new = old.rstrip("\n") + "\n\n" + text
-    else:
-        nxt = old.find("\n## ", start + len(SECTION))
-        new = old[:start] + text + ("" if nxt < 0 else old[nxt:])
-    DOC.write_text(new.rstrip("\n") + "\n")
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--worker", type=Path, help=argparse.SUPPRESS)
@@ -792,7 +784,10 @@ def main() -> None:
     text = markdown(machine(), runs, pairs, costs)
     print(text)
     if not args.no_doc:
-        write_section(text)
+        sys.path.insert(0, str(REPO_ROOT))
+        from benchmarks._doc import write_section
+
+        write_section(DOC, SECTION, text)
 
 
 if __name__ == "__main__":

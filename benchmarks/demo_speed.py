@@ -36,6 +36,10 @@ from typing import Any
 import yaml
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from benchmarks._doc import write_section  # noqa: E402
+
 DOC = ROOT / "docs" / "performance.md"
 SECTION = "## Demo speed"
 #: Probe time of the demo scene [s]: 1 s approach + 15.5 s hold + 108 s recovery.
@@ -218,21 +222,6 @@ NOTES = (
 )
 
 
-def write_section(text: str) -> None:
-    """Replace (or add, after "Live daemon latency") the section, keeping the others."""
-    old = DOC.read_text()
-    start = old.find(SECTION)
-    if start < 0:
-        anchor = old.find("\n## ", old.find("## Live daemon latency") + 1)
-        new = (
-            old[:anchor] + "\n\n" + text.rstrip("\n") + old[anchor:] if anchor >= 0 else old + text
-        )
-    else:
-        nxt = old.find("\n## ", start + len(SECTION))
-        new = old[:start] + text + ("" if nxt < 0 else old[nxt:])
-    DOC.write_text(new.rstrip("\n") + "\n")
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
     parser.add_argument("--no-write", action="store_true", help="print only")
@@ -247,7 +236,7 @@ def main() -> None:
     text = render(runs, speed)
     print(text)
     if not args.no_write:
-        write_section(text)
+        write_section(DOC, SECTION, text, after="## Live daemon latency")
 
 
 if __name__ == "__main__":

@@ -37,6 +37,8 @@ from typing import Any
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from benchmarks._doc import write_section  # noqa: E402
+
 DOC = ROOT / "docs" / "performance.md"
 SECTION = "## Heap settings and frame CPU"
 POLICIES = ("glibc default", "threshold held at 128 kB", "hold_heap()")
@@ -142,18 +144,6 @@ def markdown(got: dict[str, list[dict[str, float]]], rounds: int, frames: int) -
     return "\n".join(lines) + "\n"
 
 
-def write_section(text: str) -> None:
-    """Replace (or append) the section in docs/performance.md, keeping other sections."""
-    old = DOC.read_text()
-    start = old.find(SECTION)
-    if start < 0:
-        new = old.rstrip("\n") + "\n\n" + text
-    else:
-        nxt = old.find("\n## ", start + len(SECTION))
-        new = old[:start] + text + ("" if nxt < 0 else old[nxt:])
-    DOC.write_text(new.rstrip("\n") + "\n")
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
     parser.add_argument("--child", choices=POLICIES, help=argparse.SUPPRESS)
@@ -173,7 +163,7 @@ def main() -> None:
     text = markdown(got, args.rounds, args.frames)
     print(text)
     if not args.no_doc:
-        write_section(text)
+        write_section(DOC, SECTION, text)
 
 
 if __name__ == "__main__":

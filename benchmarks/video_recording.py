@@ -44,6 +44,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from benchmarks._doc import write_section  # noqa: E402
 from benchmarks._machine import cpu_model  # noqa: E402
 from stipi_daemon.analysis.imaging import CircleROI, FrameProcessor  # noqa: E402
 from stipi_daemon.storage import SessionWriter, StorageOptions  # noqa: E402
@@ -309,18 +310,6 @@ RECORDING_NOTE = (
 )
 
 
-def write_section(text: str) -> None:
-    """Replace (or append) the section in docs/performance.md, keeping other sections."""
-    old = DOC.read_text()
-    start = old.find(SECTION)
-    if start < 0:
-        new = old.rstrip("\n") + "\n\n" + text
-    else:
-        nxt = old.find("\n## ", start + len(SECTION))
-        new = old[:start] + text + ("" if nxt < 0 else old[nxt:])
-    DOC.write_text(new.rstrip("\n") + "\n")
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
     parser.add_argument("--cpu", type=int, default=None, help="CPU to pin to (default: last)")
@@ -337,7 +326,7 @@ def main() -> None:
     text = render(cpu, parts, disk, args.blocks)
     print(text)
     if not args.no_write:
-        write_section(text)
+        write_section(DOC, SECTION, text)
 
 
 if __name__ == "__main__":

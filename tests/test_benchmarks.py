@@ -129,3 +129,20 @@ def test_accuracy_vs_time_quick_tissue_scene_writes_the_tissue_tables(tmp_path: 
     assert "instantaneous recovery" in text  # the Zener jump is explained
     data = (tmp_path / "accuracy-vs-time" / "tissue_error_vs_recording.png").read_bytes()
     assert data.startswith(b"\x89PNG") and len(data) > 10_000
+
+
+def test_a_benchmark_replaces_its_own_section_and_adds_a_new_one_where_asked(
+    tmp_path: Path,
+) -> None:
+    sys.path.insert(0, str(ROOT))
+    try:
+        from benchmarks._doc import HEADER, write_section
+    finally:
+        sys.path.remove(str(ROOT))
+    doc = tmp_path / "performance.md"
+    write_section(doc, "## A", "## A\n\na\n")  # no file yet: the header, then the section
+    write_section(doc, "## C", "## C\n\nc\n")  # appended
+    write_section(doc, "## B", "## B\n\nb\n", after="## A")  # between A and C
+    write_section(doc, "## A", "## A\n\nnew a\n")  # replaced, the others kept
+    write_section(doc, "## D", "## D\n\nd\n", after="## none")  # no such anchor: appended
+    assert doc.read_text() == HEADER + ("\n## A\n\nnew a\n\n## B\n\nb\n\n## C\n\nc\n\n## D\n\nd\n")
