@@ -15,6 +15,7 @@ from __future__ import annotations
 import asyncio
 import os
 import shutil
+import signal
 from collections.abc import AsyncIterator
 from pathlib import Path
 
@@ -23,6 +24,16 @@ from hypothesis import settings
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
 SHARED_REFERENCE = REPO_ROOT.parent / "shared" / "reference"
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    """Let the daemons the tests start take Ctrl-C. A suite started in the background by a
+    non-interactive shell (``./dev test &``) inherits SIGINT ignored, and every process it
+    starts would too: the tests that interrupt a daemon or a mock probe then fail. With a
+    handler here, a started program gets SIGINT's default again (exec resets caught
+    signals, not ignored ones)."""
+    if signal.getsignal(signal.SIGINT) == signal.SIG_IGN:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
 def require_tool(*names: str) -> None:
