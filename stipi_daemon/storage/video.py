@@ -124,12 +124,14 @@ Crop = tuple[int, int, int, int]
 @dataclass(frozen=True, slots=True)
 class _Lossless:
     """A frame on its way to an FFV1 encoder: its ``seq``, capture time [s], presentation
-    time [ms] and image (None: the previous frame's image again)."""
+    time [ms], image (None: the previous frame's image again) and whether its packets are
+    kept for a repeat that may follow (a read-only image)."""
 
     seq: int
     t_capture_s: float
     pts: int
     image: Image | None
+    keep: bool
 
 
 @dataclass(frozen=True)
@@ -334,15 +336,16 @@ class VideoRecorder:
         previous frame's payload (FFV1 codes every frame on its own, so encoding it again
         would give the same bytes)."""
         assert self._encoders is not None
-        repeat = image is self._last_image and not image.flags.writeable
+        read_only = not image.flags.writeable
+        repeat = read_only and image is self._last_image
         pts = self._next_pts(t_capture_s)
-        item = _Lossless(seq, t_capture_s, pts, None if repeat else image)
+        item = _Lossless(seq, t_capture_s, pts, None if repeat else image, read_only)
         if not self._encoders.submit(item, wait_s=ENCODER_WAIT_MAX_S if wait else 0.0):
             self.left_out += 1  # the encoders cannot keep up: leave this frame out
             self._last_image = None
             return False
         self._last_pts = pts
-        self._last_image = image
+        self._last_image = image if read_only else None  # only a read-only image repeats
         return self._failed is None
 
     def _encoder(self, context: Any) -> Callable[[_Lossless], list[Any]]:
@@ -361,8 +364,8 @@ class VideoRecorder:
         payload at this frame's time) and add its row."""
         if item.image is None:
             packets = [_packet(payload, item.pts) for payload in self._last_payloads]
-        else:
-            self._last_payloads = [bytes(p) for p in packets]
+        else:  # kept only where a repeat can follow: a read-only image (see _submit)
+            self._last_payloads = [bytes(p) for p in packets] if item.keep else []
         for pkt in packets:
             pkt.stream = self._stream
             self._container.mux_one(pkt)
