@@ -971,5 +971,9 @@ class EmulatedFeather:
                 deadline = min(deadline, self._replug_at)
             wall_s = max(0.0, (deadline - clock.now()) / clock.speed)
             self._wake.clear()
+            # asyncio.timeout, not wait_for: Python 3.11's wait_for returns the inner result
+            # when a cancel arrives as the wake-up does (the link closed, then stop()), and the
+            # probe then never stopped (a demo hung after its measurement, once in ~15 runs)
             with contextlib.suppress(TimeoutError):
-                await asyncio.wait_for(self._wake.wait(), wall_s)
+                async with asyncio.timeout(wall_s):
+                    await self._wake.wait()
