@@ -187,3 +187,35 @@ def test_no_command_module_over_300_lines() -> None:
         if n > MAX_COMMAND_MODULE_LINES
     ]
     assert not long, f"command modules over {MAX_COMMAND_MODULE_LINES} lines: {long}"
+
+
+def _wait_for_in_loops(path: Path) -> Iterator[int]:
+    """Lines of ``asyncio.wait_for`` calls inside a ``for`` or ``while`` loop of ``path``."""
+
+    def visit(node: ast.AST, in_loop: bool) -> Iterator[int]:
+        for child in ast.iter_child_nodes(node):
+            if isinstance(child, (ast.FunctionDef, ast.AsyncFunctionDef, ast.Lambda)):
+                yield from visit(child, False)
+                continue
+            if (
+                in_loop
+                and isinstance(child, ast.Call)
+                and isinstance(child.func, ast.Attribute)
+                and child.func.attr == "wait_for"
+            ):
+                yield child.lineno
+            yield from visit(child, in_loop or isinstance(child, (ast.For, ast.While)))
+
+    yield from visit(ast.parse(path.read_text(encoding="utf-8")), False)
+
+
+def test_no_wait_for_in_a_loop() -> None:
+    """A waiting loop uses clock.wait_event or asyncio.timeout: Python 3.11's wait_for drops
+    a cancel that comes in the same turn as the awaited result, and the loop then never
+    ends (tests/test_clock.py shows both; an emulated probe hung a demo that way)."""
+    found = [
+        f"{path.relative_to(REPO_ROOT)}:{line}"
+        for path in sorted(PACKAGE_DIR.rglob("*.py"))
+        for line in _wait_for_in_loops(path)
+    ]
+    assert not found, "asyncio.wait_for in a loop: " + ", ".join(found)

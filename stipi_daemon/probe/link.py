@@ -501,8 +501,11 @@ class ProbeLink:
                 self._pending[seq] = (fut, command.cmd)
                 t_us = int(self.clock.now() * 1e6) % _U32
                 await self.transport.write(encode_frame(command, seq, t_us))
+                # asyncio.timeout, not wait_for, whose Python 3.11 version drops a cancel
+                # that comes with the answer (clock.wait_event)
                 with contextlib.suppress(TimeoutError):
-                    return await asyncio.wait_for(asyncio.shield(fut), per_try / self.clock.speed)
+                    async with asyncio.timeout(per_try / self.clock.speed):
+                        return await asyncio.shield(fut)
         finally:
             for seq in seqs:
                 self._pending.pop(seq, None)

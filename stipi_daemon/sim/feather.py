@@ -44,7 +44,7 @@ from typing import Final, Protocol
 import numpy as np
 from numpy.typing import NDArray
 
-from stipi_daemon.clock import SessionClock
+from stipi_daemon.clock import SessionClock, wait_event
 from stipi_daemon.protocol.cobs import cobs_decode
 from stipi_daemon.protocol.errors import FrameError
 from stipi_daemon.protocol.messages import (
@@ -971,9 +971,4 @@ class EmulatedFeather:
                 deadline = min(deadline, self._replug_at)
             wall_s = max(0.0, (deadline - clock.now()) / clock.speed)
             self._wake.clear()
-            # asyncio.timeout, not wait_for: Python 3.11's wait_for returns the inner result
-            # when a cancel arrives as the wake-up does (the link closed, then stop()), and the
-            # probe then never stopped (a demo hung after its measurement, once in ~15 runs)
-            with contextlib.suppress(TimeoutError):
-                async with asyncio.timeout(wall_s):
-                    await self._wake.wait()
+            await wait_event(self._wake, wall_s)  # ends on a cancel that comes with a wake-up

@@ -108,10 +108,13 @@ def check_accounting_against_ledger(
     lo, hi = idx[0], idx[-1] + 1
     delivered = {i for i in ledger.delivered_indices() if lo <= i < hi}
     peripheral_side_only = all("disconnected by the peripheral" in d.reason for d in rec.downs)
+    missing, extra = sorted(delivered - set(idx)), sorted(set(idx) - delivered)
+    why = f"delivered, not received: {missing[:20]} ({len(missing)}); received, not delivered: "
+    why += f"{extra[:20]} ({len(extra)}); link downs: {[d.reason for d in rec.downs][:5]}"
     if peripheral_side_only and (connections is None or connections == len(rec.ups)):
-        assert set(idx) == delivered
+        assert not missing and not extra, why
     else:
-        assert set(idx) <= delivered
+        assert not extra, why
     emitted = sum(max(0, min(first + n, hi) - max(first, lo)) for first, n in ledger.emitted)
     acc = rec.probe.accounting
     assert acc.received == len(idx)

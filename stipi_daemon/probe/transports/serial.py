@@ -229,8 +229,9 @@ class SerialTransport:
                     fut.set_result(None)
 
             loop.add_writer(self._fd, _writable)
-            try:
-                await asyncio.wait_for(ready, remaining)
+            try:  # asyncio.timeout: a cancel is never dropped (clock.wait_event)
+                async with asyncio.timeout(remaining):
+                    await ready
             except TimeoutError:
                 pass
             finally:

@@ -222,7 +222,8 @@ class BumbleAdapter:
         if self._started:
             for conn in list(self.device.connections.values()):
                 with contextlib.suppress(Exception):
-                    await asyncio.wait_for(conn.disconnect(_REASON_LOCAL_TERMINATED), 1.0)
+                    async with asyncio.timeout(1.0):
+                        await conn.disconnect(_REASON_LOCAL_TERMINATED)
             with contextlib.suppress(Exception):
                 await self.device.power_off()
             self._started = False

@@ -21,7 +21,7 @@ from collections.abc import Hashable
 from dataclasses import dataclass, field
 from typing import Final
 
-from stipi_daemon.clock import SessionClock
+from stipi_daemon.clock import SessionClock, wait_event
 from stipi_daemon.probe.nus import DEFAULT_PROBE_NAME
 from stipi_daemon.protocol.cobs import cobs_decode
 from stipi_daemon.protocol.messages import Samples, StatusFlags, unpack_frame
@@ -213,8 +213,7 @@ class BleProbeEmulator:
             deadline = min(t_next, now + self._max_tick_s)
             wall_s = max(0.0, (deadline - clock.now()) / clock.speed)
             self._wake.clear()
-            with contextlib.suppress(TimeoutError):
-                await asyncio.wait_for(self._wake.wait(), wall_s)
+            await wait_event(self._wake, wall_s)
 
 
 def _samples_span(frame: bytes) -> tuple[int, int] | None:
