@@ -95,22 +95,43 @@ def write_representative_frames(
     return written
 
 
-def _video_image(session_dir: Path, seq: int, shape: Any) -> npt.NDArray[np.uint8] | None:
-    """Frame ``seq`` from the session's ``video.mkv`` (the primary data) when it holds the
-    whole frame with the recorded shape; None otherwise (the PNG is used then)."""
+#: The session video's frame numbers: (path, ``seq`` of each stored frame, its index).
+_VideoIndex = tuple[Path, npt.NDArray[np.int64], npt.NDArray[np.int64]]
+
+
+def _video_index(session_dir: Path) -> _VideoIndex | None:
+    """The session's ``video.mkv`` and its frames' ``seq`` and index, read once for all
+    the representative frames; None when there is no video, it holds a crop rather than
+    whole frames, or it cannot be read (the PNGs are used then)."""
     from stipi_daemon.storage import VIDEO_NAME, SessionReader
-    from stipi_daemon.storage.video import probe_video, read_video_image
+    from stipi_daemon.storage.video import probe_video
 
     video = session_dir / VIDEO_NAME
     if not video.is_file():
         return None
     try:
+        if probe_video(video).crop is not None:
+            return None
         with SessionReader(session_dir) as reader:
             rows = reader.video_frames()
-        index = rows["frame_index"][rows["seq"] == seq]
-        if not index.size or probe_video(video).crop is not None:
-            return None
-        image = read_video_image(video, int(index[0]))
+    except SessionError:
+        return None
+    return video, np.asarray(rows["seq"]), np.asarray(rows["frame_index"])
+
+
+def _video_image(index: _VideoIndex | None, seq: int, shape: Any) -> npt.NDArray[np.uint8] | None:
+    """Frame ``seq`` from the session's video (the primary data) when it holds that frame
+    whole with the recorded shape; None otherwise (the PNG is used then)."""
+    from stipi_daemon.storage.video import read_video_image
+
+    if index is None:
+        return None
+    video, seqs, frame_index = index
+    where = frame_index[seqs == seq]
+    if not where.size:
+        return None
+    try:
+        image = read_video_image(video, int(where[0]))
     except SessionError:
         return None
     return image if list(image.shape) == list(shape) else None
@@ -135,6 +156,7 @@ def read_representative_frames(session_dir: Path) -> tuple[RepresentativeFrame, 
     if not isinstance(index, dict):
         raise SessionError(f"{index_path}: expected an object keyed by frame kind")
     out: list[RepresentativeFrame] = []
+    video = _video_index(Path(session_dir)) if index else None
     for kind in KINDS:
         entry = index.get(kind)
         if entry is None:
@@ -145,7 +167,7 @@ def read_representative_frames(session_dir: Path) -> tuple[RepresentativeFrame, 
         except (KeyError, TypeError, ValueError) as exc:
             raise SessionError(f"{index_path}: entry {kind!r} is malformed ({exc})") from exc
         path = index_path.parent / name
-        image: Any = _video_image(Path(session_dir), seq, shape)
+        image: Any = _video_image(video, seq, shape)
         if image is None:
             image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED) if path.is_file() else None
         if image is None:
