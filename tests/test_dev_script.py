@@ -3,9 +3,10 @@
 The real setup downloads and builds for about 90 s, so the script runs here in a copy of the
 repository's top level with a stand-in interpreter: ``PYTHON`` names a script that plays
 ``python3 -m venv DIR`` (it writes ``DIR/bin/python``, the same script) and, as the venv's
-python, records every ``-m pip install`` it is asked for and answers the script's two
-questions (the dependency list, read by the real interpreter from the real
-``pyproject.toml``, and whether the S_k kernel imports). What is checked is the script's own
+python, records every ``-m pip install`` and ``uninstall`` it is asked for and answers the
+script's questions (the dependency list, read by the real interpreter from the real
+``pyproject.toml``; whether the S_k kernel imports; ``pip show``, whether a package is
+installed, from ``FAKE_INSTALLED``). What is checked is the script's own
 behaviour: its lines on stderr, the pip steps it runs, the stamp it keeps.
 """
 
@@ -28,6 +29,10 @@ log="$FAKE_LOG"
 if [ "$1" = "--version" ]; then echo "Python 3.11.99"; exit 0; fi
 if [ "$1" = "-m" ] && [ "$2" = "venv" ]; then
   mkdir -p "$3/bin" && cp "$0" "$3/bin/python" && chmod +x "$3/bin/python"; exit 0
+fi
+if [ "$1" = "-m" ] && [ "$2" = "pip" ] && [ "$3" = "show" ]; then
+  # as pip: 1 for a package that is not installed (FAKE_INSTALLED lists those that are)
+  [[ " $FAKE_INSTALLED " == *" ${{@: -1}} "* ]]; exit
 fi
 if [ "$1" = "-m" ] && [ "$2" = "pip" ]; then
   shift 2; echo "pip $*" >> "$log"
@@ -107,6 +112,27 @@ def test_first_run_says_each_step_and_later_runs_are_silent(tree: Path) -> None:
         "dev: pyproject.toml, setup.py or the S_k kernel's source changed: updating .venv"
     )
     assert len(changed.stderr.splitlines()) == 3
+
+
+def test_an_older_venvs_opencv_contrib_build_is_replaced_by_the_plain_one(tree: Path) -> None:
+    """The project once depended on ``opencv-contrib-python-headless``; it and the plain
+    build both install ``cv2/``, so an older .venv's contrib build (and any plain one over
+    it) is removed before the dependencies are installed, never after."""
+    _dev(tree, "help")
+    (tree / ".venv" / ".stipi-installed").write_text("older\n")
+    (tree.parent / "pip.log").unlink()
+    run = _dev(tree, "help", FAKE_INSTALLED="opencv-contrib-python-headless")
+    assert run.returncode == 0, run.stderr
+    calls = _pip_calls(tree)
+    both = "opencv-contrib-python-headless opencv-python-headless"
+    assert calls[1] == f"pip uninstall -y {both}", calls
+    assert "opencv-python-headless>=4.8" in calls[2].split(), calls
+    assert "pip chatter" not in run.stdout + run.stderr
+    # A .venv without the contrib build removes nothing.
+    (tree / ".venv" / ".stipi-installed").write_text("older\n")
+    (tree.parent / "pip.log").unlink()
+    assert _dev(tree, "help").returncode == 0
+    assert not [c for c in _pip_calls(tree) if "uninstall" in c]
 
 
 def test_a_kernel_that_did_not_build_is_said(tree: Path) -> None:
