@@ -20,6 +20,14 @@ SCENES = REPO_ROOT / "configs" / "scenes"
 
 #: The measurement section matching :func:`short_scene`.
 SHORT_MEASUREMENT: dict[str, Any] = {"pitting_duration_s": 5.0, "recovery_max_s": 20.0}
+#: The simulator's tolerances against a scene's ground truth (relative errors, for
+#: :func:`check_against_truth`): D_p, F_r and E 1 %, the fitted tau 2 %.
+TRUTH_TOLERANCES: dict[str, float] = {
+    "depth_mm": 0.01,
+    "rebound_force_n": 0.01,
+    "time_constant_s": 0.02,
+    "elasticity_kpa": 0.01,
+}
 
 
 def kept_up(summary: dict[str, Any]) -> bool:

@@ -28,7 +28,13 @@ from stipi_daemon.clock import ScaledClock
 from stipi_daemon.sim import load_scene
 from stipi_daemon.sim.feather import EmulatedFeather, FeatherCore, McuClock, SceneAdc
 from stipi_daemon.storage.reader import SessionReader
-from tests.daemon._support import SHORT_MEASUREMENT, check_against_truth, short_scene, write_config
+from tests.daemon._support import (
+    SHORT_MEASUREMENT,
+    TRUTH_TOLERANCES,
+    check_against_truth,
+    short_scene,
+    write_config,
+)
 
 #: Session seconds per wall second (the emulated devices pace themselves on the clock).
 SPEED = 4.0
@@ -88,15 +94,7 @@ async def test_serial_transport_measures_the_ground_truth(rig: Rig, tmp_path: Pa
 
     assert outcome.exit_code == 0, outcome.summary
     summary = json.loads((outcome.session_dir / "summary.json").read_text())
-    check_against_truth(
-        summary,
-        rel={
-            "depth_mm": 0.01,
-            "rebound_force_n": 0.01,
-            "time_constant_s": 0.02,
-            "elasticity_kpa": 0.01,
-        },
-    )
+    check_against_truth(summary, rel=TRUTH_TOLERANCES)
     # The probe was configured as asked and its EEPROM calibration used.
     core = rig.feather.core
     assert (core.rate_hz, core.led_level, core.streaming) == (100, 200, False)

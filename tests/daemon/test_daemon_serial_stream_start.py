@@ -36,6 +36,7 @@ from stipi_daemon.sim.feather import EmulatedFeather, McuClock, scene_core
 from stipi_daemon.storage.reader import SessionReader
 from tests.daemon._support import (
     SHORT_MEASUREMENT,
+    TRUTH_TOLERANCES,
     check_against_truth,
     kept_up,
     short_scene,
@@ -138,15 +139,7 @@ async def test_the_daemon_starts_the_probes_scene_at_the_cameras_origin(tmp_path
             _check_flagged_late(run, behind_s)
             missed.append(f"speed {speed}: probe's scene {behind_s * 1e3:.1f} ms behind")
             continue
-        check_against_truth(
-            summary,
-            rel={
-                "depth_mm": 0.01,
-                "rebound_force_n": 0.01,
-                "time_constant_s": 0.02,
-                "elasticity_kpa": 0.01,
-            },
-        )
+        check_against_truth(summary, rel=TRUTH_TOLERANCES)
         # -s shows it, and the attempts made before
         print(f"speed {speed}: first sample {behind_s * 1e3:+.2f} ms after the origin", missed)
         return

@@ -47,7 +47,13 @@ from stipi_daemon.clock import ScaledClock
 from stipi_daemon.sim import Pipeline, load_scene
 from stipi_daemon.storage.reader import SessionReader
 from tests.conftest import require_path, require_tool
-from tests.daemon._support import SHORT_MEASUREMENT, check_against_truth, short_scene, write_config
+from tests.daemon._support import (
+    SHORT_MEASUREMENT,
+    TRUTH_TOLERANCES,
+    check_against_truth,
+    short_scene,
+    write_config,
+)
 from tests.firmware.simavr_probe import (
     BLE_PROBE_DONE_S,
     FIRMWARE_ELF,
@@ -148,15 +154,7 @@ async def test_daemon_measures_the_real_firmware(
 
     assert outcome.exit_code == 0, outcome.summary
     summary = json.loads((outcome.session_dir / "summary.json").read_text())
-    errors = check_against_truth(
-        summary,
-        rel={
-            "depth_mm": 0.01,
-            "rebound_force_n": 0.01,
-            "time_constant_s": 0.02,
-            "elasticity_kpa": 0.01,
-        },
-    )
+    errors = check_against_truth(summary, rel=TRUTH_TOLERANCES)
     assert max(errors.values()) < 0.01
     probe = summary["run"]["probe"]
     assert probe["samples_lost"] == 0 and probe["samples_received"] > 1500
