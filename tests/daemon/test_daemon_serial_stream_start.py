@@ -20,7 +20,9 @@ up with the clock, is checked for that and made again, slower (``SPEEDS``).
 
 from __future__ import annotations
 
+import asyncio
 import json
+import os
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -66,14 +68,42 @@ class Run:
     """When the probe took its first sample, by its own clock, on the session clock [s]."""
 
 
-async def _measure(tmp: Path, speed: float) -> Run:
-    """Run the daemon at ``speed`` on a Feather started here, which is given no scene start."""
+class SlowInboundFeather(EmulatedFeather):
+    """An emulated Feather whose host bytes reach its firmware ``inbound_s`` of session time
+    after they were written (a slow link towards the probe; frames from it are not delayed):
+    its STREAM_START, hence its first sample and its scene, comes that much late."""
+
+    inbound_s = 0.0
+
+    def _on_readable(self) -> None:
+        if self._master is None:
+            return
+        try:
+            data = os.read(self._master, 4096)
+        except OSError:
+            return
+        if data:
+            later_s = self.inbound_s / self.clock.speed
+            asyncio.get_running_loop().call_later(later_s, self._deliver, data)
+
+    def _deliver(self, data: bytes) -> None:
+        self.core.feed(data, self._mcu_now())
+        self._flush()
+        self._wake.set()
+
+
+async def _measure(tmp: Path, speed: float, *, inbound_s: float = 0.0) -> Run:
+    """Run the daemon at ``speed`` on a Feather started here, which is given no scene start
+    (its host bytes arrive ``inbound_s`` late, :class:`SlowInboundFeather`)."""
     tmp.mkdir()
     scene = short_scene(tmp)
     clock = ScaledClock(speed)
     mcu = McuClock(clock.now(), 123_456, 150.0)
     core = scene_core(load_scene(scene), None, mcu, clock.now())  # scene from 1st sample
-    dev = EmulatedFeather(core, clock, mcu, link_path=tmp / "ttyFEATHER", seed=1)
+    cls = SlowInboundFeather if inbound_s else EmulatedFeather
+    dev = cls(core, clock, mcu, link_path=tmp / "ttyFEATHER", seed=1)
+    if isinstance(dev, SlowInboundFeather):
+        dev.inbound_s = inbound_s
     await dev.start()
     try:
         config = load_config(
@@ -102,15 +132,15 @@ async def _measure(tmp: Path, speed: float) -> Run:
     )
 
 
-def _check_stream_start(run: Run) -> float:
+def _check_stream_start(run: Run, inbound_s: float = 0.0) -> float:
     """STREAM_START was due one sample period before the camera's origin and the probe's
-    first sample came one period after it went out; how far the probe's scene runs behind
-    the camera's [s]."""
+    first sample came one period after it went out (and ``inbound_s`` [s] on the link);
+    how far the probe's scene runs behind the camera's [s]."""
     start, origin_s = run.start, run.summary["run"]["camera"]["source"]["t0_s"]
     assert start["scene_origin_s"] == origin_s
     assert start["scheduled_s"] == pytest.approx(origin_s - 1.0 / RATE_HZ)
     assert start["late_s"] == pytest.approx(start["sent_s"] - start["scheduled_s"])
-    after_sent_s = run.first_s - (start["sent_s"] + 1.0 / RATE_HZ)
+    after_sent_s = run.first_s - (start["sent_s"] + inbound_s + 1.0 / RATE_HZ)
     assert -1e-3 < after_sent_s < TRANSIT_S, (run.first_s, start)
     return run.first_s - float(origin_s)
 
@@ -124,6 +154,25 @@ def _check_flagged_late(run: Run, behind_s: float) -> None:
     statuses = {q: v["status"] for q, v in summary["validity"].items()}
     assert "invalid" not in statuses.values(), summary["validity"]
     assert statuses["depth_mm"] == statuses["recovery_time_s"] == "flagged", statuses
+    # The disagreement the daemon reports is the probe's lateness, which it cannot see,
+    # within the bound it judges by (one force interval, two frame periods and a slack).
+    release = summary["release"]
+    shift_s = release["t_release_s"] - release["t_image_jump_s"]
+    assert abs(shift_s - behind_s) < release["bound_s"], (shift_s, behind_s, release)
+
+
+async def test_a_probe_scene_started_late_is_flagged_at_the_release(tmp_path: Path) -> None:
+    """The probe's STREAM_START arrives 150 ms of session time late (three times the
+    release check's bound, 48 ms): every frame is kept, the results are computed, and the
+    release says why they are not to be trusted as they stand."""
+    for attempt, speed in enumerate(SPEEDS):
+        run = await _measure(tmp_path / f"attempt{attempt}", speed, inbound_s=0.15)
+        behind_s = _check_stream_start(run, inbound_s=0.15)
+        if kept_up(run.summary):
+            assert behind_s > 0.15, behind_s
+            _check_flagged_late(run, behind_s)
+            return
+    raise AssertionError("no run kept up (host overloaded)")
 
 
 async def test_the_daemon_starts_the_probes_scene_at_the_cameras_origin(tmp_path: Path) -> None:
