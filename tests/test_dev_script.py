@@ -163,3 +163,15 @@ def test_an_old_python_is_refused_in_one_line(tree: Path, tmp_path: Path) -> Non
     assert run.stderr.splitlines() == [
         f"dev: {old} is not Python >= 3.11 (Python 3.9.2): give one as PYTHON=python3.11 ./dev"
     ]
+
+
+def test_the_stand_in_answers_pip_show_as_pip_does() -> None:
+    """The stand-in's ``pip show`` answers (0: installed, 1: not) are the real pip's, which
+    ``./dev`` relies on to find an older .venv's OpenCV contrib build."""
+
+    def status(name: str) -> int:
+        cmd = [sys.executable, "-m", "pip", "show", "-q", name]
+        return subprocess.run(cmd, capture_output=True, timeout=60).returncode
+
+    assert status("pytest") == 0
+    assert status("stipi-no-such-package") == 1
