@@ -47,6 +47,7 @@ from stipi_daemon.app.finish import (
     run_stats,
     session_summary,
     storage_failure,
+    unfinished_summary,
 )
 from stipi_daemon.app.frame_measurer import FrameMeasurer
 from stipi_daemon.app.imaging import resolve_imaging
@@ -231,11 +232,7 @@ async def run_daemon(
     # Until the measurement ends: an interruption (Ctrl-C) or an unexpected error leaves
     # this summary, whose verdict is incomplete.
     stopped = "stopped before the measurement ended (interrupted or an error)"
-    summary: dict[str, Any] = {
-        "status": "aborted",
-        "end_reason": stopped,
-        **assess_validity(None, ended_done=False, end_reason=stopped),
-    }
+    summary = unfinished_summary("aborted", stopped)
     storage_error: SessionError | None = None
     try:
         with console:
@@ -246,8 +243,10 @@ async def run_daemon(
                 status = "fault"
                 summary |= _fell_behind(pipeline, acquisition.fault_line)
     except SessionError as exc:
-        # Storage failed (disk full, I/O error): stop recording now, keep what is stored.
+        # Storage failed (disk full, I/O error, the video's muxer): stop recording now, keep
+        # what is stored; the summary says why the measurement did not end.
         storage_error = exc
+        summary = unfinished_summary("fault", f"recording stopped: {exc.__cause__ or exc}")
     finally:
         await acquisition.stop()
         await close_devices(devices)
@@ -266,7 +265,8 @@ async def run_daemon(
             console.line(f"measurement aborted; what was recorded is in {writer.directory}")
             console.line(_RESCUE_HINT.format(writer.directory))
     if storage_error is not None:
-        raise storage_failure(writer, storage_error) from storage_error
+        video_error = (summary["run"].get("video") or {}).get("error")
+        raise storage_failure(writer, storage_error, video_error) from storage_error
     print_results(console, summary, writer.db_path.parent, acquisition.stop_error)
     if status != "complete":
         console.line(_RESCUE_HINT.format(writer.directory))

@@ -168,12 +168,29 @@ def finish_session(
         writer.close()
 
 
-def storage_failure(writer: SessionWriter, storage_error: SessionError) -> SessionError:
-    """The one-line error the daemon raises when storing rows failed while recording."""
+def unfinished_summary(status: str, end_reason: str) -> dict[str, Any]:
+    """``summary.json`` of a session whose measurement did not end (``status`` ``aborted``
+    or ``fault``): why (``end_reason``), and the verdict it gives (no result)."""
+    return {
+        "status": status,
+        "end_reason": end_reason,
+        **assess_validity(None, ended_done=False, end_reason=end_reason),
+    }
+
+
+def storage_failure(
+    writer: SessionWriter, storage_error: SessionError, video_error: str | None = None
+) -> SessionError:
+    """The one-line error the daemon raises when storing failed while recording: the
+    session's rows, or its video (``video_error``: the recorder's reason, from the run
+    statistics' ``video.error``, when the video was what failed)."""
     cause = storage_error.__cause__ or storage_error
+    what = "the session could not be stored"
+    if video_error is not None and video_error in str(cause):
+        what = "the session video could not be written"
     return SessionError(
-        f"{writer.directory}: recording stopped, the session could not be stored ({cause}); "
-        "the rows committed before are kept"
+        f"{writer.directory}: recording stopped, {what} ({cause}); "
+        "the rows and video frames committed before are kept"
     )
 
 

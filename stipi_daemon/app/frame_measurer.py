@@ -15,7 +15,10 @@ stored: a :class:`LateFrame`, which the loop stores as a gap (reason ``processin
 Once the measurement has ended (:meth:`FrameMeasurer.stop_storing`) frames are no longer
 stored. When storing fails (a full disk: the writer's or the video's error), nothing more is
 stored and the error travels with the frame's result to the loop, which stops the run as
-for any storage failure.
+for any storage failure. A video that fails (any FFmpeg error) stops the same way: the
+recorder hands its error to the writer (:meth:`~stipi_daemon.storage.video.VideoRecorder.record`),
+so the measurement never goes on without its video; a frame's row is stored once, whatever
+fails after it.
 
 All times are on the session clock [s] unless named ``_wall_``.
 """
@@ -251,7 +254,13 @@ class FrameMeasurer:
         """The frame into the session video and its ``frames`` row ``(seq, t_capture_s,
         t_host_s, s_k, flags)`` into the session, committed (at most every
         :data:`COMMIT_SPACING_WALL_S`); the storage error, if storing failed now or before
-        (then nothing more is stored)."""
+        (then nothing more is stored).
+
+        Never raises: once the row is added, a failure of any kind is this frame's storage
+        error (the run stops), so the frame is never measured and stored again (the camera
+        measures a frame again on the loop when its hook raised: a second ``frames`` row of
+        the same ``seq``). The video's own failures (any FFmpeg error) stop the recorder,
+        which hands them to the writer: the commit below raises them."""
         if self._error is not None:
             return self._error
         try:
@@ -264,9 +273,16 @@ class FrameMeasurer:
                 self.recorder.record(row[0], row[1], image, packet, wait=wait)
             if self._writer is not None:
                 now_wall = time.monotonic()
-                if now_wall - self._last_commit_wall_s >= COMMIT_SPACING_WALL_S:
+                # a recorder that stopped has handed its error to the writer: a commit now
+                # raises it, so it travels with this very frame
+                stopped = self.recorder is not None and self.recorder.failed is not None
+                if stopped or now_wall - self._last_commit_wall_s >= COMMIT_SPACING_WALL_S:
                     self._writer.commit()
                     self._last_commit_wall_s = now_wall
         except SessionError as exc:
             self._error = exc
+        except Exception as exc:  # a bug: stop the run rather than store the frame twice
+            self._error = SessionError(
+                f"storing frame {row[0]} failed: {type(exc).__name__}: {exc}"
+            )
         return self._error

@@ -88,13 +88,14 @@ def list_text(root: Path, where: dict[str, str | None] | None = None) -> str:
 
 
 def _video_text(path: Path) -> str:
-    """``video.mkv (1234567 B, mjpeg 1920x1080, 7200 frames)``; the error if unreadable."""
+    """``video.mkv (1234567 B, mjpeg 1920x1080, 7200 frames)``; why not, if it cannot be
+    probed (unreadable, or holding no frame yet)."""
     from stipi_daemon.storage.video import probe_video
 
     try:
         info = probe_video(path)
     except SessionError as exc:
-        return f"{path.name} ({path.stat().st_size} B, unreadable: {exc})"
+        return f"{path.name} ({path.stat().st_size} B: {exc})"
     crop = "" if info.crop is None else ", crop " + ",".join(str(v) for v in info.crop)
     return (
         f"{path.name} ({info.size_bytes} B, {info.codec} {info.width}x{info.height} "

@@ -23,7 +23,7 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from types import TracebackType
-from typing import Any, Final, Self
+from typing import TYPE_CHECKING, Any, Final, Self
 
 import numpy as np
 import numpy.typing as npt
@@ -54,6 +54,9 @@ from stipi_daemon.storage.schema import (
     tables_of_version,
 )
 
+if TYPE_CHECKING:
+    from stipi_daemon.storage.video import VideoCheck
+
 _MAX_INTEGRITY_MESSAGES: Final = 5
 
 
@@ -80,6 +83,24 @@ class IntegrityReport:
         """Raise :class:`SessionError` (one line, every problem) unless the check passed."""
         if self.problems:
             raise SessionError("; ".join(self.problems))
+
+
+def _damage_problem(check: VideoCheck, rows: list[tuple[int, int, int, float]]) -> list[str]:
+    """One line naming the damaged frames of a :class:`~.video.VideoCheck` (the first
+    :data:`_MAX_INTEGRITY_MESSAGES` with their ``seq`` and byte offset), or none."""
+    if not check.damaged:
+        return []
+    named = []
+    for frame in check.damaged[:_MAX_INTEGRITY_MESSAGES]:
+        i = frame.frame_index
+        seq = f"seq {rows[i][0]}, " if i < len(rows) else ""
+        named.append(f"frame {i} ({seq}byte {frame.pos_bytes}): {frame.damage}")
+    more = len(check.damaged) - len(named)
+    return [
+        f"{check.path}: {len(check.damaged)} damaged frames: "
+        + "; ".join(named)
+        + (f" (+{more} more)" if more else "")
+    ]
 
 
 def _resolve_table(table: str | Table) -> Table:
@@ -345,13 +366,17 @@ class SessionReader:
         return None if span is None else span[1] - span[0]
 
     # ------------------------------------------------------------------ integrity
-    def integrity_check(self) -> IntegrityReport:
-        """Check the whole directory: manifest, database pages, schema, summary.
+    def integrity_check(self, *, decode: bool = False) -> IntegrityReport:
+        """Check the whole directory: manifest, database pages, schema, summary, video.
 
         Runs SQLite's ``PRAGMA integrity_check`` (reads every page: proportional to the
         file size), re-validates the manifest and the schema version, checks that the
-        manifest and the database belong to the same session, and that ``summary.json``
-        (if present) parses.
+        manifest and the database belong to the same session, that ``summary.json`` (if
+        present) parses, and the video against its ``video_frames`` rows
+        (:meth:`_video_problems`). The video's bytes are checked by default (every cluster's
+        CRC-32, every packet demuxed: 0.3-1.0 s for 114 MB, docs/storage.md); ``decode``
+        decodes every frame too (about 2 ms per 420x420 FFV1 frame, 9-13 ms per 1080p JPEG:
+        minutes for a long session), which only a decoder error the bytes cannot show needs.
         """
         problems: list[str] = []
         try:
@@ -386,43 +411,128 @@ class SessionReader:
         except SessionError as exc:
             problems.append(str(exc))
         try:
-            problems += self._video_problems()
-        except (sqlite3.DatabaseError, SessionError) as exc:
+            problems += self._video_problems(decode)
+        except sqlite3.DatabaseError as exc:
             problems.append(f"{self.db_path}: video_frames not readable ({exc})")
+        except SessionError as exc:  # names its file: the database or the video
+            problems.append(str(exc))
         return IntegrityReport(self.directory, tuple(problems))
 
-    def _video_problems(self) -> list[str]:
-        """The video against its ``video_frames`` rows.
+    def _video_problems(self, decode: bool) -> list[str]:
+        """The video, its ``video_frames`` rows and their ``frames`` rows.
 
-        Frame indices must run 0, 1, 2, ...; a ``complete`` session's file holds exactly one
-        frame per row. An unfinished (killed) recording may hold more frames than rows (the
-        recorder hands its rows over in batches of half a commit interval), or lack the
-        newest frames, by at most one commit interval of capture time (the muxer keeps the
-        newest block until the next frame arrives).
+        The file must be sound (:func:`~.video.check_video`: no frame failing its CRC-32 or,
+        with ``decode``, its decoding; no damaged header or broken structure). The rows:
+        frame indices 0, 1, 2, ..., each row's ``pts_ms`` the file's for that frame, each
+        ``seq`` once and in ``frames`` (once) with the same capture time. Frames against
+        rows: a recording that ended cleanly (``complete``, ``aborted``, and ``fault``
+        without a storage or video failure) holds exactly one frame per row and ends whole.
+        One that did not (killed: ``interrupted``/``recording``; or stopped by a storage or
+        video failure) may end in a cut-off element, hold up to
+        :data:`~.video.UNINDEXED_FRAMES_MAX` frames more than rows (the row batches not
+        stored), and lack the newest frames of at most one commit interval of capture time
+        (the block the muxer holds, the FFV1 encoders' queue).
         """
-        rows = self.iter_rows(VIDEO_FRAMES)
-        table = [(int(r[1]), float(r[3])) for r in rows]
-        n = len(table)
+        rows = [
+            (int(r[0]), int(r[1]), int(r[2]), float(r[3])) for r in self.iter_rows(VIDEO_FRAMES)
+        ]
+        n = len(rows)
         path = self.video_path
         if path is None or not path.is_file():
             missing = f"{path or self.directory}: video is missing, {n} video_frames rows"
             return [missing] if n else []
-        from stipi_daemon.storage.video import probe_video
+        from stipi_daemon.storage.video import check_video
 
-        info = probe_video(path)
-        problems: list[str] = []
-        if [i for i, _ in table] != list(range(n)):
-            problems.append(f"{self.db_path}: video_frames frame_index is not 0..{n - 1}")
-        meta = self.meta()
-        state = meta.get("state")
-        interval_s = float(meta.get("commit_interval_s", "0.2"))
-        if state == SessionState.COMPLETE.value and info.frames != n:
-            problems.append(f"{path}: video holds {info.frames} frames, video_frames has {n} rows")
-        elif info.frames < n and table[-1][1] - table[info.frames][1] > interval_s:
+        check = check_video(path, decode=decode)
+        problems = list(check.problems) + _damage_problem(check, rows)
+        problems += self._video_row_problems(rows)
+        clean = self._ended_cleanly()
+        if check.cut_at is not None and clean:
             problems.append(
-                f"{path}: video holds {info.frames} frames, video_frames has {n} rows "
-                f"(more than one commit interval, {interval_s:g} s, missing)"
+                f"{path}: ends inside an element at byte {check.cut_at} of {check.size_bytes} "
+                "(cut off, in a recording that ended cleanly)"
             )
+        problems += self._video_count_problems(check.frames, rows, clean, path)
+        shared = min(n, len(check.pts_ms))
+        wrong = [i for i in range(shared) if check.pts_ms[i] not in (None, rows[i][2])]
+        if wrong:
+            i = wrong[0]
+            problems.append(
+                f"{path}: {len(wrong)} frames have another pts than their video_frames row, "
+                f"first frame {i} (seq {rows[i][0]}): {check.pts_ms[i]} ms in the file, "
+                f"{rows[i][2]} ms in the row"
+            )
+        return problems
+
+    def _ended_cleanly(self) -> bool:
+        """Whether the recording ended cleanly: finished (``complete``, ``aborted``,
+        ``fault``) without a storage failure (``summary.storage_error``) or a video failure
+        (``summary.run.video.error``), after which the recorder hands over every row."""
+        state = self.meta().get("state")
+        finished = (SessionState.COMPLETE, SessionState.ABORTED, SessionState.FAULT)
+        if state not in {s.value for s in finished}:
+            return False
+        try:
+            summary = self.summary or {}
+        except SessionError:
+            return False  # reported by integrity_check; the rule cannot be chosen
+        run = summary.get("run")
+        video = run.get("video") if isinstance(run, dict) else None
+        video_error = video.get("error") if isinstance(video, dict) else None
+        return summary.get("storage_error") is None and video_error is None
+
+    def _video_count_problems(
+        self, frames: int, rows: list[tuple[int, int, int, float]], clean: bool, path: Path
+    ) -> list[str]:
+        """Frames in the file against rows (see :meth:`_video_problems`)."""
+        from stipi_daemon.storage.video import UNINDEXED_FRAMES_MAX
+
+        n = len(rows)
+        what = f"{path}: video holds {frames} frames, video_frames has {n} rows"
+        if clean:
+            return [] if frames == n else [f"{what} (the recording ended cleanly)"]
+        if frames - n > UNINDEXED_FRAMES_MAX:
+            return [
+                f"{what}: more frames without rows than a recording that did not end "
+                f"cleanly leaves ({UNINDEXED_FRAMES_MAX})"
+            ]
+        interval_s = float(self.meta().get("commit_interval_s", "0.2"))
+        if frames < n and rows[-1][3] - rows[frames][3] > interval_s:
+            return [f"{what} (more than one commit interval, {interval_s:g} s, missing)"]
+        return []
+
+    def _video_row_problems(self, rows: list[tuple[int, int, int, float]]) -> list[str]:
+        """``video_frames`` rows against themselves and the ``frames`` table."""
+        n = len(rows)
+        problems: list[str] = []
+        if [i for _, i, _, _ in rows] != list(range(n)):
+            problems.append(f"{self.db_path}: video_frames frame_index is not 0..{n - 1}")
+        checks = (
+            (
+                "SELECT seq, count(*) FROM video_frames GROUP BY seq HAVING count(*) > 1",
+                "seq {} appears {} times in video_frames",
+            ),
+            (
+                # NOT IN: SQLite builds a table of the seqs once (not a scan per row)
+                "SELECT seq, 0 FROM video_frames WHERE seq NOT IN (SELECT seq FROM frames)",
+                "video_frames seq {} has no frames row",
+            ),
+            (
+                "SELECT v.seq, count(*) FROM video_frames v JOIN frames f ON f.seq = v.seq "
+                "GROUP BY v.id HAVING count(*) > 1",
+                "video_frames seq {} has {} frames rows",
+            ),
+            (
+                "SELECT v.seq, v.t_capture_host_s - f.t_capture_host_s FROM video_frames v "
+                "JOIN frames f ON f.seq = v.seq WHERE v.t_capture_host_s != f.t_capture_host_s",
+                "video_frames seq {} has another capture time than its frames row ({:+.6g} s)",
+            ),
+        )
+        for sql, text in checks:
+            found = self._query(sql + " ORDER BY 1") if n else []
+            if found:
+                more = f" (+{len(found) - 1} more)" if len(found) > 1 else ""
+                problems.append(f"{self.db_path}: " + text.format(*found[0]) + more)
         return problems
 
     # ------------------------------------------------------------------ lifetime

@@ -19,7 +19,7 @@ import pytest
 from stipi_daemon.app.acquisition import Acquisition
 from stipi_daemon.app.frame_measurer import FrameMeasurer, FrameResult, LateFrame
 from stipi_daemon.cameras import CameraFrame
-from stipi_daemon.cameras.threaded import RawFrame
+from stipi_daemon.cameras.threaded import RawFrame, ThreadedCamera
 from stipi_daemon.clock import ScaledClock
 from stipi_daemon.errors import SessionError
 from stipi_daemon.measurement.representative_frames import RepresentativeFrames
@@ -160,3 +160,88 @@ def test_a_storage_failure_travels_with_the_frame_and_stops_the_run(tmp_path: Pa
     writer.close()
     with SessionReader(tmp_path / "s") as r:
         assert r.frames()["seq"].tolist() == [0]
+
+
+class _JpegCamera(ThreadedCamera[list[int]]):
+    """A source of ``n`` MJPG frames (48x64, their JPEG packets), as fast as it is read, one
+    of which waits for its consumer (a file): the capture thread runs the real hook path."""
+
+    def __init__(self, clock: ScaledClock, n: int) -> None:
+        super().__init__(clock, capacity=4, drop_oldest=False, paced=False)
+        self.n = n
+
+    @property
+    def name(self) -> str:
+        return "jpeg"
+
+    @property
+    def nominal_fps(self) -> float:
+        return 60.0
+
+    def _open_source(self) -> list[int]:
+        return [0]
+
+    def _read(self, handle: list[int]) -> RawFrame | None:
+        k = handle[0]
+        if k >= self.n:
+            return None
+        handle[0] += 1
+        gray, packet = _frame(1 + k % 40)
+        return RawFrame(k, k / 60, gray, packet)
+
+    def _close_source(self, handle: list[int]) -> None:
+        pass
+
+
+@pytest.mark.parametrize("failure", ["ExternalError", "RuntimeError"])
+async def test_a_video_error_of_any_ffmpeg_class_stops_the_video_without_a_second_row(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, failure: str
+) -> None:
+    """PyAV raises ``av.ExternalError`` (neither an OSError nor a ValueError) while muxing
+    frame 6, through the camera's real capture thread and hook: the video stops cleanly
+    (its cause in the recorder's error and a ``video_stopped`` event), the error travels
+    with the frame to the loop, and no frame gets a second ``frames`` row (the camera
+    measures a frame again on the loop when its hook raised). Any other exception there (a
+    bug) stops the run the same way, never with a second row."""
+    import av
+
+    from stipi_daemon.storage import video as video_module
+
+    write = video_module.write_video_frame
+    calls = [0]
+
+    def failing_at_the_7th(*args: Any, **kwargs: Any) -> None:
+        calls[0] += 1
+        if calls[0] == 7:
+            if failure == "ExternalError":
+                raise av.ExternalError(-1, "injected muxer failure")  # type: ignore[call-arg]
+            raise RuntimeError("injected muxer failure")
+        write(*args, **kwargs)
+
+    monkeypatch.setattr(video_module, "write_video_frame", failing_at_the_7th)
+    clock = ScaledClock(1.0)
+    measurer, writer = _measurer(tmp_path, clock)
+    camera = _JpegCamera(clock, 12)
+    camera.frame_hook = measurer.on_capture
+    await camera.open()
+    results = [measurer(ev) async for ev in camera.frames()]
+    await camera.close()
+    assert measurer.recorder is not None
+    measurer.recorder.close()
+    errors = [r.error for r in results if isinstance(r, FrameResult)]
+    assert errors[:6] == [None] * 6 and all(e is not None for e in errors[6:])
+    assert failure in str(errors[6]) and "injected muxer failure" in str(errors[6])
+    error = measurer.recorder.stats()["error"]
+    if failure == "ExternalError":  # the video's own failure: recorded as such
+        assert error is not None and "ExternalError: " in error and "video.mkv" in error
+    summary = {"storage_error": str(errors[6]), "run": {"video": measurer.recorder.stats()}}
+    writer.finish("fault", summary)
+    writer.close()
+    with SessionReader(tmp_path / "s") as r:
+        seqs = r.frames()["seq"].tolist()
+        assert len(seqs) == len(set(seqs))  # never a second row of one frame
+        assert seqs == list(range(7))  # the failing frame's row, then nothing more
+        assert r.video_frames()["seq"].tolist() == list(range(6))
+        stopped = [e.detail["error"] for e in r.events() if e.kind == "video_stopped"]
+        assert stopped == ([error] if failure == "ExternalError" else [])
+        assert r.integrity_check().ok, r.integrity_check().problems

@@ -41,6 +41,22 @@ def _writer(tmp_path: Path) -> SessionWriter:
     return SessionWriter.create(tmp_path, {}, {}, session_id="s", video=True, options=OPTS)
 
 
+def _store(
+    w: SessionWriter,
+    rec: VideoRecorder,
+    seq: int,
+    t_s: float,
+    image: np.ndarray,
+    packet: bytes | None,
+    *,
+    wait: bool = False,
+) -> bool:
+    """A frame stored as the daemon stores it: its ``frames`` row, then the video
+    (``app.frame_measurer``); the integrity check ties every video row to its frame row."""
+    w.add_frames([(seq, t_s, t_s, 0, "")])
+    return rec.record(seq, t_s, image, packet, wait=wait)
+
+
 def test_passthrough_stores_the_jpeg_packets_unchanged(tmp_path: Path) -> None:
     images = _images(12, (48, 64))
     quality = [cv2.IMWRITE_JPEG_QUALITY, 80]
@@ -50,7 +66,7 @@ def test_passthrough_stores_the_jpeg_packets_unchanged(tmp_path: Path) -> None:
         rec = VideoRecorder(w.video_path, w, "passthrough")
         for k, pk in enumerate(packets):
             gray = cv2.imdecode(np.frombuffer(pk, np.uint8), cv2.IMREAD_GRAYSCALE)
-            assert rec.record(10 + k, 5.0 + k / 30, gray, pk)
+            assert _store(w, rec, 10 + k, 5.0 + k / 30, gray, pk)
         rec.close()
         w.finish("complete")
     import av
@@ -187,7 +203,8 @@ _KILLED_WRITER = textwrap.dedent(
                              options=StorageOptions(min_free_bytes=0))
     rec = VideoRecorder(w.video_path, w, sys.argv[2])
     rng = np.random.default_rng(0)
-    img = cv2.GaussianBlur(rng.integers(0, 256, (120, 160), dtype=np.uint8), (9, 9), 3)
+    shape = (120, 160) if sys.argv[3] == "large" else (24, 32)
+    img = cv2.GaussianBlur(rng.integers(0, 256, shape, dtype=np.uint8), (9, 9), 3)
     pk = cv2.imencode(".jpg", img)[1].tobytes()
     k = 0
     while True:
@@ -203,15 +220,21 @@ _KILLED_WRITER = textwrap.dedent(
 )
 
 
+# Large frames (a 120x160 JPEG, 6 kB) and small ones (24x32, under 1 kB): FFmpeg's muxer
+# holds a cluster in memory until it ends, by default once it exceeds 4 kB, which kept
+# several small frames from the file (MUXER_OPTIONS: a cluster per frame).
+@pytest.mark.parametrize("size", ["large", "small"])
 @pytest.mark.parametrize("mode", ["passthrough", "lossless"])
-def test_kill_9_leaves_a_playable_video_covering_the_rows(tmp_path: Path, mode: str) -> None:
+def test_kill_9_leaves_a_playable_video_covering_the_rows(
+    tmp_path: Path, mode: str, size: str
+) -> None:
     """The documented promise, whatever CPU is left: every frame the recorder accepted
     (``record`` True) and whose ``video_frames`` row was committed plays; the accepted
     frames not playable yet lie within one commit interval of the newest accepted one (the
     FFV1 queue and the block the muxer holds); a frame left out (``record`` False, the
     lossless encoder lagging) is counted in ``left_out`` and has no row."""
     proc = subprocess.Popen(
-        [sys.executable, "-c", _KILLED_WRITER, str(tmp_path), mode],
+        [sys.executable, "-c", _KILLED_WRITER, str(tmp_path), mode, size],
         stdout=subprocess.PIPE,
         text=True,
     )
@@ -330,7 +353,7 @@ def test_video_frames_rows_reach_the_writer_in_batches_and_all_at_close(
 
         def rows_after(k: int, dt_s: float) -> int:
             now[0] += dt_s
-            assert rec.record(k, k / 60, images[k], packets[k])
+            assert _store(w, rec, k, k / 60, images[k], packets[k])
             w.commit()
             return w.stats.rows["video_frames"]
 
@@ -365,7 +388,7 @@ def test_a_caller_that_can_wait_loses_no_frame_to_a_slow_encoder(tmp_path: Path)
         with SessionWriter.create(root, {}, {}, session_id="s", video=True, options=OPTS) as w:
             assert w.video_path is not None
             rec = VideoRecorder(w.video_path, w, "lossless")
-            stored = [rec.record(k, k / 60, im, None, wait=wait) for k, im in enumerate(images)]
+            stored = [_store(w, rec, k, k / 60, im, None, wait=wait) for k, im in enumerate(images)]
             rec.close()
             w.finish("complete")
         with SessionReader(root / "s") as r:
@@ -421,7 +444,7 @@ def test_a_repeated_read_only_frame_is_stored_with_the_bytes_encoding_would_give
         assert w.video_path is not None
         rec = VideoRecorder(w.video_path, w, "lossless")
         for k, im in enumerate(sequence):
-            assert rec.record(k, k / 60, im, None, wait=True)
+            assert _store(w, rec, k, k / 60, im, None, wait=True)
         rec.close()
         w.finish("complete")
     path = tmp_path / "s" / "video.mkv"
