@@ -5,7 +5,10 @@ the command line into an :class:`AnalyzeRequest` and calls :func:`analyze`). Two
 
 * a stored session (:func:`analyze_session`): its frames' S_k and force samples, read from
   ``session.sqlite``, replayed with the settings its manifest recorded (a ``--config``
-  replaces them); with ``recompute_sk`` S_k is counted again on the session's video;
+  replaces them); with ``recompute_sk`` S_k is counted again on the session's video, each
+  stored frame paired with its video frame by ``seq`` (``video_frames``), and compared with
+  the stored S_k: a recount that does not reproduce them (with the recorded threshold and
+  ROI) or lacks stored frames flags the results (:data:`EXIT_S_K_NOT_REPRODUCED`);
 * files (:func:`analyze_files`): a video whose S_k is counted on every decoded frame
   (Eqs. 1-2), frame times (``frames.csv`` next to the video by default, else the video's
   frame rate) and a force CSV.
@@ -46,6 +49,7 @@ from stipi_daemon.analysis.results import AnalysisSettings
 from stipi_daemon.analysis.severity import load_reference
 from stipi_daemon.analysis.summary_diff import diff_results
 from stipi_daemon.analysis.truth_comparison import ParameterComparison, compare_ground_truth
+from stipi_daemon.analysis.validity import PRIMARY_QUANTITIES
 from stipi_daemon.app.config import DaemonConfig, ImagingSettings
 from stipi_daemon.app.console import format_results
 from stipi_daemon.app.imaging import (
@@ -59,6 +63,7 @@ from stipi_daemon.app.imaging import (
 )
 from stipi_daemon.app.offline_io import (
     SessionData,
+    VideoCount,
     count_session_video,
     count_video,
     load_ground_truth,
@@ -71,11 +76,14 @@ from stipi_daemon.errors import ConfigError, DataFileError, SessionError
 from stipi_daemon.measurement.replay import Recording, ReplayOutcome, ReplaySetup, replay
 from stipi_daemon.measurement.state_machine import FAULT_PHASES, MeasurementConfig, Phase
 from stipi_daemon.storage import SessionState, layout
+from stipi_daemon.storage.export import check_export_target
 from stipi_daemon.storage.metadata import metadata_of
 
 __all__ = [
+    "EXIT_S_K_NOT_REPRODUCED",
     "OUTPUT_FORMAT",
     "OUTPUT_VERSION",
+    "S_K_NOT_REPRODUCED",
     "AnalysisRun",
     "AnalyzeRequest",
     "analyze",
@@ -87,16 +95,14 @@ __all__ = [
 OUTPUT_FORMAT = "stipi-offline-analysis"
 OUTPUT_VERSION = 1
 
-#: Files of a session directory that the output may never replace.
-_PROTECTED = (
-    layout.MANIFEST_NAME,
-    layout.SUMMARY_NAME,
-    layout.DB_NAME,
-    layout.DB_NAME + "-wal",
-    layout.DB_NAME + "-shm",
-    layout.LOCK_NAME,
-    layout.VIDEO_NAME,
-)
+#: Exit status of an analysis written whose S_k, counted again from the session's video,
+#: do not reproduce the stored ones with the recorded threshold and ROI, or lack stored
+#: frames (missing from the video or undecodable): the results are flagged
+#: (:data:`S_K_NOT_REPRODUCED`). 1: no results; 2: a usage or input error (nothing written).
+EXIT_S_K_NOT_REPRODUCED = 3
+#: Validity flag of the quantities computed from S_k when the recount does not reproduce
+#: or cover the stored S_k (``settings.imaging.s_k_vs_stored.problem`` says how).
+S_K_NOT_REPRODUCED = "s_k_not_reproduced"
 
 _NO_THRESHOLD = "no threshold p for Eq. (1): give --threshold P (or a calibration with threshold_p)"
 
@@ -186,14 +192,28 @@ class AnalysisRun:
     truth_rows: list[ParameterComparison] | None
 
     @property
+    def recount(self) -> Mapping[str, Any] | None:
+        """With ``--recompute-sk``: the recounted S_k against the stored ones
+        (``settings.imaging.s_k_vs_stored``); None otherwise."""
+        check = self.document["settings"]["imaging"].get("s_k_vs_stored")
+        return check if isinstance(check, dict) else None
+
+    @property
     def exit_code(self) -> int:
-        """0 when the replay produced results, 1 otherwise."""
-        return 0 if self.outcome.result is not None else 1
+        """0 when the replay produced results, 1 when it produced none,
+        :data:`EXIT_S_K_NOT_REPRODUCED` (3) when it did but the S_k recount did not
+        reproduce or cover the stored S_k (the results are flagged)."""
+        if self.outcome.result is None:
+            return 1
+        check = self.recount
+        return EXIT_S_K_NOT_REPRODUCED if check is not None and check["problem"] else 0
 
     def lines(self) -> list[str]:
         """The report printed for the operator."""
         outcome, doc = self.outcome, self.document
         lines = list(self.header)
+        if self.recount is not None:
+            lines.append(_recount_line(self.recount))
         lines.append(
             f"replayed {outcome.frames_fed} frames and {outcome.force_samples_fed} force "
             f"samples: phase {outcome.phase} ({outcome.end_reason})"
@@ -331,11 +351,117 @@ def _roi_field(source: str) -> str:
     return f"the ROI ({source})"
 
 
+def _settings_change(
+    data: SessionData, threshold: Choice[int], imaging: Imaging, roi_given: bool
+) -> str | None:
+    """How the threshold and ROI of a recount differ from those the session counted its
+    S_k with live (its manifest's calibration record: ``threshold_p``, ``roi``), or None
+    when they are the same (the recount must then reproduce every stored S_k)."""
+    cal = data.manifest.get("calibration")
+    cal = cal if isinstance(cal, dict) else {}
+    changes: list[str] = []
+    recorded_p = cal.get("threshold_p")
+    if (recorded_p is not None and threshold.value != recorded_p) or (
+        recorded_p is None and threshold.source == "--threshold"
+    ):
+        changes.append(f"threshold {threshold.value} from {threshold.source}")
+    roi = imaging.roi_value
+    if ("roi" in cal and _roi_dict(roi) != cal["roi"]) or ("roi" not in cal and roi_given):
+        where = "no ROI source" if imaging.roi is None else imaging.roi.source
+        changes.append(f"ROI {'full frame' if roi is None else _roi_text(roi)} from {where}")
+    return "; ".join(changes) or None
+
+
+def _roi_text(roi: CircleROI | RectROI) -> str:
+    if isinstance(roi, CircleROI):
+        return f"circle:{roi.cx_px:g},{roi.cy_px:g},{roi.radius_px:g}"
+    return f"rect:{roi.x_px},{roi.y_px},{roi.width_px},{roi.height_px}"
+
+
+_IntArray = np.ndarray[Any, np.dtype[np.int64]]
+
+
+def _first_repeat(values: _IntArray) -> int | None:
+    """A value that occurs more than once in ``values``, or None."""
+    uniq, counts = np.unique(values, return_counts=True)
+    repeated = uniq[counts > 1]
+    return int(repeated[0]) if repeated.size else None
+
+
+def _pair_rows(data: SessionData, video: Path, frames_in_file: int) -> tuple[_IntArray, list[str]]:
+    """The file index (``video_frames`` ``frame_index``) of the video frame of each stored
+    ``frames`` row, by ``seq`` (-1: none), and notes. Without ``video_frames`` rows the
+    frames are paired by position only when the video holds exactly as many frames as
+    the ``frames`` table.
+
+    Raises
+    ------
+    SessionError
+        The pairing would not be one to one: a ``seq`` twice in ``frames`` or in
+        ``video_frames``, a ``frame_index`` twice, or no ``video_frames`` rows and another
+        number of frames in the video than rows in ``frames``.
+    """
+    db = data.directory / layout.DB_NAME
+    seq = data.frame_seq if data.frame_seq is not None else np.zeros(0, np.int64)
+    n_rows = int(data.frame_times_s.size)
+    vseq, vindex = data.video_seq, data.video_frame_index
+    if vseq is None or vindex is None or not vseq.size:
+        if frames_in_file != n_rows:
+            raise SessionError(
+                f"{video}: --recompute-sk: the video holds {frames_in_file} frames, the "
+                f"session {n_rows} frame rows, and no video_frames rows tie them together: "
+                "the stored frames cannot be paired with the video's frames one to one"
+            )
+        note = (
+            f"no video_frames rows: the {n_rows} stored frames are paired with the video's "
+            f"{frames_in_file} frames by position"
+        )
+        return np.arange(n_rows, dtype=np.int64), [note]
+    for table, column, values in (
+        ("frames", "seq", seq),
+        ("video_frames", "seq", vseq),
+        ("video_frames", "frame_index", vindex),
+    ):
+        twice = _first_repeat(values)
+        if twice is not None:
+            raise SessionError(
+                f"{db}: table {table}: {column} {twice} occurs more than once: the stored "
+                "frames cannot be paired with the video's frames one to one"
+            )
+    notes: list[str] = []
+    by_seq = dict(zip(vseq.tolist(), vindex.tolist(), strict=True))
+    index = np.array([by_seq.get(int(s), -1) for s in seq], dtype=np.int64)
+    orphans = len(by_seq) - int(np.count_nonzero(index >= 0))
+    if orphans:
+        notes.append(f"{orphans} video_frames row(s) name a seq no frames row has: not used")
+    unlisted = frames_in_file - int(np.count_nonzero((vindex >= 0) & (vindex < frames_in_file)))
+    if unlisted > 0:
+        notes.append(
+            f"the video holds {unlisted} frame(s) more than its video_frames rows "
+            f"({vseq.size}; an interrupted recording whose last rows were not committed): "
+            "those frames are not tied to a stored frame and are not used"
+        )
+    return index, notes
+
+
 def _recount(
-    data: SessionData, imaging: Imaging, settings: ImagingSettings, notes: list[str]
+    data: SessionData,
+    imaging: Imaging,
+    settings: ImagingSettings,
+    notes: list[str],
+    *,
+    roi_given: bool = False,
+    frame_size: tuple[int, int] | None = None,
 ) -> tuple[SessionData, np.ndarray[Any, np.dtype[np.float64]], dict[str, Any]]:
-    """Count S_k again on the session's video: the data cut to the frames both hold,
-    the new S_k and the output's imaging record (``notes`` gets what the reader should know)."""
+    """Count S_k again on the session's video: the data cut to the stored frames whose video
+    frame decoded (paired by ``seq`` through ``video_frames``, :func:`_pair_rows`), their
+    new S_k and the output's imaging record, whose ``s_k_vs_stored`` compares them with the
+    stored S_k and says (``problem``) why the results must be flagged: with the recorded
+    threshold and ROI any S_k not reproduced; always, stored frames missing from the video
+    or undecodable there. ``notes`` gets what the reader should know; ``frame_size`` is the
+    camera's ``(width, height)`` [px] when known."""
+    from stipi_daemon.storage.video import check_video
+
     if data.video_path is None:
         raise SessionError(f"{data.directory}: --recompute-sk: the session has no video file")
     threshold = imaging.need_threshold(_NO_THRESHOLD)
@@ -344,95 +470,146 @@ def _recount(
         notes.append("ROI: none recorded, the whole frame is counted")
     elif imaging.roi.source == "simulator ground truth":
         notes.append("ROI: the simulator's waveguide disc (ground truth)")
-    if data.video_seq is not None and data.video_seq.size and data.frame_seq is not None:
-        return _recount_stored(data, data.video_path, threshold, roi, settings, notes)
-    video = count_video(
+    field = "the ROI (none recorded)" if imaging.roi is None else _roi_field(imaging.roi.source)
+    if roi is None and field == "--roi":
+        field = "--roi full"
+    # the frames (Matroska blocks) the file holds, read cheaply before anything is counted
+    index, more = _pair_rows(data, data.video_path, check_video(data.video_path).frames)
+    video = count_session_video(
         data.video_path,
         threshold.value,
         roi,
         saturation_limit_fraction=settings.saturation_limit_fraction,
-        roi_field=None if imaging.roi is None else _roi_field(imaging.roi.source),
+        roi_field=field,
+        frame_size=frame_size,
     )
-    n_rows, n_video = data.frame_times_s.size, video.s_k_px.size
-    if n_video < n_rows:
+    notes.extend(more)
+    notes.extend(_damage_notes(video))
+    in_file = (index >= 0) & (index < video.s_k_px.size)
+    counted = np.full(index.size, np.nan)
+    counted[in_file] = video.s_k_px[index[in_file]]
+    keep = np.isfinite(counted)
+    # rows whose frame lies past a break in the file's structure are damaged, not absent
+    absent = (index < 0) | (~in_file & (index >= 0) & (not video.broken))
+    s_k, stored = counted[keep], data.s_k_px[keep]
+    check = _comparison(
+        s_k,
+        stored,
+        missing=int(np.count_nonzero(absent)),
+        undecodable=int(np.count_nonzero(~keep & ~absent)),
+        change=_settings_change(data, threshold, imaging, roi_given),
+    )
+    if not keep.all():
         notes.append(
-            f"the video holds {n_video} of the {n_rows} stored frames: the first "
-            f"{n_video} are analysed"
+            f"{int((~keep).sum())} of the {keep.size} stored frames have no decodable frame "
+            "in the video: they are left out"
         )
-    elif n_video > n_rows:
-        notes.append(
-            f"the video holds {n_video - n_rows} frame(s) more than the database "
-            f"({n_rows}): frames without a stored time are not used"
-        )
-    n = min(n_rows, n_video)
-    data = dataclasses.replace(data, frame_times_s=data.frame_times_s[:n], s_k_px=data.s_k_px[:n])
+    data = dataclasses.replace(
+        data,
+        frame_times_s=data.frame_times_s[keep],
+        s_k_px=stored,
+        frame_seq=None if data.frame_seq is None else data.frame_seq[keep],
+    )
     record = {
         "s_k_source": f"video {data.video_path}",
         "threshold_p": threshold.value,
         "threshold_source": threshold.source,
         "roi": _roi_dict(roi),
+        "video_crop": None if video.crop is None else list(video.crop),
         "saturated_frames": video.saturated_frames,
-    }
-    return data, video.s_k_px[:n], record
-
-
-def _recount_stored(
-    data: SessionData,
-    video_path: Path,
-    threshold: Any,
-    roi: CircleROI | RectROI | None,
-    settings: ImagingSettings,
-    notes: list[str],
-) -> tuple[SessionData, np.ndarray[Any, np.dtype[np.float64]], dict[str, Any]]:
-    """Recount on a session's own ``video.mkv``: each stored frame is paired with its
-    ``frames`` row by ``seq`` (``video_frames``); rows without a stored frame are left out
-    (noted). The record says how many recounted S_k differ from the stored ones."""
-    assert data.video_seq is not None and data.frame_seq is not None
-    video = count_session_video(
-        video_path,
-        threshold.value,
-        roi,
-        saturation_limit_fraction=settings.saturation_limit_fraction,
-    )
-    n_video = min(video.s_k_px.size, data.video_seq.size)
-    if video.s_k_px.size > data.video_seq.size:
-        notes.append(
-            f"the video holds {video.s_k_px.size - data.video_seq.size} frame(s) more than its "
-            f"video_frames rows ({data.video_seq.size}; an interrupted recording whose last "
-            "rows were not committed): those frames are not tied to a stored frame and are "
-            "not used"
-        )
-    by_seq = dict(zip(data.video_seq[:n_video].tolist(), video.s_k_px[:n_video], strict=True))
-    keep = np.array([int(s) in by_seq for s in data.frame_seq], dtype=bool)
-    if not keep.all():
-        notes.append(
-            f"{int((~keep).sum())} of the {keep.size} stored frames are not in the video: "
-            "they are left out"
-        )
-    s_k = np.array([by_seq[int(s)] for s in data.frame_seq[keep]], dtype=np.float64)
-    stored = data.s_k_px[keep]
-    differ = int(np.count_nonzero(s_k != stored))
-    data = dataclasses.replace(
-        data,
-        frame_times_s=data.frame_times_s[keep],
-        s_k_px=stored,
-        frame_seq=data.frame_seq[keep],
-    )
-    record = {
-        "s_k_source": f"video {video_path}",
-        "threshold_p": threshold.value,
-        "threshold_source": threshold.source,
-        "roi": _roi_dict(roi),
-        "saturated_frames": video.saturated_frames,
-        "s_k_vs_stored": {
-            "frames": int(s_k.size),
-            "differing": differ,
-            "max_abs_difference_px": float(np.max(np.abs(s_k - stored))) if s_k.size else 0.0,
-            # stored frames the video lacks (left out when the encoder fell behind)
-            "frames_without_video": int((~keep).sum()),
-        },
+        "s_k_vs_stored": check,
     }
     return data, s_k, record
+
+
+def _damage_notes(video: VideoCount, shown: int = 5) -> list[str]:
+    """What the readback reported damaged in the video (the first ``shown`` frames, and a
+    structure that breaks off)."""
+    frames = [d for d in video.damage if d.startswith("frame ")]
+    notes = [f"video damaged: {d}" for d in frames[:shown]]
+    if len(frames) > shown:
+        notes.append(f"video damaged: {len(frames) - shown} more frame(s)")
+    notes.extend(f"video damaged: {d}" for d in video.damage if not d.startswith("frame "))
+    return notes
+
+
+def _comparison(
+    s_k: np.ndarray[Any, np.dtype[np.float64]],
+    stored: np.ndarray[Any, np.dtype[np.float64]],
+    *,
+    missing: int,
+    undecodable: int,
+    change: str | None,
+) -> dict[str, Any]:
+    """The ``s_k_vs_stored`` record: recounted S_k against the stored ones [px] (paired),
+    stored frames not in the video and undecodable there, the settings (None: the
+    recorded ones) and the problem that flags the results (None: none)."""
+    differ = int(np.count_nonzero(s_k != stored))
+    n_stored = int(s_k.size) + missing + undecodable
+    parts = []
+    if differ and change is None:
+        parts.append(f"{differ} differ from the stored S_k")
+    if missing:
+        parts.append(f"{missing} not in the video")
+    if undecodable:
+        parts.append(f"{undecodable} undecodable in the video")
+    problem = None
+    if parts:
+        problem = f"S_k recount from the video: of the {n_stored} stored frames, {', '.join(parts)}"
+    return {
+        "stored_frames": n_stored,
+        "frames": int(s_k.size),
+        "differing": differ,
+        "max_abs_difference_px": float(np.max(np.abs(s_k - stored))) if s_k.size else 0.0,
+        "frames_without_video": missing,
+        "undecodable_frames": undecodable,
+        "settings": "recorded" if change is None else change,
+        "problem": problem,
+    }
+
+
+def _recount_line(check: Mapping[str, Any]) -> str:
+    """The operator's line on whether the recount reproduced the stored S_k."""
+    n, total = check["frames"], check["stored_frames"]
+    changed = check["settings"] != "recorded"
+    head = f"S_k recounted from the video: {n} of {total} stored frames"
+    if changed:
+        head += f" ({check['settings']})"
+    differ, missing, bad = (
+        check["differing"],
+        check["frames_without_video"],
+        check["undecodable_frames"],
+    )
+    if not (differ or missing or bad):
+        return f"{head}, all equal"
+    line = f"{head}: {differ} differ"
+    if differ:
+        line += f" (up to {check['max_abs_difference_px']:g} px)"
+    line += f", {missing} not in the video, {bad} undecodable"
+    if check["problem"] is None:
+        return f"{line} (differences expected with other settings)"
+    return f"{line}: the results are flagged"
+
+
+def _flag_recount(summary: dict[str, Any], problem: str) -> None:
+    """Flag the quantities computed from S_k and the verdict of ``summary`` (in place)
+    with ``problem``: a recount that did not reproduce or cover the stored S_k."""
+    validity = summary.get("validity")
+    for q in (*PRIMARY_QUANTITIES, "tau_s"):
+        v = validity.get(q) if isinstance(validity, dict) else None
+        if not isinstance(v, dict):
+            continue
+        v["flags"] = sorted({*v.get("flags", []), S_K_NOT_REPRODUCED})
+        if v.get("status") == "valid":
+            v["status"], v["reason"] = "flagged", problem
+        elif v.get("status") == "flagged":
+            v["reason"] = "; ".join(r for r in (v.get("reason"), problem) if r)
+    verdict = summary.get("verdict")
+    verdict = verdict if isinstance(verdict, dict) else {}
+    if verdict.get("status") in (None, "complete"):
+        summary["verdict"] = {"status": "flagged", "line": f"Complete with caveats: {problem}."}
+    else:
+        summary["verdict"] = {**verdict, "line": f"{verdict.get('line', '')} {problem}.".strip()}
 
 
 def _json_roundtrip(value: Any) -> Any:
@@ -521,9 +698,11 @@ def _incomplete_verdict(
 
 def analyze_session(request: AnalyzeRequest) -> AnalysisRun:
     """Replay a stored session (:class:`AnalyzeRequest` ``session_dir``) and write the results."""
+    assert request.session_dir is not None
+    if request.out is not None:  # before anything is read or counted
+        _check_out(request.out, [], session=request.session_dir)
     doc, outcome, header, truth_rows, directory = replay_session(request)
     out = request.out if request.out is not None else _default_out(directory)
-    _check_out(out, [directory / name for name in _PROTECTED])
     return _write(out, doc, outcome, header, truth_rows)
 
 
@@ -554,7 +733,14 @@ def replay_session(
     s_k = None
     imaging_out: dict[str, Any] = {"s_k_source": "session"}
     if request.recompute_sk:
-        data, s_k, imaging_out = _recount(data, imaging, settings, notes)
+        data, s_k, imaging_out = _recount(
+            data,
+            imaging,
+            settings,
+            notes,
+            roi_given=request.roi_given,
+            frame_size=_frame_size(truth),
+        )
     status = data.status
     setup = ReplaySetup(measurement, analysis, calibration.value, load_reference())
     # A complete session whose recorder ended the recovery before these settings would
@@ -580,6 +766,9 @@ def replay_session(
     recomputed = outcome.summary()
     if status in ENDED_EARLY:
         recomputed["verdict"] = _incomplete_verdict(data, outcome, cut_at_s)
+    problem = imaging_out.get("s_k_vs_stored", {}).get("problem")
+    if problem:
+        _flag_recount(recomputed, problem)
     truth_rows = compare_ground_truth(recomputed, truth) if truth is not None else None
     inputs = {
         "kind": "session",
@@ -685,6 +874,7 @@ def analyze_files(request: AnalyzeRequest) -> AnalysisRun:
         "threshold_p": threshold.value,
         "threshold_source": threshold.source,
         "roi": _roi_dict(roi),
+        "video_crop": None if video.crop is None else list(video.crop),
         "saturated_frames": video.saturated_frames,
         "s_k_range_px": [float(np.min(s_k)), float(np.max(s_k))],
     }
@@ -692,7 +882,7 @@ def analyze_files(request: AnalyzeRequest) -> AnalysisRun:
     doc = _document(inputs, (*settings_out, imaging_out), outcome, notes, None, truth_rows)
     out = request.out if request.out is not None else _default_out(vdir)
     protected = [p for p in (video_path, force_path, times_path, truth_path) if p is not None]
-    _check_out(out, protected)
+    _check_out(out, protected, explicit=request.out is not None)
     header = [f"video {video_path} ({s_k.size} frames), force {force_path}"]
     return _write(out, doc, outcome, header, truth_rows)
 
@@ -712,13 +902,39 @@ def _default_out(directory: Path) -> Path:
     return path
 
 
-def _check_out(out: Path, protected: list[Path]) -> None:
+def _check_out(
+    out: Path, protected: list[Path], *, session: Path | None = None, explicit: bool = True
+) -> None:
+    """Refuse an output file that is one of the ``protected`` input files, a directory,
+    or (``explicit``: given as ``--out``) inside any session directory: the analysed
+    ``session``, a session of its sessions directory, or any directory holding a session
+    database or writer lock (:func:`~stipi_daemon.storage.export.check_export_target`,
+    as ``sessions export`` does), at any depth (``frames/`` too)."""
     target = out.resolve()
     for p in protected:
         if target == p.resolve():
             raise ConfigError(f"--out {out}: refusing to overwrite the recorded file {p}")
     if out.exists() and out.is_dir():
         raise ConfigError(f"--out {out}: is a directory (give a file name ending in .json)")
+    if not explicit:
+        return
+    roots = [] if session is None else [session.parent]
+    try:
+        check_export_target(
+            out, roots, [] if session is None else [session], is_file=True, what="an analysis"
+        )
+    except SessionError as exc:
+        raise ConfigError(str(exc)) from None
+
+
+def _frame_size(truth: Mapping[str, Any] | None) -> tuple[int, int] | None:
+    """The camera's frame ``(width, height)`` [px] a simulator's ground truth records
+    (``frame.width_px``, ``frame.height_px``), or None."""
+    frame = None if truth is None else truth.get("frame")
+    if not isinstance(frame, dict):
+        return None
+    w, h = frame.get("width_px"), frame.get("height_px")
+    return (w, h) if isinstance(w, int) and isinstance(h, int) and w > 0 and h > 0 else None
 
 
 def _fmt(v: float | None, digits: int = 4) -> str:

@@ -30,8 +30,8 @@ from pydantic import ValidationError
 
 from stipi_daemon.analysis.flags import Flag
 from stipi_daemon.analysis.imaging import CircleROI, FrameProcessor, RectROI
-from stipi_daemon.app.imaging import check_roi_fits
-from stipi_daemon.errors import DataFileError
+from stipi_daemon.app.imaging import check_roi_fits, roi_fit_problem
+from stipi_daemon.errors import ConfigError, DataFileError
 from stipi_daemon.measurement.replay import Recording
 from stipi_daemon.measurement.state_machine import (
     CameraRecovered,
@@ -57,6 +57,8 @@ __all__ = [
     "read_force_csv",
     "read_frame_times_csv",
     "read_session",
+    "roi_in_video",
+    "video_crop",
 ]
 
 FloatArray = npt.NDArray[np.float64]
@@ -260,6 +262,10 @@ def parse_roi(text: str) -> CircleROI | RectROI | None:
     raise DataFileError(f"--roi {text!r}: expected circle:CX,CY,R or rect:X,Y,W,H (pixels) or full")
 
 
+#: A stored rectangle ``(x0, y0, x1, y1)`` of the camera frame, half-open [px].
+Crop = tuple[int, int, int, int]
+
+
 @dataclass(frozen=True)
 class VideoCount:
     """S_k of every decoded frame of a video.
@@ -269,7 +275,9 @@ class VideoCount:
     path : Path
         The video.
     s_k_px : numpy.ndarray
-        S_k per frame, Eq. (2) [px].
+        S_k per frame, Eq. (2) [px], in file order. For a session video
+        (:func:`count_session_video`) index i is the stored frame i (``video_frames``
+        ``frame_index``) and NaN where that frame did not decode.
     flags : tuple of frozenset of Flag
         Quality flags per frame (saturated frame, ROI clipped or empty).
     fps : float
@@ -279,7 +287,20 @@ class VideoCount:
     threshold_p : int
         Threshold used [8-bit intensity].
     roi : CircleROI or RectROI or None
-        ROI used.
+        ROI used, in camera-frame coordinates [px].
+    crop : tuple of int or None
+        ``(x0, y0, x1, y1)`` of the camera frame the video stores [px] (its ``STIPI_CROP``
+        tag); None: the whole frame.
+    frames_in_file : int or None
+        Frames the readback found in the file [-] (session videos; None: not read so).
+    undecodable : tuple of int
+        File indices of stored frames the readback reports damaged (their S_k is NaN).
+    damage : tuple of str
+        The readback's reason for each of them (``frame I (byte B): why``), and the line of
+        a structure that breaks off (frames after it cannot be located).
+    broken : bool
+        The file's structure breaks off after its last frame read: frames after it, if
+        any, are damaged rather than absent.
     """
 
     path: Path
@@ -289,11 +310,99 @@ class VideoCount:
     frame_shape: tuple[int, ...]
     threshold_p: int
     roi: CircleROI | RectROI | None
+    crop: Crop | None = None
+    frames_in_file: int | None = None
+    undecodable: tuple[int, ...] = ()
+    damage: tuple[str, ...] = ()
+    broken: bool = False
 
     @property
     def saturated_frames(self) -> int:
         """Number of frames flagged saturated."""
         return sum(1 for f in self.flags if Flag.SATURATED_FRAME in f)
+
+
+def _describe_roi(roi: CircleROI | RectROI) -> str:
+    if isinstance(roi, CircleROI):
+        return f"circle centre ({roi.cx_px:g}, {roi.cy_px:g}) r {roi.radius_px:g} px"
+    return f"rect at ({roi.x_px}, {roi.y_px}) size {roi.width_px}x{roi.height_px} px"
+
+
+def video_crop(path: Path) -> Crop | None:
+    """The ``STIPI_CROP`` tag of a video (a session video that stores only the ROI's
+    bounding box, or its export): ``(x0, y0, x1, y1)`` of the camera frame [px]; None when
+    the file has no such tag or PyAV cannot open it.
+
+    Raises
+    ------
+    DataFileError
+        The tag is present but not four integers ``x0 < x1``, ``y0 < y1``, ``x0, y0 >= 0``.
+    """
+    import av
+
+    from stipi_daemon.storage.video import TAG_CROP
+
+    try:
+        with av.open(str(path), "r") as container:
+            text = dict(container.metadata).get(TAG_CROP)
+    except (OSError, ValueError):
+        return None
+    if not text:
+        return None
+    try:
+        x0, y0, x1, y1 = (int(v) for v in str(text).split(","))
+    except ValueError:
+        raise DataFileError(f"{path}: tag {TAG_CROP} {text!r} is not x0,y0,x1,y1 [px]") from None
+    if not (0 <= x0 < x1 and 0 <= y0 < y1):
+        raise DataFileError(f"{path}: tag {TAG_CROP} {text!r} is not a rectangle x0,y0,x1,y1")
+    return x0, y0, x1, y1
+
+
+def roi_in_video(
+    roi: CircleROI | RectROI | None,
+    video_size: tuple[int, int],
+    crop: Crop | None,
+    field: str,
+    path: Path,
+    frame_size: tuple[int, int] | None = None,
+) -> CircleROI | RectROI | None:
+    """The ROI (camera-frame coordinates [px]) in the coordinates of a video's frames.
+
+    A video that stores the whole frame (``crop`` None, ``video_size`` = ``(width,
+    height)`` [px]) takes the ROI as it is; it must lie within the frame. A video that
+    stores only ``crop`` = ``(x0, y0, x1, y1)`` of the camera frame takes the ROI moved by
+    ``(-x0, -y0)`` (exact: integer offsets); it must lie within the camera frame
+    (``frame_size``, when known) and within the stored box (pixels beyond it were never
+    recorded), and the whole frame (``roi`` None) cannot be counted on it.
+
+    Raises
+    ------
+    ConfigError
+        One line naming ``field`` (what set the ROI, e.g. ``--roi``), the ROI and the frame
+        or stored box it does not fit.
+    """
+    if crop is None:
+        check_roi_fits(roi, video_size[0], video_size[1], field)
+        return roi
+    x0, y0, x1, y1 = crop
+    frame = "" if frame_size is None else f" of the {frame_size[0]}x{frame_size[1]} camera frame"
+    box = f"the box {x0},{y0},{x1},{y1} [px]{frame}"
+    if roi is None:
+        raise ConfigError(
+            f"{field}: the whole frame cannot be counted: the video {path} holds only {box} "
+            "(give an ROI inside that box, in camera-frame coordinates)"
+        )
+    if frame_size is not None:
+        check_roi_fits(roi, frame_size[0], frame_size[1], field)
+    local = _shifted_roi(roi, crop)
+    problem = roi_fit_problem(local, x1 - x0, y1 - y0, field)
+    if problem is not None:
+        where = "partly outside" if "partly outside" in problem else "outside"
+        raise ConfigError(
+            f"{field}: {_describe_roi(roi)} lies {where} {box}, all the video {path} holds "
+            "(pixels beyond it were not recorded; the ROI must lie within that box)"
+        )
+    return local
 
 
 def count_video(
@@ -310,12 +419,16 @@ def count_video(
     Frames are decoded as 8-bit BGR and converted to gray inside the ROI by
     :class:`~stipi_daemon.analysis.imaging.FrameProcessor`. With ``roi_field`` (what set
     the ROI, e.g. ``"--roi"``), an ROI that does not lie within the first frame is refused
-    before anything is counted (:func:`~stipi_daemon.app.imaging.check_roi_fits`).
+    before anything is counted (:func:`~stipi_daemon.app.imaging.check_roi_fits`). A video
+    exported from a session that stored only the ROI's bounding box (its ``STIPI_CROP``
+    tag, :func:`video_crop`) is counted with ``roi``, in camera-frame coordinates, moved
+    into that box (:func:`roi_in_video`; an ROI not inside the box, or none, is refused).
 
     Raises
     ------
     ConfigError
-        ``roi_field`` is given and the ROI lies (partly) outside the frame.
+        ``roi_field`` is given and the ROI lies (partly) outside the frame, or the video
+        stores a box of the frame and the ROI is none or not inside it.
     DataFileError
         The file is missing, OpenCV cannot open it, it holds no decodable frame, or a
         frame's size differs from the first one's (frame number named).
@@ -332,6 +445,7 @@ def count_video(
     problem = not_a_video(p)
     if problem is not None:
         raise DataFileError(f"{p}: OpenCV cannot open this video ({problem})")
+    crop = video_crop(p)
     with quiet_opencv():
         cap = cv2.VideoCapture(str(p))
     try:
@@ -346,12 +460,14 @@ def count_video(
             if not ok or frame is None:
                 break
             if processor is None:
-                if roi_field is not None:
-                    check_roi_fits(roi, int(frame.shape[1]), int(frame.shape[0]), roi_field)
+                size = (int(frame.shape[1]), int(frame.shape[0]))
+                local_roi = roi
+                if crop is not None or roi_field is not None:
+                    local_roi = roi_in_video(roi, size, crop, roi_field or "the ROI", p)
                 processor = FrameProcessor(
                     frame.shape,
                     threshold_p,
-                    roi,
+                    local_roi,
                     saturation_limit_fraction=saturation_limit_fraction,
                 )
             elif frame.shape != processor.frame_shape:
@@ -374,12 +490,11 @@ def count_video(
         frame_shape=tuple(processor.frame_shape),
         threshold_p=processor.p,
         roi=roi,
+        crop=crop,
     )
 
 
-def _shifted_roi(
-    roi: CircleROI | RectROI | None, crop: tuple[int, int, int, int] | None
-) -> CircleROI | RectROI | None:
+def _shifted_roi(roi: CircleROI | RectROI | None, crop: Crop | None) -> CircleROI | RectROI | None:
     """The ROI in the coordinates of a video that stores only ``crop`` = ``(x0, y0, x1, y1)``
     of the camera frame (the shift is exact: integer offsets)."""
     if roi is None or crop is None:
@@ -396,43 +511,75 @@ def count_session_video(
     roi: CircleROI | RectROI | None,
     *,
     saturation_limit_fraction: float = 0.01,
+    roi_field: str = "the ROI",
+    frame_size: tuple[int, int] | None = None,
 ) -> VideoCount:
     """Count S_k (Eqs. 1-2) on a session's ``video.mkv``, on the images as the daemon counted
-    them (:func:`stipi_daemon.storage.video.iter_video_images`: the JPEGs decoded as the
-    camera decoded them, FFV1 bit-exact; a video of the ROI's bounding box is counted with
-    the ROI moved into it). ``roi`` is in camera-frame coordinates.
+    them (:func:`stipi_daemon.storage.video.iter_video_frames`: the JPEGs decoded as the
+    camera decoded them, FFV1 bit-exact). ``roi`` is in camera-frame coordinates; a video
+    of the ROI's bounding box is counted with the ROI moved into it (:func:`roi_in_video`,
+    which refuses an ROI outside the frame or the stored box, naming ``roi_field``, before
+    anything is counted; ``frame_size`` is the camera's ``(width, height)`` [px] when known).
+
+    The result has one S_k per stored frame (file index), NaN for a frame the readback
+    reports damaged (listed in :attr:`VideoCount.undecodable`, with the readback's reasons
+    in :attr:`VideoCount.damage`); a file whose structure breaks off ends there (the
+    readback's line in :attr:`VideoCount.damage`, :attr:`VideoCount.broken` True).
 
     Raises
     ------
+    ConfigError
+        The ROI does not fit the frame or the stored box (one line naming ``roi_field``).
     SessionError
-        The video is missing or unreadable.
+        The video is missing, unreadable, or its header is damaged.
     DataFileError
         It holds no decodable frame, or frames of different sizes.
     """
-    from stipi_daemon.storage.video import iter_video_images, probe_video
+    from stipi_daemon.storage.video import VideoDamageError, iter_video_frames, probe_video
 
     p = Path(path)
     info = probe_video(p)
-    local_roi = _shifted_roi(roi, info.crop)
+    local_roi = roi_in_video(roi, (info.width, info.height), info.crop, roi_field, p, frame_size)
     processor: FrameProcessor | None = None
-    counts: list[int] = []
+    counts: list[float] = []
     flags: list[frozenset[Flag]] = []
-    for frame in iter_video_images(p):
-        if processor is None:
-            processor = FrameProcessor(
-                frame.shape,
-                threshold_p,
-                local_roi,
-                saturation_limit_fraction=saturation_limit_fraction,
-            )
-        elif frame.shape != processor.frame_shape:
-            raise DataFileError(
-                f"{p}: frame {len(counts)} has shape {frame.shape}, the first frame "
-                f"{processor.frame_shape}"
-            )
-        m = processor.measure(frame)
-        counts.append(m.s_k_px)
-        flags.append(m.flags)
+    undecodable: list[int] = []
+    damage: list[str] = []
+    broken = False
+    try:
+        for stored in iter_video_frames(p):
+            while len(counts) < stored.frame_index:  # the readback skips none; to be sure
+                damage.append(f"frame {len(counts)}: not given by the readback")
+                undecodable.append(len(counts))
+                counts.append(math.nan)
+                flags.append(frozenset())
+            frame = stored.image
+            if frame is None:
+                damage.append(f"frame {len(counts)} (byte {stored.pos_bytes}): {stored.damage}")
+                undecodable.append(len(counts))
+                counts.append(math.nan)
+                flags.append(frozenset())
+                continue
+            if processor is None:
+                processor = FrameProcessor(
+                    frame.shape,
+                    threshold_p,
+                    local_roi,
+                    saturation_limit_fraction=saturation_limit_fraction,
+                )
+            elif frame.shape != processor.frame_shape:
+                raise DataFileError(
+                    f"{p}: frame {stored.frame_index} has shape {frame.shape}, the first "
+                    f"frame {processor.frame_shape}"
+                )
+            m = processor.measure(frame)
+            counts.append(float(m.s_k_px))
+            flags.append(m.flags)
+    except VideoDamageError as exc:
+        if exc.frame_index is None and not counts:
+            raise
+        damage.append(str(exc))
+        broken = True
     if processor is None:
         raise DataFileError(f"{p}: the video holds no decodable frame")
     return VideoCount(
@@ -443,6 +590,11 @@ def count_session_video(
         frame_shape=tuple(processor.frame_shape),
         threshold_p=processor.p,
         roi=roi,
+        crop=info.crop,
+        frames_in_file=len(counts),
+        undecodable=tuple(undecodable),
+        damage=tuple(damage),
+        broken=broken,
     )
 
 
@@ -512,8 +664,10 @@ class SessionData:
     frame_seq : numpy.ndarray or None
         Each frame row's camera ``seq``.
     video_seq : numpy.ndarray or None
-        ``seq`` of each frame stored in the video, in file order (``video_frames``; empty
+        ``seq`` of each frame stored in the video (``video_frames``, in row order; empty
         for a session recorded without video or before schema version 2).
+    video_frame_index : numpy.ndarray or None
+        The file index (``frame_index``, from 0) of each of those frames, row by row.
     """
 
     directory: Path
@@ -530,6 +684,7 @@ class SessionData:
     link_events: tuple[Event, ...] = ()
     frame_seq: npt.NDArray[np.int64] | None = None
     video_seq: npt.NDArray[np.int64] | None = None
+    video_frame_index: npt.NDArray[np.int64] | None = None
 
     def recording(self, s_k_px: FloatArray | None = None) -> Recording:
         """The session's samples as a :class:`Recording` (optionally with new S_k)."""
@@ -593,6 +748,7 @@ def read_session(directory: str | Path) -> SessionData:
         link_events=link_events,
         frame_seq=np.asarray(frames["seq"], dtype=np.int64),
         video_seq=np.asarray(video_frames["seq"], dtype=np.int64),
+        video_frame_index=np.asarray(video_frames["frame_index"], dtype=np.int64),
     )
 
 

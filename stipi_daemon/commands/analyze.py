@@ -8,10 +8,17 @@ FILE.csv`` does the same from files: S_k counted on every decoded frame (Eqs. 1-
 frame times from ``--frame-times`` (default: ``frames.csv`` next to the video, as the
 simulator writes it), force samples from the CSV. The results are printed and written as
 JSON (``--out``; default ``analysis-<UTC time>.json`` in the session directory or next to
-the video; the session's own files are never overwritten). A simulator ground truth
-(``ground_truth.json`` next to the video, or the one a simulated session's summary holds)
-is compared parameter by parameter. This module parses the command line; the analysis is
+the video; an explicit ``--out`` inside any session directory is refused, so nothing
+recorded is ever overwritten). A simulator ground truth (``ground_truth.json`` next to the
+video, or the one a simulated session's summary holds) is compared parameter by parameter.
+``--roi`` is in camera-frame coordinates, also on a video that stores only the ROI's box.
+This module parses the command line; the analysis is
 :func:`stipi_daemon.app.analyze.analyze`.
+
+Exit status: 0 results written; 1 written without results (the line says why); 2 refused
+(one line on stderr, nothing written); 3 written, but ``--recompute-sk`` did not reproduce
+the stored S_k with the recorded threshold and ROI, or lacks stored frames (missing from
+the video or undecodable): the results are flagged (docs/storage.md).
 """
 
 from __future__ import annotations
@@ -35,6 +42,11 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
             "results: either a stored SESSION (id under --root, or a directory path), or "
             "a video with a force CSV (--video/--force), e.g. the output of "
             "`stipi-daemon simulate`."
+        ),
+        epilog=(
+            "Exit status: 0 results written; 1 written without results; 2 refused, nothing "
+            "written; 3 written, but --recompute-sk did not reproduce every stored S_k (or "
+            "stored frames are missing from the video or undecodable): results flagged."
         ),
     )
     parser.add_argument(
@@ -75,7 +87,8 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     parser.add_argument(
         "--roi",
         metavar="ROI",
-        help="region of interest: circle:CX,CY,R or rect:X,Y,W,H [px], or full",
+        help="region of interest in camera-frame coordinates: circle:CX,CY,R or "
+        "rect:X,Y,W,H [px], or full (refused on a video that stores only the ROI's box)",
     )
     parser.add_argument(
         "--recompute-sk",
@@ -90,7 +103,10 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         "video, or the one in a simulated session's summary)",
     )
     parser.add_argument(
-        "--out", type=Path, metavar="FILE.json", help="where to write the results (JSON)"
+        "--out",
+        type=Path,
+        metavar="FILE.json",
+        help="where to write the results (JSON); never inside a session directory",
     )
     parser.add_argument("--overwrite", action="store_true", help="replace an existing --out file")
     parser.add_argument("--quiet", action="store_true", help="print only the output path")

@@ -5,6 +5,7 @@ from __future__ import annotations
 import csv
 import dataclasses
 import json
+import shutil
 from pathlib import Path
 
 import pytest
@@ -17,6 +18,7 @@ from stipi_daemon.sim.physics import scaled_calibration
 from stipi_daemon.storage import SessionWriter, StorageOptions
 from stipi_daemon.storage.reader import SessionReader
 from tests._offline import SCENES, interrupted_copy, record_session, short_scene
+from tests.commands.test_analyze_video import assert_untouched, digest, oracle_s_k
 
 
 @pytest.fixture(scope="module")
@@ -44,7 +46,7 @@ def _error(capsys: pytest.CaptureFixture[str], argv: list[str]) -> str:
 def test_session_replay_reproduces_the_recorded_summary(
     session_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    before = {p.name: p.read_bytes() for p in session_dir.iterdir() if p.is_file()}
+    before = digest(session_dir)  # every file, frames/ and report/ too
     out = tmp_path / "a.json"
     assert main(["analyze", str(session_dir), "--out", str(out)]) == 0
     text = capsys.readouterr().out
@@ -57,7 +59,7 @@ def test_session_replay_reproduces_the_recorded_summary(
     assert doc["summary"]["results"] == stored["results"]
     assert doc["input"]["status"] == "complete"
     # Nothing recorded was changed.
-    assert {p.name: p.read_bytes() for p in session_dir.iterdir() if p.name in before} == before
+    assert_untouched(session_dir, before)
 
 
 def test_default_output_goes_next_to_the_session_never_over_it(
@@ -71,7 +73,7 @@ def test_default_output_goes_next_to_the_session_never_over_it(
     assert (session_dir / "summary.json").read_bytes() == summary
     summary_path = str(session_dir / "summary.json")
     err = _error(capsys, ["analyze", str(session_dir), "--out", summary_path, "--overwrite"])
-    assert "refusing to overwrite the recorded file" in err
+    assert f"inside the session directory {session_dir}" in err
     written.unlink()
 
 
@@ -241,13 +243,27 @@ def test_recompute_sk_from_the_session_video(
     assert "no_recovery" in stored["flags"]  # S_k all 0: nothing to see
     out = tmp_path / "re.json"
     argv = ["analyze", str(directory), "--recompute-sk", "--out", str(out)]
-    assert main(argv) == 0
+    capsys.readouterr()
+    # The recount does not reproduce the stored (lost) S_k: reported, results flagged, exit 3.
+    assert main(argv) == 3
+    truth = json.loads((sim_dir / "ground_truth.json").read_text())
+    oracle = oracle_s_k(sim_dir / "video.mkv", 128, {"kind": "circle", **truth["roi"]})
+    n, differ = len(oracle), sum(1 for v in oracle if v != 0)
+    assert n == data.s_k_px.size and differ > 0
+    text = capsys.readouterr().out
+    assert f"S_k recounted from the video: {n} of {n} stored frames: {differ} differ" in text
     doc = json.loads(out.read_text())
     assert doc["settings"]["imaging"]["threshold_p"] == 128
     assert doc["settings"]["imaging"]["threshold_source"] == "session manifest calibration"
+    assert doc["settings"]["imaging"]["s_k_vs_stored"]["differing"] == differ
     assert "ROI: the simulator's waveguide disc (ground truth)" in doc["notes"]
+    # No video_frames rows: paired by position, as many frames in the video as rows.
+    assert f"no video_frames rows: the {n} stored frames are paired with the video's {n} " in (
+        " ".join(doc["notes"])
+    )
+    assert doc["summary"]["verdict"]["status"] != "complete"
+    assert "s_k_not_reproduced" in doc["summary"]["validity"]["depth_mm"]["flags"]
     _check_truth(doc)
-    capsys.readouterr()
 
 
 def test_refusals_are_one_line(
@@ -274,7 +290,10 @@ def test_refusals_are_one_line(
     assert "not both" in _error(capsys, ["analyze", str(session_dir), "--video", video])
     assert "nothing to analyse" in _error(capsys, ["analyze"])
     assert "--video needs --force" in _error(capsys, ["analyze", "--video", video])
-    err = _error(capsys, ["analyze", str(session_dir), "--recompute-sk"])
+    no_video = tmp_path / "sessions" / "no-video"  # a session recorded with storage.video off
+    shutil.copytree(session_dir, no_video)
+    (no_video / "video.mkv").unlink(missing_ok=True)
+    err = _error(capsys, ["analyze", str(no_video), "--recompute-sk"])
     assert "the session has no video file" in err
     err = _error(capsys, ["analyze", "--video", video, "--force", force, "--roi", "oval:1"])
     assert "--roi 'oval:1': expected circle:CX,CY,R" in err
@@ -383,12 +402,12 @@ def test_a_session_that_ended_early_is_rescued_beside_it(
     # timeout): the recording before it is analysed.
     link_down_s = None if link_down_after_s is None else t0 + link_down_after_s
     cut = _ended_early(session_dir, root, t0 + 10.0, status, why, link_down_s)
-    before = {p.name: p.read_bytes() for p in cut.iterdir() if p.is_file()}
+    before = digest(cut)
     assert main(["analyze", str(cut)]) == 0
     text = capsys.readouterr().out
     written = sorted(cut.glob("analysis-*.json"))
     assert len(written) == 1  # beside the session, never over what was recorded
-    assert {p.name: p.read_bytes() for p in cut.iterdir() if p.name in before} == before
+    assert_untouched(cut, before)
     doc = json.loads(written[0].read_text())
     summary = doc["summary"]
     assert summary["results"] is not None
