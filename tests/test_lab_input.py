@@ -207,7 +207,9 @@ def test_sessions_report_and_analyze_find_the_root_through_the_config(
     monkeypatch.chdir(elsewhere)
     sid = session_dir.name
     line = _one_error(capsys, ["sessions", "show", sid])  # ./sessions: not here
-    assert line.startswith(f"{Path('sessions') / sid}: no such session")
+    assert line.startswith(f"{sid}: no such session")
+    assert f"({Path('sessions') / sid})" in line  # both places looked in are named
+    assert f"({elsewhere / sid})" in line
 
     assert main(["sessions", "list", "--config", str(cfg)]) == 0
     assert sid in capsys.readouterr().out
@@ -226,7 +228,7 @@ def test_sessions_report_and_analyze_find_the_root_through_the_config(
     capsys.readouterr()
     # --root still wins.
     line = _one_error(capsys, ["sessions", "show", sid, "--config", str(cfg), "--root", "x"])
-    assert line.startswith(f"{Path('x') / sid}: no such session")
+    assert line.startswith(f"{sid}: no such session") and f"({Path('x') / sid})" in line
 
 
 # --------------------------------------------------------------------------------------------

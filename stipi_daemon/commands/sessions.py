@@ -9,7 +9,9 @@ and integrity, ``export`` writes one session to CSV, Parquet or MATLAB (default
 ``exports/results.csv`` next to the sessions directory). The root is ``--root``, else the
 ``storage.root`` of ``--config FILE`` (where that config's daemon records), else
 ``./sessions``. A session ``ID`` may also be given as a path to its directory (anything
-containing a ``/``).
+containing a ``/``, or a directory in the current directory when the root holds no
+session of that id). ``export`` refuses a session that fails its integrity check unless
+``--allow-damaged``.
 """
 
 from __future__ import annotations
@@ -91,8 +93,9 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         description="Write a session: csv/parquet give one file per table, validity.<fmt> "
         "(each quantity's validity), session.<fmt> (its results row) and copies of "
         "manifest.json, summary.json and video.mkv; mat gives <ID>.mat (force samples, "
-        "frames with S_k, results, metadata; scipy.io.loadmat reads it). Never writes into "
-        "a session directory.",
+        "frames with S_k, results, metadata; scipy.io.loadmat reads it) and the video "
+        "beside it as <ID>.mkv. A session that fails its integrity check is not exported "
+        "unless --allow-damaged. Never writes into a session directory.",
     )
     p_export.add_argument("session_id", metavar="ID", help="session id or directory path")
     add_root(p_export)
@@ -107,6 +110,14 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     )
     p_export.add_argument(
         "--overwrite", action="store_true", help="replace existing files in the output directory"
+    )
+    p_export.add_argument(
+        "--allow-damaged",
+        action="store_true",
+        help="export a session that fails its integrity check (e.g. a truncated video) as "
+        "it is; the export carries the problems (integrity.txt, or integrity_problems in "
+        "the .mat) and a warning is printed. Without it such a session is not exported "
+        "(exit 2)",
     )
     # Deprecated spelling of --overwrite, kept working (hidden from --help).
     p_export.add_argument("--force", action=_DeprecatedOverwrite, help=argparse.SUPPRESS)
@@ -158,12 +169,22 @@ def _root(args: argparse.Namespace) -> Path:
 
 
 def _session_dir(root: Path, session_id: str) -> Path:
+    """``ID`` as a session directory: a path when it contains a ``/``; else the session of
+    that id under ``root``, else a directory of that name in the current directory (as
+    ``analyze`` and ``report`` take it)."""
     if "/" in session_id:
         return Path(session_id)
     directory = root / session_id
-    if not directory.is_dir():
-        raise SessionError(f"{directory}: no such session (list them: stipi-daemon sessions list)")
-    return directory
+    if directory.is_dir():
+        return directory
+    here = Path(session_id)
+    if session_id not in ("", ".", "..") and here.is_dir():
+        return here
+    raise SessionError(
+        f"{session_id}: no such session: neither a session id in the sessions directory "
+        f"({directory}) nor a directory in the current one ({Path.cwd() / session_id}) "
+        "(list them: stipi-daemon sessions list)"
+    )
 
 
 def _where(args: argparse.Namespace) -> dict[str, str | None]:
@@ -190,7 +211,22 @@ def _cmd_export(args: argparse.Namespace) -> int:
     directory = _session_dir(root, args.session_id)
     out = args.out if args.out is not None else default_export_dir(directory)
     with SessionReader(directory) as reader:
-        written = export_session(reader, out, args.fmt, overwrite=args.overwrite, roots=[root])
+        integrity = reader.integrity_check()
+        written = export_session(
+            reader,
+            out,
+            args.fmt,
+            overwrite=args.overwrite,
+            roots=[root],
+            allow_damaged=args.allow_damaged,
+            integrity=integrity,
+        )
+    if integrity.problems:
+        print(
+            f"stipi-daemon: warning: {directory}: integrity check failed, exported as it is "
+            f"(--allow-damaged): {'; '.join(integrity.problems)}",
+            file=sys.stderr,
+        )
     for path in written:
         print(path)
     return 0

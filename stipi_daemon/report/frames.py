@@ -7,7 +7,9 @@ module owns their storage in the session directory and reading them back:
 ``frames/representative_<kind>.png`` (lossless, the camera's pixels exactly) and
 ``frames/representative.json`` (frame number, capture time [s] and S_k [px] each), and the
 kinds' captions (:data:`KINDS`). Reading takes each frame from the session's ``video.mkv``
-by its ``seq`` when the video holds it whole (the PNG otherwise). It does not choose
+by its ``seq`` (the primary data; a cropped recording's rectangle is placed at its offset
+in the camera frame, the rest marked as not stored, :class:`FrameImage`); the PNG only
+where the video cannot give the frame, and the frame says why. It does not choose
 frames, threshold or count pixels (:mod:`stipi_daemon.analysis.imaging`) nor draw them
 (:mod:`stipi_daemon.report.render`).
 """
@@ -15,6 +17,8 @@ frames, threshold or count pixels (:mod:`stipi_daemon.analysis.imaging`) nor dra
 from __future__ import annotations
 
 import json
+from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Final
 
@@ -29,6 +33,8 @@ __all__ = [
     "FRAMES_DIR",
     "FRAMES_INDEX",
     "KINDS",
+    "NOT_STORED_FILL",
+    "FrameImage",
     "RepresentativeFrame",
     "read_representative_frames",
     "write_representative_frames",
@@ -95,56 +101,120 @@ def write_representative_frames(
     return written
 
 
-#: The session video's frame numbers: (path, ``seq`` of each stored frame, its index).
-_VideoIndex = tuple[Path, npt.NDArray[np.int64], npt.NDArray[np.int64]]
+#: A rectangle of the camera frame, ``(x0, y0, x1, y1)`` [px] (x1 and y1 exclusive).
+Box = tuple[int, int, int, int]
+#: Value of the pixels of a cropped recording's frame that the video does not store (white:
+#: above every threshold p < 255, never counted; the figure hatches them).
+NOT_STORED_FILL: Final = 255
 
 
-def _video_index(session_dir: Path) -> _VideoIndex | None:
-    """The session's ``video.mkv`` and its frames' ``seq`` and index, read once for all
-    the representative frames; None when there is no video, it holds a crop rather than
-    whole frames, or it cannot be read (the PNGs are used then)."""
-    from stipi_daemon.storage import VIDEO_NAME, SessionReader
+class FrameImage(np.ndarray[Any, np.dtype[np.uint8]]):
+    """A representative frame's pixels in camera coordinates, with where they come from.
+
+    What :func:`read_representative_frames` gives as each frame's ``image``; views and
+    arrays computed from it are plain (the class attributes' defaults).
+
+    Attributes
+    ----------
+    source : str
+        One line for the figure: the video frame the pixels were read from, or why the
+        stored PNG is shown instead.
+    stored_box : tuple of int or None
+        ``(x0, y0, x1, y1)`` [px]: the only pixels the video stores (a cropped recording,
+        ``storage.video_roi_only``: the ROI's bounding box, as gray); the rest of the frame
+        is :data:`NOT_STORED_FILL`, not camera data. None: every pixel is the camera's.
+    """
+
+    source: str = ""
+    stored_box: Box | None = None
+
+
+def _frame_image(image: npt.NDArray[np.uint8], source: str, box: Box | None) -> FrameImage:
+    out = np.ascontiguousarray(image, dtype=np.uint8).view(FrameImage)
+    out.source = source
+    out.stored_box = box
+    return out
+
+
+@dataclass(frozen=True)
+class _Video:
+    """The session's video and its frames' ``seq`` and index, read once for all the
+    representative frames; ``crop``: the stored rectangle (None: whole frames)."""
+
+    path: Path
+    seqs: npt.NDArray[np.int64]
+    frame_index: npt.NDArray[np.int64]
+    crop: Box | None
+
+
+def _open_video(session_dir: Path) -> _Video | str:
+    """The session's video, or one line saying why its frames cannot be read from it."""
+    from stipi_daemon.storage import SessionReader
     from stipi_daemon.storage.video import probe_video
 
-    video = session_dir / VIDEO_NAME
-    if not video.is_file():
-        return None
     try:
-        if probe_video(video).crop is not None:
-            return None
         with SessionReader(session_dir) as reader:
+            video = reader.video_path
+            if video is None:
+                return "the session stores no video"
             rows = reader.video_frames()
+    except SessionError as exc:
+        return f"the session's video_frames are not readable ({exc})"
+    if not video.is_file():
+        return f"{video.name} is missing"
+    try:
+        crop = probe_video(video).crop
     except SessionError:
-        return None
-    return video, np.asarray(rows["seq"]), np.asarray(rows["frame_index"])
+        return f"{video.name} is not readable"
+    return _Video(video, np.asarray(rows["seq"]), np.asarray(rows["frame_index"]), crop)
 
 
-def _video_image(index: _VideoIndex | None, seq: int, shape: Any) -> npt.NDArray[np.uint8] | None:
-    """Frame ``seq`` from the session's video (the primary data) when it holds that frame
-    whole with the recorded shape; None otherwise (the PNG is used then)."""
+def _video_image(video: _Video | str, seq: int, shape: Sequence[int]) -> FrameImage | str:
+    """Frame ``seq`` from the session's video (the primary data) in camera coordinates of
+    the recorded ``shape`` (a crop placed at its offset, the rest :data:`NOT_STORED_FILL`),
+    or one line saying why it cannot be read from there."""
     from stipi_daemon.storage.video import read_video_image
 
-    if index is None:
-        return None
-    video, seqs, frame_index = index
-    where = frame_index[seqs == seq]
+    if isinstance(video, str):
+        return video
+    name = video.path.name
+    where = video.frame_index[video.seqs == seq]
     if not where.size:
-        return None
+        return f"{name} holds no frame {seq} (no video_frames row: left out of the video)"
+    k = int(where[0])
     try:
-        image = read_video_image(video, int(where[0]))
+        image = read_video_image(video.path, k)
     except SessionError:
-        return None
-    return image if list(image.shape) == list(shape) else None
+        return f"{name} frame {k} (seq {seq}) is missing or does not decode"
+    if video.crop is None:
+        if list(image.shape) != list(shape):
+            return f"{name} frame {k} is {list(image.shape)}, the index says {list(shape)}"
+        return _frame_image(image, f"from {name}, its stored frame {k}", None)
+    x0, y0, x1, y1 = video.crop
+    height, width = int(shape[0]), int(shape[1])
+    if not (0 <= x0 < x1 <= width and 0 <= y0 < y1 <= height) or image.shape[:2] != (
+        y1 - y0,
+        x1 - x0,
+    ):
+        return f"{name} frame {k}: its crop {video.crop} does not fit the {width}x{height} frame"
+    canvas = np.full((height, width, *image.shape[2:]), NOT_STORED_FILL, dtype=np.uint8)
+    canvas[y0:y1, x0:x1] = image
+    return _frame_image(canvas, f"from {name}, its stored frame {k}", video.crop)
 
 
 def read_representative_frames(session_dir: Path) -> tuple[RepresentativeFrame, ...]:
     """Read the frames :func:`write_representative_frames` stored (none: empty tuple).
 
+    Each frame is read from the session's video by its ``seq`` (a cropped recording's
+    rectangle placed at its offset in the camera frame, see :class:`FrameImage`); where the
+    video cannot give it (no video, the frame left out of it, not decodable) from the PNG,
+    and the image's ``source`` says why.
+
     Raises
     ------
     SessionError
-        The index is not valid JSON of the expected shape, or a PNG named in it is missing
-        or unreadable, or does not have the recorded shape.
+        The index is not valid JSON of the expected shape, or a frame the video cannot give
+        has its PNG missing or unreadable, or not of the recorded shape.
     """
     index_path = Path(session_dir) / FRAMES_DIR / FRAMES_INDEX
     if not index_path.is_file():
@@ -156,7 +226,7 @@ def read_representative_frames(session_dir: Path) -> tuple[RepresentativeFrame, 
     if not isinstance(index, dict):
         raise SessionError(f"{index_path}: expected an object keyed by frame kind")
     out: list[RepresentativeFrame] = []
-    video = _video_index(Path(session_dir)) if index else None
+    video = _open_video(Path(session_dir)) if index else ""
     for kind in KINDS:
         entry = index.get(kind)
         if entry is None:
@@ -164,17 +234,28 @@ def read_representative_frames(session_dir: Path) -> tuple[RepresentativeFrame, 
         try:
             name, seq = str(entry["file"]), int(entry["seq"])
             t_s, s_k, shape = float(entry["t_capture_s"]), int(entry["s_k_px"]), entry["shape"]
+            shape = [int(v) for v in shape]
         except (KeyError, TypeError, ValueError) as exc:
             raise SessionError(f"{index_path}: entry {kind!r} is malformed ({exc})") from exc
         path = index_path.parent / name
-        image: Any = _video_image(video, seq, shape)
-        if image is None:
-            image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED) if path.is_file() else None
-        if image is None:
-            raise SessionError(f"{path}: representative frame missing or not a readable PNG")
-        if list(image.shape) != list(shape) or image.dtype != np.uint8:
-            raise SessionError(
-                f"{path}: shape {list(image.shape)} {image.dtype}, index says {shape} uint8"
-            )
-        out.append(RepresentativeFrame(kind, seq, t_s, s_k, np.asarray(image, dtype=np.uint8)))
+        image = _video_image(video, seq, shape)
+        if isinstance(image, str):
+            image = _png_image(path, shape, image)
+        out.append(RepresentativeFrame(kind, seq, t_s, s_k, image))
     return tuple(out)
+
+
+def _png_image(path: Path, shape: list[int], why: str) -> FrameImage:
+    """The stored PNG at ``path``, its ``source`` naming it and ``why`` not the video."""
+    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED) if path.is_file() else None
+    if image is None:
+        raise SessionError(
+            f"{path}: representative frame missing or not a readable PNG (and not in the "
+            f"video: {why})"
+        )
+    if list(image.shape) != shape or image.dtype != np.uint8:
+        raise SessionError(
+            f"{path}: shape {list(image.shape)} {image.dtype}, index says {shape} uint8"
+        )
+    source = f"from {FRAMES_DIR}/{path.name}: not from the video, as {why}"
+    return _frame_image(np.asarray(image, dtype=np.uint8), source, None)

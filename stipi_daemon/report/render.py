@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import io
 import math
+import textwrap
 from collections.abc import Sequence
 from typing import Any, Final
 
@@ -37,6 +38,7 @@ from stipi_daemon.report.figures import (
     VprFigure,
     WindowSearchFigure,
 )
+from stipi_daemon.report.frames import FrameImage
 from stipi_daemon.report.inputs import FloatArray
 from stipi_daemon.report.numbers import value_text, value_with_uncertainty
 from stipi_daemon.report.panels import FramePanel
@@ -744,26 +746,67 @@ def _rgba(image: npt.NDArray[np.uint8]) -> npt.NDArray[np.uint8]:
     return out
 
 
+#: The two colours of the stripes marking pixels a cropped video does not store (RGB).
+_NOT_STORED_RGB: Final = ((205, 205, 220), (150, 150, 170))
+
+
+def _mark_not_stored(rgba: npt.NDArray[np.uint8], box: tuple[int, int, int, int]) -> None:
+    """Paint the pixels of ``rgba`` outside ``box`` (x0, y0, x1, y1 [px]) as diagonal
+    stripes: the video does not store them, so they are no camera data."""
+    x0, y0, x1, y1 = box
+    h, w = rgba.shape[:2]
+    outside = np.ones((h, w), dtype=np.bool_)
+    outside[y0:y1, x0:x1] = False
+    stripe = (np.add.outer(np.arange(h, dtype=np.int32), np.arange(w, dtype=np.int32)) // 8) % 2
+    for k, rgb in enumerate(_NOT_STORED_RGB):
+        rgba[outside & (stripe == k), :3] = rgb
+
+
+def _stored_note(panels: Sequence[FramePanel]) -> str:
+    """The figure's line on a cropped video (empty when every frame is whole)."""
+    for p in panels:
+        if isinstance(p.raw, FrameImage) and p.raw.stored_box is not None:
+            x0, y0, x1, y1 = p.raw.stored_box
+            gray = ", as gray" if p.raw.ndim == 2 else ""
+            return (
+                f"\nThe video holds only the ROI's bounding box (x {x0}-{x1}, y {y0}-{y1} px of "
+                f"the {p.raw.shape[1]}x{p.raw.shape[0]} frame{gray}):\nhatched pixels are "
+                "not stored"
+            )
+    return ""
+
+
 def draw_frames(panels: Sequence[FramePanel], title: str = "") -> Figure:
     """Each representative frame: raw (left) and Eq. (1) thresholded with the ROI (right).
 
     In the thresholded image, occluded pixels inside the ROI (counted in S_k) are white,
-    occluded pixels outside it grey, the rest black.
+    occluded pixels outside it grey, the rest black. Each raw frame's title says where its
+    pixels come from (:class:`~.frames.FrameImage`: the video, or the PNG and why); the
+    pixels a cropped video does not store are striped in both images.
     """
     rows = max(len(panels), 1)
-    fig = Figure(figsize=(10.0, 3.6 * rows), dpi=DPI, layout="constrained")
+    fig = Figure(figsize=(10.0, 3.8 * rows), dpi=DPI, layout="constrained")
     FigureCanvasAgg(fig)
     axes = fig.subplots(rows, 2, squeeze=False)
     for (ax_raw, ax_bin), p in zip(axes, panels, strict=False):
+        source = p.raw.source if isinstance(p.raw, FrameImage) else ""
+        box = p.raw.stored_box if isinstance(p.raw, FrameImage) else None
         # 8-bit RGBA, which matplotlib resamples in float32, where a colour-mapped or RGB
         # image is float64 (tens of MB for six frames: the report's peak memory); a gray
         # frame is drawn within one level of the gray colour map's picture
-        im = ax_raw.imshow(_rgba(p.raw), interpolation="nearest")
+        raw = _rgba(p.raw)
+        shown = _rgba(np.where(p.binary > 0, np.where(p.roi_mask, 255, 110), 0).astype(np.uint8))
+        if box is not None:
+            _mark_not_stored(raw, box)
+            _mark_not_stored(shown, box)
+        im = ax_raw.imshow(raw, interpolation="nearest")
         im.set_gid(f"raw_{p.kind}")
         when = "" if p.t_since_t0_s is None else f", {p.t_since_t0_s:+.2f} s from $T_0$"
-        ax_raw.set_title(f"raw frame {p.seq} ({p.caption}{when})", fontsize=9)
-        shown = np.where(p.binary > 0, np.where(p.roi_mask, 255, 110), 0).astype(np.uint8)
-        bim = ax_bin.imshow(_rgba(shown), interpolation="nearest")
+        ax_raw.set_title(
+            "\n".join([f"raw frame {p.seq} ({p.caption}{when})", *textwrap.wrap(source, 80)]),
+            fontsize=9,
+        )
+        bim = ax_bin.imshow(shown, interpolation="nearest")
         bim.set_gid(f"binary_{p.kind}")
         if p.roi is not None:
             ax_raw.add_patch(_roi_patch(p.roi))
@@ -778,7 +821,9 @@ def draw_frames(panels: Sequence[FramePanel], title: str = "") -> Figure:
             a.set_ylabel("y [px]")
     if not panels:
         axes[0][0].text(0.5, 0.5, "no representative frame stored", ha="center")
-    fig.suptitle(title or "Representative frames: raw and thresholded (ROI in cyan)")
+    fig.suptitle(
+        (title or "Representative frames: raw and thresholded (ROI in cyan)") + _stored_note(panels)
+    )
     return fig
 
 

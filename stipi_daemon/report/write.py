@@ -358,9 +358,11 @@ def _session_makers(
         (
             "frames",
             SESSION_FIGURES["frames"],
-            "Raw frames stored with the session (left) and their binary-inverted thresholding, "
-            "Eq. (1), with the ROI (right): occluded pixels in the ROI, counted in S_k, are "
-            "white.",
+            "Raw frames read from the session's video (left; each title names its source, "
+            "and a frame the video cannot give is the stored PNG, with the reason) and their "
+            "binary-inverted thresholding, Eq. (1), with the ROI (right): occluded pixels in "
+            "the ROI, counted in S_k, are white; where the video holds only the ROI's "
+            "bounding box, the hatched pixels are not stored.",
             frames,
         ),
     ]

@@ -10,8 +10,14 @@ flags that concern it, the reason) and a last row ``verdict`` (the session's ver
 its line), so a spreadsheet never shows a number without its validity; and
 ``session.<csv|parquet>``: the session's row of the results table
 (:mod:`.results_table`). ``mat`` writes one MATLAB file ``<out>/<session_id>.mat``
-(:func:`export_mat`). :func:`write_results_table` writes one row per session of a
+(:func:`export_mat`) and the video beside it, ``<out>/<session_id>.mkv`` (unchanged, named
+in the ``.mat``). :func:`write_results_table` writes one row per session of a
 sessions directory. All tables are read from one database snapshot.
+
+A session that fails its integrity check (:meth:`~.reader.SessionReader.integrity_check`:
+database, manifest, summary, the video against its rows) is not exported, with one line
+naming every problem, unless the caller allows it (``allow_damaged``); such an export
+carries the problems (``integrity.txt``, or the ``.mat``'s ``integrity_problems``).
 
 Where exports go: by default ``exports/<session_id>/`` and ``exports/results.csv`` next
 to the sessions directory (``<root>/../exports``; :func:`default_export_dir`). An export
@@ -41,6 +47,7 @@ from stipi_daemon.errors import SessionError
 from stipi_daemon.storage import layout
 from stipi_daemon.storage.reader import (
     QUANTITY_PATHS,
+    IntegrityReport,
     SessionReader,
     quantity_status,
     quantity_value,
@@ -63,6 +70,9 @@ EXPORTS_DIR: Final = "exports"
 #: Format name and version stored in a ``.mat`` export.
 MAT_FORMAT: Final = "stipi-session-mat"
 MAT_VERSION: Final = 1
+#: File of a csv/parquet export of a session that failed its integrity check (exported with
+#: ``allow_damaged``): one line, every problem.
+INTEGRITY_NAME: Final = "integrity.txt"
 
 
 def _csv_value(value: Any) -> str:
@@ -179,7 +189,12 @@ def _holds_session(directory: Path) -> bool:
 
 
 def check_export_target(
-    out: Path, roots: Sequence[Path], sessions: Sequence[Path] = (), *, is_file: bool = False
+    out: Path,
+    roots: Sequence[Path],
+    sessions: Sequence[Path] = (),
+    *,
+    is_file: bool = False,
+    what: str = "an export",
 ) -> None:
     """Refuse an export target that would write into a session.
 
@@ -193,6 +208,8 @@ def check_export_target(
     sessions : sequence of Path
         Session directories to protect besides every directory holding a session database
         or writer lock (the exported session, each session of ``roots``).
+    what : str
+        What would write there, for the message (``"an export"``, ``"an analysis"``).
 
     Raises
     ------
@@ -208,7 +225,7 @@ def check_export_target(
     for p in (directory, *directory.parents):
         if p in protected or _holds_session(p):
             raise SessionError(
-                f"--out {out}: inside the session directory {p}; an export never writes "
+                f"--out {out}: inside the session directory {p}; {what} never writes "
                 "into a session (choose a directory outside the sessions directory)"
             )
     for root in roots:
@@ -230,6 +247,25 @@ def _conflicts(pairs: Sequence[tuple[Path | None, Path]]) -> list[Path]:
     ]
 
 
+def _integrity_line(reader: SessionReader, problems: tuple[str, ...]) -> str:
+    """One line: the session failed its integrity check, and every problem."""
+    return f"{reader.directory}: integrity check failed: " + "; ".join(problems)
+
+
+def _checked_integrity(
+    reader: SessionReader, integrity: IntegrityReport | None, allow_damaged: bool
+) -> tuple[str, ...]:
+    """The problems of the session's integrity check (run here unless given); raises
+    when there are some and ``allow_damaged`` is not set."""
+    report = reader.integrity_check() if integrity is None else integrity
+    if report.problems and not allow_damaged:
+        raise SessionError(
+            _integrity_line(reader, report.problems)
+            + " (not exported; --allow-damaged exports it as it is)"
+        )
+    return report.problems
+
+
 def export_session(
     reader: SessionReader,
     out_dir: Path | str,
@@ -237,8 +273,10 @@ def export_session(
     *,
     overwrite: bool = False,
     roots: Sequence[Path] = (),
+    allow_damaged: bool = False,
+    integrity: IntegrityReport | None = None,
 ) -> list[Path]:
-    """Write a session to ``out_dir``: one file per table, or one ``.mat`` file.
+    """Write a session to ``out_dir``: one file per table, or one ``.mat`` file, and its video.
 
     Parameters
     ----------
@@ -249,40 +287,43 @@ def export_session(
         a session (the exported one, a session of ``roots`` or of the session's own
         sessions directory) before anything is written.
     fmt : {"csv", "parquet", "mat"}
-        File format; ``mat`` writes ``<out_dir>/<session_id>.mat`` (:func:`export_mat`).
+        File format; ``mat`` writes ``<out_dir>/<session_id>.mat`` (:func:`export_mat`) and
+        the session's video beside it as ``<out_dir>/<session_id>.mkv``.
     overwrite : bool
         Replace existing files; otherwise an existing target file raises (a copy whose
         target holds the same bytes, e.g. ``manifest.json`` of an export in the other
         format, is not a conflict).
     roots : sequence of Path
         Further sessions directories to protect.
+    allow_damaged : bool
+        Export a session that fails its integrity check
+        (:meth:`~.reader.SessionReader.integrity_check`) as it is; the export then carries
+        the problems (:data:`INTEGRITY_NAME`, or the ``.mat``'s ``integrity_problems``).
+    integrity : IntegrityReport, optional
+        The session's integrity check when the caller ran it already (run here otherwise).
 
     Returns
     -------
     list of Path
         The files written (tables in :data:`~.schema.TABLES` order, the validity file, the
-        session's row, then the JSON files and the session's ``video.mkv``, copied as it is).
+        session's row, then the JSON files and the session's ``video.mkv``, copied as it is,
+        then :data:`INTEGRITY_NAME` for a damaged session; ``mat``: the ``.mat``, then the
+        video).
 
     Raises
     ------
     SessionError
-        Unknown format, a target in a session, an existing target file without
-        ``overwrite``, or a write error.
+        Unknown format, a target in a session, a session failing its integrity check
+        without ``allow_damaged`` (one line, every problem), an existing target file
+        without ``overwrite``, or a write error. Nothing is written then.
     """
     if fmt not in EXPORT_FORMATS:
         raise SessionError(f"export format {fmt!r} is not one of {', '.join(EXPORT_FORMATS)}")
     out = Path(out_dir)
     check_export_target(out, [*roots, reader.directory.parent], [reader.directory])
+    problems = _checked_integrity(reader, integrity, allow_damaged)
     if fmt == "mat":
-        target = out / f"{reader.session_id}.mat"
-        if target.exists() and not overwrite:
-            raise SessionError(f"{target}: exists already (use --overwrite to replace it)")
-        try:
-            out.mkdir(parents=True, exist_ok=True)
-        except OSError as exc:
-            raise SessionError(f"{out}: export failed: {exc}") from exc
-        export_mat(reader, target)
-        return [target]
+        return _export_mat_files(reader, out, overwrite, problems)
     targets = [out / f"{t.name}.{fmt}" for t in TABLES]
     validity_target, row_target = out / f"validity.{fmt}", out / f"session.{fmt}"
     extras = [
@@ -292,9 +333,12 @@ def export_session(
         and src.exists()
         and src.name in (layout.MANIFEST_NAME, layout.SUMMARY_NAME, layout.VIDEO_NAME)
     ]
+    written_here = [*targets, validity_target, row_target]
+    if problems:
+        written_here.append(out / INTEGRITY_NAME)
     if not overwrite:
-        written_here = [(None, t) for t in [*targets, validity_target, row_target]]
-        conflicts = _conflicts([*written_here, *((src, out / src.name) for src in extras)])
+        pairs = [*((None, t) for t in written_here), *((src, out / src.name) for src in extras)]
+        conflicts = _conflicts(pairs)
         if conflicts:
             raise SessionError(f"{conflicts[0]}: exists already (use --overwrite to replace it)")
     writer = _write_csv if fmt == "csv" else _write_parquet
@@ -309,14 +353,56 @@ def export_session(
         _write_validity(validity_target, fmt, validity_rows(_summary_or_none(reader)))
         write_rows(row_target, [row], fmt)
         written += [validity_target, row_target]
-        for src in extras:
-            dst = out / src.name
-            if not (dst.exists() and filecmp.cmp(src, dst, shallow=False)):
-                shutil.copyfile(src, dst)
-            written.append(dst)
+        written += [_copy(src, out / src.name) for src in extras]
+        if problems:
+            (out / INTEGRITY_NAME).write_text(
+                _integrity_line(reader, problems) + "\n", encoding="utf-8"
+            )
+            written.append(out / INTEGRITY_NAME)
     except OSError as exc:
         raise SessionError(f"{out}: export failed: {exc}") from exc
     return written
+
+
+def _copy(src: Path, dst: Path) -> Path:
+    """``src`` copied byte for byte to ``dst`` (left as it is when it holds those bytes)."""
+    if not (dst.exists() and filecmp.cmp(src, dst, shallow=False)):
+        shutil.copyfile(src, dst)
+    return dst
+
+
+def _export_mat_files(
+    reader: SessionReader, out: Path, overwrite: bool, problems: tuple[str, ...]
+) -> list[Path]:
+    """``<out>/<session_id>.mat`` and the session's video beside it, ``<session_id>.mkv``
+    (byte for byte; named in the ``.mat``'s ``video_file``); the files written."""
+    target = out / f"{reader.session_id}.mat"
+    video = reader.video_path
+    video = video if video is not None and video.is_file() else None
+    video_target = None if video is None else out / f"{reader.session_id}{video.suffix}"
+    pairs: list[tuple[Path | None, Path]] = [(None, target)]
+    if video is not None and video_target is not None:
+        pairs.append((video, video_target))
+    if not overwrite:
+        conflicts = _conflicts(pairs)
+        if conflicts:
+            raise SessionError(f"{conflicts[0]}: exists already (use --overwrite to replace it)")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise SessionError(f"{out}: export failed: {exc}") from exc
+    export_mat(
+        reader,
+        target,
+        video_file=None if video_target is None else video_target.name,
+        integrity_problems=problems,
+    )
+    if video is None or video_target is None:
+        return [target]
+    try:
+        return [target, _copy(video, video_target)]
+    except OSError as exc:
+        raise SessionError(f"{video_target}: export failed: {exc}") from exc
 
 
 def write_results_table(
@@ -393,10 +479,19 @@ def _mat_results(summary: dict[str, Any] | None) -> dict[str, Any]:
     return out
 
 
-def export_mat(reader: SessionReader, path: Path) -> None:
+def export_mat(
+    reader: SessionReader,
+    path: Path,
+    *,
+    video_file: str | None = None,
+    integrity_problems: Sequence[str] = (),
+) -> None:
     """Write a session to a MATLAB file (scipy.io.savemat, format 5, columns as n-by-1).
 
-    Variables: ``format``, ``format_version``, ``session_id``; ``metadata`` (subject,
+    Variables: ``format``, ``format_version``, ``session_id``; ``video_file`` (the name of
+    the session's video copied beside the file, ``<session_id>.mkv``; ``''`` when none is);
+    ``integrity_problems`` (a cell array: the session's integrity check problems when it
+    was exported damaged, else empty); ``metadata`` (subject,
     site, operator, note; ``[]`` when not set); one struct per table (``force_samples``,
     ``frames`` with ``s_k`` [px], ``events``, ``transitions``, ``gaps``, ``clock_probes``,
     ``live_parameters``, ``video_frames``), each field one column (numbers as double,
@@ -413,6 +508,8 @@ def export_mat(reader: SessionReader, path: Path) -> None:
         "format": MAT_FORMAT,
         "format_version": MAT_VERSION,
         "session_id": reader.session_id,
+        "video_file": video_file or "",
+        "integrity_problems": np.array(list(integrity_problems), dtype=object),
         "metadata": {k: _mat_none(v) for k, v in reader.metadata.items()},
         **tables,
         "units": {t.name: {c.name: c.unit for c in t.columns} for t in TABLES},

@@ -131,7 +131,12 @@ def test_frames_figure_shows_raw_and_thresholded(inp: ReportInput) -> None:
     images = {im.get_gid(): im for ax in fig.axes for im in ax.get_images()}
     for p in panels:
         raw = np.asarray(images[f"raw_{p.kind}"].get_array())
-        np.testing.assert_array_equal(raw[:, :, :3], p.raw[:, :, ::-1])  # shown as RGB(A)
+        # shown as RGB(A): a BGR frame reversed, a gray one (the video's ROI box) in each;
+        # where the video holds only the ROI's box, the pixels outside it are hatched
+        rgb = p.raw[:, :, ::-1] if p.raw.ndim == 3 else np.repeat(p.raw[:, :, None], 3, axis=2)
+        box = getattr(p.raw, "stored_box", None)
+        x0, y0, x1, y1 = box if box is not None else (0, 0, rgb.shape[1], rgb.shape[0])
+        np.testing.assert_array_equal(raw[y0:y1, x0:x1, :3], rgb[y0:y1, x0:x1])
         assert raw.shape[2] == 4 and (raw[:, :, 3] == 255).all()
         shown = np.asarray(images[f"binary_{p.kind}"].get_array())
         # White = occluded inside the ROI: exactly the S_k pixels.
