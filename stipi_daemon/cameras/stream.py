@@ -16,6 +16,16 @@ missed frames as in real time. The stall timeout is never shorter than three nom
 periods (a 2 fps camera is not "stalled" after 0.5 s), nor than
 :data:`STALL_MIN_WALL_S` of wall time: a host's scheduling hiccup does not shrink with the
 clock's speed, so a simulation accelerated past 4x is not "stalled" by one.
+
+Behind is not stalled. A stall is the source's own silence: for a camera with a capture
+thread (:meth:`~.threaded.ThreadedCamera.source_silent_s`) the time its thread spends
+handing frames over to the consumer (the frame hook: S_k, the session video, the row) does
+not count, nor, for a source that waits for its consumer (a paced video file, the
+simulator), the time it spends producing its next frame (reading, decoding, rendering; up
+to :data:`~.threaded.SOURCE_HANG_WALL_S` of wall time), unless an injected stall froze it.
+So such a source on a machine that cannot keep up with ``run.speed`` delivers its frames
+late, and the daemon reports that lag (``run.max_lag_s``), not a stall that would end the
+measurement's phases at once with the frames still to come.
 """
 
 from __future__ import annotations
@@ -161,12 +171,16 @@ class CameraStream:
         frames = self.camera.frames()
         last_frame_t = clock.now()
         last_seq = -1
-        timeout_s = self.open_timeout_s
+        limit_s = wait_s = self.open_timeout_s  # the silence allowed; the wait for it
         while True:
             reason = "timeout"
             try:
-                frame = await self._next(frames, timeout_s)
+                frame = await self._next(frames, wait_s)
             except TimeoutError:
+                more_s = self._not_silent_for(limit_s)
+                if more_s is not None:  # producing or handing over frames: behind
+                    frames, wait_s = self.camera.frames(), more_s  # (that one is closed)
+                    continue
                 frame = None
                 reason = "timeout"
             except CameraError as exc:
@@ -177,7 +191,7 @@ class CameraStream:
                     return
                 last_frame_t = clock.now()
                 last_seq = frame.seq
-                timeout_s = self.effective_stall_timeout_s()
+                limit_s = wait_s = self.effective_stall_timeout_s()
                 yield frame
                 continue
             now = clock.now()
@@ -199,8 +213,19 @@ class CameraStream:
             yield CameraRecovered(t_s=now, attempts=attempts, outage_s=now - last_frame_t)
             last_frame_t = now
             last_seq = first.seq
-            timeout_s = self.effective_stall_timeout_s()
+            limit_s = wait_s = self.effective_stall_timeout_s()
             yield first
+
+    def _not_silent_for(self, limit_s: float) -> float | None:
+        """After a wait for a frame timed out: the session time [s] still to wait when the
+        source has been silent for less than ``limit_s`` [s] (its capture thread was busy
+        handing over or producing frames meanwhile), else None (a stall; also for a camera
+        that cannot tell)."""
+        silent = getattr(self.camera, "source_silent_s", None)
+        if silent is None:
+            return None
+        silent_s = float(silent())
+        return limit_s - silent_s if silent_s < limit_s else None
 
     async def _reopen(self) -> tuple[AsyncIterator[CameraFrame], CameraFrame | None, int]:
         """Close and reopen until a first frame arrives; (frames, first frame, attempts).

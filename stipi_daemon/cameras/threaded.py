@@ -38,6 +38,10 @@ H = TypeVar("H")
 
 #: Longest wall time :meth:`ThreadedCamera.close` waits for the capture thread [s].
 JOIN_TIMEOUT_S = 2.0
+#: Longest wall time [s] a source that waits for its consumer (a file, the simulator) may
+#: take to produce one frame (read, decode, render) before that counts as silence: it is
+#: working behind its frames' capture times on a busy machine, not frozen, until then.
+SOURCE_HANG_WALL_S = 2.0
 
 
 @dataclass(frozen=True, slots=True)
@@ -151,6 +155,20 @@ class FrameHandoff(Generic[T]):
             await waiter
 
 
+@dataclass(slots=True)
+class _Progress:
+    """A capture thread's progress (:meth:`ThreadedCamera.source_silent_s`): the session time
+    [s] it last had a frame for its consumer or finished handing one over; whether it is
+    handing one over now (in the frame hook or the hand-off); the session time [s] its
+    current ``_read`` began (None: not reading); whether an injected stall swallowed a frame
+    since the last hand-over."""
+
+    last_s: float
+    handing_over: bool = False
+    read_since_s: float | None = None
+    frozen: bool = False
+
+
 def _wake(fut: asyncio.Future[None]) -> None:
     if not fut.done():
         fut.set_result(None)
@@ -199,6 +217,7 @@ class ThreadedCamera(ABC, Generic[H]):
         self._last_seq: int | None = None
         self._stall_from_s = self._stall_until_s = float("-inf")
         self._thread_state = threading.local()  # the capture thread's own stop event
+        self._progress = _Progress(float("-inf"))  # that of the current capture thread
 
     # -- hooks ------------------------------------------------------------------------------
 
@@ -260,6 +279,34 @@ class ThreadedCamera(ABC, Generic[H]):
             elif stop.wait(wall_s):
                 return False
 
+    def source_silent_s(self) -> float:
+        """How long the source itself has been silent [s of session time]: the time since
+        the capture thread last had a frame for its consumer or finished handing one over
+        (since the open, before the first frame), but 0 while it hands a frame over (the
+        consumer's :attr:`frame_hook`: S_k, video and row; or a full hand-off), and for a
+        source that waits for its consumer also while it produces the next frame (reads,
+        decodes, renders), for up to :data:`SOURCE_HANG_WALL_S` of wall time, unless an
+        injected stall (:meth:`stall`) has swallowed a frame since the last hand-over.
+
+        :class:`~.stream.CameraStream` declares a stall on this, not on the time between
+        frames alone: a file or simulated camera running behind its frames' capture times
+        because the machine is slower than ``run.speed`` asks (a slow decode, a slow
+        consumer) delivers late, and its lag is measured on every frame; it has not
+        stopped delivering.
+        """
+        progress, now = self._progress, self._clock.now()
+        if progress.handing_over:
+            return 0.0
+        reading = progress.read_since_s
+        if (
+            reading is not None
+            and not progress.frozen
+            and not self._drop_oldest
+            and (now - reading) / self._clock.speed < SOURCE_HANG_WALL_S
+        ):
+            return 0.0
+        return max(0.0, now - progress.last_s)
+
     @property
     def stats(self) -> CameraStats:
         return self._stats
@@ -311,8 +358,12 @@ class ThreadedCamera(ABC, Generic[H]):
             loop, self._capacity, self._drop_oldest
         )
         stop = threading.Event()
+        progress = self._progress = _Progress(self._clock.now())
         thread = threading.Thread(
-            target=self._run, args=(handle, handoff, stop), name=f"capture {self.name}", daemon=True
+            target=self._run,
+            args=(handle, handoff, stop, progress),
+            name=f"capture {self.name}",
+            daemon=True,
         )
         self._handoff, self._stop, self._thread = handoff, stop, thread
         if self._last_seq is None:
@@ -365,31 +416,33 @@ class ThreadedCamera(ABC, Generic[H]):
     # -- capture thread ---------------------------------------------------------------------
 
     def _run(
-        self, handle: H, handoff: FrameHandoff[RawFrame | _End], stop: threading.Event
+        self,
+        handle: H,
+        handoff: FrameHandoff[RawFrame | _End],
+        stop: threading.Event,
+        progress: _Progress,
     ) -> None:
         end = _End(None)
         self._thread_state.stop = stop
         try:
             while not stop.is_set():
+                progress.read_since_s = self._clock.now()
                 raw = self._read(handle)
+                progress.read_since_s = None
                 if raw is None:
                     break
                 if self._paced and not self._wait_until(raw.t_capture_s):
                     return  # closed while waiting for the frame's capture time
                 if self._stalled(raw.t_capture_s):
+                    progress.frozen = True
                     continue  # injected stall: delivered nothing, or captured while frozen
-                hook = self.frame_hook
-                if hook is not None:
-                    if self._drop_oldest and handoff.full():
-                        handoff.count_dropped()  # the newest, before the hook saw it
-                        continue
-                    try:
-                        measured = hook(raw)
-                    except Exception:  # the consumer computes it again and sees the error
-                        measured = None
-                    raw = RawFrame(raw.seq, raw.t_capture_s, raw.image, raw.packet, measured)
-                if not handoff.put(raw):
-                    return
+                progress.last_s, progress.handing_over = self._clock.now(), True
+                progress.frozen = False
+                try:
+                    if not self._hand_over(raw, handoff):
+                        return
+                finally:
+                    progress.last_s, progress.handing_over = self._clock.now(), False
         except CameraError as exc:
             end = _End(exc)
         except Exception as exc:  # a bug or an OpenCV failure: report it, do not hang
@@ -400,3 +453,18 @@ class ThreadedCamera(ABC, Generic[H]):
             finally:
                 if not stop.is_set():
                     handoff.put(end, force=True)
+
+    def _hand_over(self, raw: RawFrame, handoff: FrameHandoff[RawFrame | _End]) -> bool:
+        """Capture thread: run the frame hook on ``raw`` and put it on the hand-off; False
+        once the hand-off is closed."""
+        hook = self.frame_hook
+        if hook is not None:
+            if self._drop_oldest and handoff.full():
+                handoff.count_dropped()  # the newest, before the hook saw it
+                return True
+            try:
+                measured = hook(raw)
+            except Exception:  # the consumer computes it again and sees the error
+                measured = None
+            raw = RawFrame(raw.seq, raw.t_capture_s, raw.image, raw.packet, measured)
+        return handoff.put(raw)

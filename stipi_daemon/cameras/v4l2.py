@@ -23,11 +23,15 @@ otherwise it is the session time at grab. With driver timestamps, gaps longer th
 frame periods reveal frames the driver lost; they are added to ``seq`` (so they show in
 ``dropped_before``). Without them no such inference is made (``metadata()["timestamps"]``).
 
-Gray. With ``gray`` and ``MJPG`` the driver's JPEG is taken raw (``CAP_PROP_CONVERT_RGB``
-off) and decoded straight to gray by ``cv2.imdecode(IMREAD_GRAYSCALE)``; with ``YUYV`` the
-luma plane is taken; otherwise BGR is converted with ``cv2.cvtColor``. The raw JPEG
-travels with its decoded frame (``CameraFrame.packet``), so the session video stores it
-without re-encoding.
+Decoding. With ``MJPG`` the driver's JPEG is taken raw (``CAP_PROP_CONVERT_RGB`` off) and
+decoded by ``cv2.imdecode`` once grabbed: straight to gray (``IMREAD_GRAYSCALE``) with
+``gray``, else to BGR (``IMREAD_COLOR``). The raw JPEG travels with its decoded frame
+(``CameraFrame.packet``), so the session video stores it without re-encoding
+(passthrough). A driver that refuses raw frames leaves the decode to OpenCV (BGR,
+converted with ``cv2.cvtColor`` with ``gray``): then no JPEG is available, which is noted
+and recorded (``applied["jpeg_packets"]`` false in the camera's metadata), and the session
+video is recorded losslessly instead. With ``gray`` and ``YUYV`` the luma plane is taken;
+otherwise BGR is converted with ``cv2.cvtColor``.
 
 A stuck driver: ``grab`` returns after OpenCV's 10 s select timeout at the latest (then the
 thread ends with a :class:`~stipi_daemon.errors.CameraError`); :meth:`close` waits at most
@@ -38,6 +42,7 @@ from __future__ import annotations
 
 import os
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
@@ -52,14 +57,31 @@ from stipi_daemon.cameras.video_file import fourcc_string
 from stipi_daemon.clock import SessionClock
 from stipi_daemon.errors import CameraError
 
-__all__ = ["V4L2Camera", "device_path"]
+__all__ = ["V4L2Camera", "decode_mode", "device_path"]
 
 #: ``V4L2_EXPOSURE_MANUAL``, the menu value of ``V4L2_CID_EXPOSURE_AUTO`` for manual exposure.
 V4L2_EXPOSURE_MANUAL = 1
 #: Largest age of a driver timestamp at grab time accepted as on CLOCK_MONOTONIC [s].
 MAX_DRIVER_TIMESTAMP_AGE_S = 1.0
 
-_Mode = Literal["bgr", "bgr_to_gray", "jpeg_gray", "yuyv_gray"]
+_Mode = Literal["bgr", "bgr_to_gray", "jpeg_gray", "jpeg_bgr", "yuyv_gray"]
+#: Modes that take the driver's JPEG raw (it travels with the frame as its packet).
+_JPEG_MODES: frozenset[_Mode] = frozenset({"jpeg_gray", "jpeg_bgr"})
+
+
+def decode_mode(fourcc: str, gray: bool, raw_accepted: Callable[[], bool]) -> _Mode:
+    """How frames of pixel format ``fourcc`` are decoded (see the module docstring).
+
+    ``raw_accepted`` asks the driver for raw frames (``CAP_PROP_CONVERT_RGB`` off) and says
+    whether it agreed; it is asked only where raw frames are used: MJPG always (its JPEGs
+    are the session video), YUYV with ``gray``.
+    """
+    if fourcc in ("MJPG", "JPEG"):
+        if raw_accepted():
+            return "jpeg_gray" if gray else "jpeg_bgr"
+    elif fourcc == "YUYV" and gray and raw_accepted():
+        return "yuyv_gray"
+    return "bgr_to_gray" if gray else "bgr"
 
 
 def device_path(device: str | int) -> str:
@@ -153,9 +175,13 @@ class V4L2Camera(ThreadedCamera[_Handle]):
             cap.set(cv2.CAP_PROP_AUTO_WB, 0.0)
             cap.set(cv2.CAP_PROP_WB_TEMPERATURE, float(c.white_balance_k))
         fourcc = fourcc_string(cap.get(cv2.CAP_PROP_FOURCC))
-        mode: _Mode = "bgr_to_gray" if c.gray else "bgr"
-        if c.gray and fourcc in ("MJPG", "JPEG", "YUYV") and cap.set(cv2.CAP_PROP_CONVERT_RGB, 0.0):
-            mode = "jpeg_gray" if fourcc != "YUYV" else "yuyv_gray"
+        mode = decode_mode(fourcc, c.gray, lambda: bool(cap.set(cv2.CAP_PROP_CONVERT_RGB, 0.0)))
+        if fourcc in ("MJPG", "JPEG") and mode not in _JPEG_MODES:
+            self._note(
+                f"camera {self.path}: the driver refused raw MJPG frames (CAP_PROP_CONVERT_RGB "
+                "off); OpenCV decodes them, so the camera's JPEGs are not available and the "
+                "session video is recorded losslessly"
+            )
         applied: dict[str, Any] = {
             "fourcc": fourcc,
             "width": int(cap.get(cv2.CAP_PROP_FRAME_WIDTH)),
@@ -168,6 +194,7 @@ class V4L2Camera(ThreadedCamera[_Handle]):
             applied["auto_wb"] = cap.get(cv2.CAP_PROP_AUTO_WB)
             applied["white_balance_k"] = int(cap.get(cv2.CAP_PROP_WB_TEMPERATURE))
         applied["decode"] = mode
+        applied["jpeg_packets"] = mode in _JPEG_MODES  # the camera's JPEGs travel with frames
         self._applied = applied
         for key, want, tol in (
             ("fourcc", c.fourcc, None),
@@ -222,12 +249,13 @@ class V4L2Camera(ThreadedCamera[_Handle]):
         if image is None:
             self._note(f"camera {self.path}: corrupt frames from the driver were skipped")
             return None
-        packet = raw.tobytes() if h.mode == "jpeg_gray" else None  # the JPEG as received
+        packet = raw.tobytes() if h.mode in _JPEG_MODES else None  # the JPEG as received
         return RawFrame(seq, t_s, image, packet)
 
     def _decode(self, mode: _Mode, data: npt.NDArray[np.uint8]) -> npt.NDArray[np.uint8] | None:
-        if mode == "jpeg_gray":
-            img = cv2.imdecode(data.reshape(-1), cv2.IMREAD_GRAYSCALE)
+        if mode in _JPEG_MODES:
+            flag = cv2.IMREAD_GRAYSCALE if mode == "jpeg_gray" else cv2.IMREAD_COLOR
+            img = cv2.imdecode(data.reshape(-1), flag)
             return None if img is None else np.asarray(img, dtype=np.uint8)
         if mode == "yuyv_gray":
             return np.ascontiguousarray(data[:, :, 0]) if data.ndim == 3 else data

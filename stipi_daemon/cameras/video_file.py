@@ -1,6 +1,7 @@
 """A recorded video replayed as a camera (the simulator's video.mkv, a session's stored video).
 
-This module owns reading a video file with OpenCV's FFmpeg backend in a capture thread,
+This module owns reading a video file in a capture thread (its JPEG packets with OpenCV's
+FFmpeg backend, other codecs' packets with PyAV),
 timestamping frame k at ``t0 + (k - k0) / fps`` on the session clock (k0 the first frame
 read, t0 the session time of the first open), pacing delivery at the file's frame rate or
 not at all, looping, and the end of a truncated file. It does not analyse frames.
@@ -18,12 +19,19 @@ JPEG's luma plane, no colour conversion: the fastest route, docs/bench_camera_de
 else to BGR; the JPEG itself travels with the decoded frame (``CameraFrame.packet``), so
 the session video stores it without re-encoding. Raw packets also tell a complete JPEG
 (ending in the EOI marker ``FF D9``) from the cut-off last frame of a truncated file,
-which FFmpeg's own decoder would return half grey. Other codecs are decoded by FFmpeg and
-converted with ``cv2.cvtColor`` when ``gray`` is set.
+which FFmpeg's own decoder would return half grey. Other codecs (FFV1, H.264, ...) are
+demuxed with PyAV one packet ahead and each packet is decoded by PyAV's (FFmpeg's) decoder,
+whose state is kept from packet to packet, after the wait; a decoder that holds frames back
+(B-frames) hands them over one packet later, and at the end of the file it is flushed, so no
+frame is lost. Those frames carry no packet (the session video records them losslessly);
+BGR(0) and gray frames are taken as they are decoded (``cv2.cvtColor`` to gray when ``gray``
+is set, as before), other pixel formats through FFmpeg's conversion to BGR. Their timestamps
+and ``seq`` are as for JPEG files: frame k of the file in presentation order.
 
 Truncated and damaged files. The replay ends cleanly after the last complete frame and
-records a note (:meth:`VideoFileCamera.notes`); a damaged frame inside the file is skipped
-(a ``seq`` gap, counted as dropped) and noted. A missing or unreadable file raises
+records a note (:meth:`VideoFileCamera.notes`); a damaged frame inside the file (a JPEG
+without its end, a packet the decoder rejects or a frame it marks corrupt) is skipped (a
+``seq`` gap, counted as dropped) and noted. A missing or unreadable file raises
 :class:`~stipi_daemon.errors.CameraError` naming it.
 
 Frames are never dropped by this source (the hand-off applies back-pressure); late delivery
@@ -35,11 +43,12 @@ from __future__ import annotations
 
 import math
 import os
-from collections.abc import Iterator
+from collections import deque
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import cv2
 import numpy as np
@@ -50,6 +59,12 @@ from stipi_daemon.cameras.threaded import RawFrame, ThreadedCamera
 from stipi_daemon.clock import SessionClock
 from stipi_daemon.errors import CameraError
 
+if TYPE_CHECKING:
+    import av.container
+    import av.packet
+    import av.video.frame
+    import av.video.stream
+
 __all__ = ["VideoFileCamera", "fourcc_string", "not_a_video", "quiet_opencv"]
 
 #: Decoded frames the capture thread holds ahead of the consumer [-] (paced: frames are
@@ -58,6 +73,9 @@ PREFETCH_FRAMES = 8
 
 _JPEG_FOURCCS = frozenset({"MJPG", "JPEG", "AVRN", "LJPG", "MJLS"})
 _EOI = b"\xff\xd9"
+#: ``metadata()["decoder"]`` of the two reading routes.
+DECODER_JPEG = "imdecode (raw MJPG packets)"
+DECODER_PYAV = "pyav (packets demuxed ahead, decoded at their capture time)"
 
 
 @contextmanager
@@ -107,12 +125,126 @@ def _complete_jpeg(packet: npt.NDArray[np.uint8]) -> bool:
     return _EOI in tail
 
 
+class _Damaged:
+    """A packet the decoder rejected, or a frame it marked corrupt."""
+
+
+_DAMAGED = _Damaged()
+
+
+class _PacketReader:
+    """A video's packets demuxed with PyAV one ahead of their decode (codecs other than JPEG).
+
+    :meth:`next_frame` takes the next packet from the demuxer, waits (the caller's capture
+    time) and only then decodes it; the decoder keeps its state from packet to packet, and a
+    decoder that holds frames back (B-frames: a packet in decode order may yield no frame,
+    or an earlier one) is flushed at the end of the file, so every frame comes out, in
+    presentation order.
+    """
+
+    def __init__(self, path: Path) -> None:
+        self._path = path
+        self._open()
+
+    def _open(self) -> None:
+        import av
+
+        self._container: av.container.InputContainer = av.open(str(self._path))
+        stream = self._container.streams.video[0]
+        self._ctx = stream.codec_context
+        self._demux = self._container.demux(stream)
+        # a packet taken from the demuxer and not decoded yet (skip(), a close while waiting)
+        self._ahead: av.packet.Packet[av.video.stream.VideoStream] | None = None
+        self._decoded: deque[av.video.frame.VideoFrame] = deque()  # a flush gives several
+        self._flushed = False
+        #: Why the demuxer stopped early (a damaged container), else None.
+        self.demux_error: str | None = None
+
+    def close(self) -> None:
+        self._container.close()
+
+    def _next_packet(self) -> av.packet.Packet[av.video.stream.VideoStream] | None:
+        """The next non-empty packet in decode order; None at the demuxer's end."""
+        import av
+
+        if self._ahead is not None:
+            pkt, self._ahead = self._ahead, None
+            return pkt
+        try:
+            for pkt in self._demux:
+                if pkt.size:
+                    return pkt
+        except av.error.FFmpegError as exc:
+            self.demux_error = str(getattr(exc, "strerror", None) or exc).rstrip(".")
+        return None
+
+    def next_frame(self, wait: Callable[[], bool]) -> av.video.frame.VideoFrame | _Damaged | bool:
+        """The next frame in presentation order, its packets decoded only once ``wait()``
+        has returned True; ``_DAMAGED`` for a packet the decoder rejects (one frame);
+        False when ``wait()`` returned False (closed); True at the end of the file."""
+        import av
+
+        while not self._decoded:
+            if self._flushed:
+                return True
+            packet = self._next_packet()  # demuxed ahead: encoded data, not yet decoded
+            if not wait():
+                if packet is not None:
+                    self._ahead = packet
+                return False
+            try:
+                frames = self._ctx.decode(packet)  # None: flush the held-back frames
+            except av.error.FFmpegError:
+                if packet is None:
+                    self._flushed = True
+                    continue
+                return _DAMAGED
+            self._flushed = packet is None
+            self._decoded.extend(frames)
+        frame = self._decoded.popleft()
+        return _DAMAGED if frame.is_corrupt else frame
+
+    def skip(self, n: int) -> int:
+        """Skip ``n`` frames; the number skipped (fewer at the end). Packets are skipped
+        undecoded while every one is a keyframe and so is the packet after them (intra-only
+        video: one packet, one frame); otherwise the file is decoded from its start."""
+        done = 0
+        while done < n:
+            pkt = self._next_packet()
+            if pkt is None:
+                return done
+            if not pkt.is_keyframe:
+                break
+            done += 1
+        else:
+            nxt = self._next_packet()
+            self._ahead = nxt
+            if nxt is None or nxt.is_keyframe:
+                return done
+        self.close()  # an inter-coded video: decode the frames before the start
+        self._open()
+        done = 0
+        while done < n and not isinstance(self.next_frame(_at_once), bool):
+            done += 1
+        return done
+
+
+def _at_once() -> bool:
+    return True
+
+
 @dataclass
 class _Handle:
-    cap: cv2.VideoCapture
-    raw_jpeg: bool
+    cap: cv2.VideoCapture | None  # raw JPEG packets through OpenCV
+    reader: _PacketReader | None  # other codecs through PyAV
     pos: int  # index in the file of the next frame read
     bad_frames: list[int] = field(default_factory=list)
+
+    def close(self) -> None:
+        if self.cap is not None:
+            self.cap.release()
+        if self.reader is not None:
+            self.reader.close()
 
 
 class VideoFileCamera(ThreadedCamera[_Handle]):
@@ -161,6 +293,7 @@ class VideoFileCamera(ThreadedCamera[_Handle]):
         self._size: tuple[int, int] | None = None
         self._fourcc = ""
         self._declared_frames = -1
+        self._decoder = ""  # DECODER_JPEG or DECODER_PYAV, once opened
         self._k0 = 0
         self._pass_base_seq = [0]  # seq of the first frame of each pass (loop)
         self._seq_next = 0
@@ -208,7 +341,7 @@ class VideoFileCamera(ThreadedCamera[_Handle]):
             "loop": self.loop,
             "pace": self.pace,
             "gray": self.gray,
-            "decoder": "imdecode (raw MJPG packets)" if self._raw_possible() else "ffmpeg",
+            "decoder": self._decoder or (DECODER_JPEG if self._raw_possible() else DECODER_PYAV),
         }
 
     def _raw_possible(self) -> bool:
@@ -244,7 +377,6 @@ class VideoFileCamera(ThreadedCamera[_Handle]):
             int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT)),
         )
         self._declared_frames = int(cap.get(cv2.CAP_PROP_FRAME_COUNT))
-        raw = self._raw_possible() and bool(cap.set(cv2.CAP_PROP_FORMAT, -1))
         if first_open:
             self._k0 = round(self.start_s * fps)
             self._seq_next = self._k0
@@ -262,14 +394,37 @@ class VideoFileCamera(ThreadedCamera[_Handle]):
         resume_seq = self._k0 if last is None else last + 1
         base = max(b for b in self._pass_base_seq if b <= resume_seq)
         self._seq_next = resume_seq
-        pos = self._k0 + (resume_seq - base)
-        handle = _Handle(cap, raw, 0)
-        self._skip_to(handle, pos)
+        handle = self._reader_handle(cap)
+        self._skip_to(handle, self._k0 + (resume_seq - base))
         return handle
 
+    def _reader_handle(self, cap: cv2.VideoCapture) -> _Handle:
+        """The file's reading route: raw JPEG packets through ``cap``, else PyAV (``cap``
+        released); at its first frame."""
+        if self._raw_possible() and bool(cap.set(cv2.CAP_PROP_FORMAT, -1)):
+            self._decoder = DECODER_JPEG
+            return _Handle(cap, None, 0)
+        cap.release()
+        return self._pyav_handle()
+
+    def _pyav_handle(self) -> _Handle:
+        """The file opened with PyAV, at its first frame."""
+        import av
+
+        try:
+            reader = _PacketReader(self.path)
+        except (av.error.FFmpegError, IndexError) as exc:
+            raise CameraError(f"video file {self.path}: PyAV cannot read it ({exc})") from exc
+        self._decoder = DECODER_PYAV
+        return _Handle(None, reader, 0)
+
     def _skip_to(self, h: _Handle, pos: int) -> None:
-        """Advance to file frame ``pos`` by grabbing (no decode in raw mode; works on
-        truncated files, whose index is gone)."""
+        """Advance to file frame ``pos``: JPEG packets by grabbing (no decode; works on
+        truncated files, whose index is gone), other codecs by :meth:`_PacketReader.skip`."""
+        if h.reader is not None:
+            h.pos += h.reader.skip(pos - h.pos)
+            return
+        assert h.cap is not None
         while h.pos < pos:
             if not h.cap.grab():
                 break
@@ -283,9 +438,9 @@ class VideoFileCamera(ThreadedCamera[_Handle]):
                 return None  # closed while waiting for the capture time
             if image is None:
                 if self.loop and h.pos > self._k0 and self._seq_next > self._pass_base_seq[-1]:
-                    h.cap.release()
+                    h.close()
                     fresh = self._reopen_for_loop()
-                    h.cap, h.pos = fresh.cap, fresh.pos
+                    h.cap, h.reader, h.pos = fresh.cap, fresh.reader, fresh.pos
                     self._pass_base_seq.append(self._seq_next)
                     continue
                 return None
@@ -303,13 +458,20 @@ class VideoFileCamera(ThreadedCamera[_Handle]):
         return t0 + (seq - self._k0) / self._fps
 
     def _reopen_for_loop(self) -> _Handle:
-        cap = cv2.VideoCapture(str(self.path), cv2.CAP_FFMPEG)
-        if not cap.isOpened():
-            raise CameraError(f"video file {self.path}: cannot be reopened to loop")
-        raw = self._raw_possible() and bool(cap.set(cv2.CAP_PROP_FORMAT, -1))
-        h = _Handle(cap, raw, 0)
+        if self._decoder == DECODER_PYAV:
+            h = self._pyav_handle()
+        else:
+            cap = cv2.VideoCapture(str(self.path), cv2.CAP_FFMPEG)
+            if not cap.isOpened():
+                raise CameraError(f"video file {self.path}: cannot be reopened to loop")
+            h = self._reader_handle(cap)
         self._skip_to(h, self._k0)
         return h
+
+    def _captured(self, seq: int) -> bool:
+        """Capture thread: wait for frame ``seq``'s capture time when paced (its encoded
+        packet is read, not yet decoded); False when closed meanwhile."""
+        return not self.pace or self._wait_until(self._t_capture(seq))
 
     def _read_image(
         self, h: _Handle, seq: int
@@ -318,9 +480,12 @@ class VideoFileCamera(ThreadedCamera[_Handle]):
         (its file index) for a damaged frame that is followed by more; None at the end
         (after noting a truncated last frame) or when the camera is closed while waiting.
 
-        Paced, a JPEG packet is decoded once its capture time has come (see the module
-        docstring); FFmpeg-decoded codecs are decoded on reading, then wait."""
-        ok, data = h.cap.read()
+        Paced, the encoded frame is read ahead and decoded once its capture time has come
+        (see the module docstring)."""
+        if h.reader is not None:
+            return self._read_decoded(h, seq)
+        assert h.cap is not None
+        ok, data = h.cap.read()  # raw mode: the JPEG as stored, not decoded
         if not ok or data is None:
             self._note_short_end(h)
             return None
@@ -329,13 +494,8 @@ class VideoFileCamera(ThreadedCamera[_Handle]):
         for k in h.bad_frames:  # followed by more data: damaged, not the truncated end
             self._note(f"video file {self.path}: frame {k} is damaged and was skipped")
         h.bad_frames.clear()
-        if self.pace and not self._wait_until(self._t_capture(seq)):
+        if not self._captured(seq):
             return None
-        if not h.raw_jpeg:
-            img = np.asarray(data, dtype=np.uint8)
-            if self.gray and img.ndim == 3:
-                img = np.asarray(cv2.cvtColor(img, cv2.COLOR_BGR2GRAY), dtype=np.uint8)
-            return img, None
         packet = np.asarray(data, dtype=np.uint8)
         decoded = None
         if packet.size > 0 and _complete_jpeg(packet):
@@ -345,6 +505,45 @@ class VideoFileCamera(ThreadedCamera[_Handle]):
             return np.asarray(decoded, dtype=np.uint8), packet.tobytes()
         h.bad_frames.append(index)
         return index
+
+    def _read_decoded(
+        self, h: _Handle, seq: int
+    ) -> tuple[npt.NDArray[np.uint8], bytes | None] | int | None:
+        """:meth:`_read_image` for a file PyAV decodes (no packet travels with the frame)."""
+        assert h.reader is not None
+        got = h.reader.next_frame(lambda: self._captured(seq))
+        if got is False:
+            return None  # closed while waiting
+        if got is True:
+            if h.reader.demux_error is not None:
+                self._note(
+                    f"video file {self.path}: unreadable after frame {h.pos - 1} "
+                    f"({h.reader.demux_error}); the replay ended there"
+                )
+            else:
+                self._note_short_end(h)
+            return None
+        index = h.pos
+        h.pos += 1
+        if isinstance(got, _Damaged):
+            self._note(f"video file {self.path}: frame {index} is damaged and was skipped")
+            return index
+        return self._image(got), None
+
+    def _image(self, frame: av.video.frame.VideoFrame) -> npt.NDArray[np.uint8]:
+        """A decoded frame as the camera delivers it: gray ``(H, W)`` or BGR ``(H, W, 3)``."""
+        fmt = frame.format.name
+        if fmt == "gray":
+            gray = np.asarray(frame.to_ndarray(), dtype=np.uint8)
+            return gray if self.gray else np.asarray(cv2.cvtColor(gray, cv2.COLOR_GRAY2BGR))
+        if fmt in ("bgr0", "bgra"):  # FFV1's BGR: 4 bytes a pixel, read in place
+            plane = frame.planes[0]
+            rows = np.frombuffer(memoryview(plane), np.uint8).reshape(-1, plane.line_size)
+            bgrx = rows[: frame.height, : 4 * frame.width].reshape(frame.height, frame.width, 4)
+            code = cv2.COLOR_BGRA2GRAY if self.gray else cv2.COLOR_BGRA2BGR
+            return np.asarray(cv2.cvtColor(bgrx, code), dtype=np.uint8)
+        bgr = np.asarray(frame.to_ndarray(format="bgr24"), dtype=np.uint8)
+        return np.asarray(cv2.cvtColor(bgr, cv2.COLOR_BGR2GRAY)) if self.gray else bgr
 
     def _note_short_end(self, h: _Handle) -> None:
         if h.bad_frames and h.bad_frames[-1] == h.pos - 1:
@@ -365,4 +564,4 @@ class VideoFileCamera(ThreadedCamera[_Handle]):
             )
 
     def _close_source(self, h: _Handle) -> None:
-        h.cap.release()
+        h.close()

@@ -8,12 +8,13 @@ replays a 120 s scene in 30 s of wall time. Frames the scene's effects drop (for
 ``dropped_frames``) are missing from the stream and show as ``seq`` gaps. A Motion-JPEG
 scene (``camera.pixel_format: mjpg`` or the ``jpeg_compression`` effect) delivers each frame
 as an MJPG camera does: the JPEG (``CameraFrame.packet``, which the session video stores as
-it is, passthrough) with its decode straight to gray (the V4L2 camera's default ``gray:
-true``) as the image the daemon measures; other scenes deliver raw frames as rendered
-(stored losslessly). It behaves as a live camera across a stall: a reopen
-resumes at the current scene time, frames missed meanwhile are lost. It does not model the
-probe (that is the simulated transport's job) and adds no effects of its own;
-:meth:`~.threaded.ThreadedCamera.stall` injects freezes.
+it is, passthrough), encoded ahead and handed over at its capture time, with its decode
+straight to gray (the V4L2 camera's default ``gray: true``), made only then, as the image
+the daemon measures (a frame repeating the picture before it, the same JPEG, reuses that
+decode); other scenes deliver raw frames as rendered (stored losslessly). It behaves as a
+live camera across a stall: a reopen resumes at the current scene time, frames missed
+meanwhile are lost. It does not model the probe (that is the simulated transport's job) and
+adds no effects of its own; :meth:`~.threaded.ThreadedCamera.stall` injects freezes.
 """
 
 from __future__ import annotations
@@ -119,11 +120,15 @@ class SimulatorCamera(ThreadedCamera[Iterator[SimFrame]]):
         return self._pipeline.frames(start_s=start_s)
 
     def _read(self, handle: Iterator[SimFrame]) -> RawFrame | None:
-        f = next(handle, None)
+        f = next(handle, None)  # rendered and, in a Motion-JPEG scene, encoded
         if f is None:
             return None
         t0 = self._t0_s if self._t0_s is not None else 0.0
-        return RawFrame(f.index, t0 + f.t_s, f.image, f.packet)
+        t_capture_s = t0 + f.t_s
+        if f.packet is not None and not self._wait_until(t_capture_s):
+            return None  # closed while waiting for the capture time
+        # a JPEG is decoded now, at or after its capture time (a raw frame is as rendered)
+        return RawFrame(f.index, t_capture_s, f.image, f.packet)
 
     def _close_source(self, handle: Iterator[SimFrame]) -> None:
         close = getattr(handle, "close", None)

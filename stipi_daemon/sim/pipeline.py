@@ -6,8 +6,11 @@ stream, so that frames and samples are reproducible and independent of each othe
 the application of the scene's effects in registry order, and the camera's encoder: in a
 Motion-JPEG scene (:func:`.jpeg.scene_encoding`) each frame is JPEG-encoded once, after
 every image effect, and the frame's image is the decode of that JPEG, which the frame
-carries (``packet``); other scenes' frames are raw. A scene without effects builds an empty
-effect list and runs no effect code. It does not write files (:mod:`.output`).
+carries (``packet``); other scenes' frames are raw. The decode is made when the image is
+first asked for (``SimFrame.image``, ``cv2.imdecode`` as always), so the simulated camera
+hands the JPEG over at the frame's capture time and decodes it after, as an MJPG camera's
+frame is decoded. A scene without effects builds an empty effect list and runs no effect
+code. It does not write files (:mod:`.output`).
 """
 
 from __future__ import annotations
@@ -38,6 +41,7 @@ from stipi_daemon.sim.scene import Scene
 __all__ = [
     "ForceBatch",
     "ForceSample",
+    "JpegImage",
     "Pipeline",
     "SimFrame",
     "force_samples",
@@ -47,17 +51,53 @@ __all__ = [
 ]
 
 
+class JpegImage:
+    """A frame's JPEG and its decode (:func:`.jpeg.decode_jpeg`), made on first use and kept
+    (frames that repeat the picture before them share it: one decode)."""
+
+    __slots__ = ("_channels", "_image", "_read_only", "packet")
+
+    def __init__(self, packet: bytes, channels: int, *, read_only: bool = False) -> None:
+        #: The JPEG as the camera delivers it.
+        self.packet = packet
+        self._channels = channels
+        self._read_only = read_only
+        self._image: NDArray[np.uint8] | None = None
+
+    def image(self) -> NDArray[np.uint8]:
+        """The decode (``cv2.imdecode`` to the pipeline's layout), made now if not yet."""
+        if self._image is None:
+            image = decode_jpeg(self.packet, self._channels)
+            image.flags.writeable = not self._read_only
+            self._image = image
+        return self._image
+
+
 @dataclass(frozen=True)
 class SimFrame:
-    """One frame: its camera index, timestamp [s], image and the true S at that time [px];
-    in a Motion-JPEG scene ``packet`` is the JPEG the camera delivered and ``image`` its
-    decode (None: a raw frame, ``image`` as rendered)."""
+    """One frame: its camera index, timestamp [s], picture and the true S at that time [px].
+
+    ``pixels`` is the raw image as rendered (``packet`` None, ``image`` that image), or in a
+    Motion-JPEG scene the :class:`JpegImage` the camera delivered: ``packet`` is then its
+    JPEG and ``image`` its decode, made when ``image`` is first read.
+    """
 
     index: int
     t_s: float
-    image: NDArray[np.uint8]
+    pixels: NDArray[np.uint8] | JpegImage
     true_area_px: float
-    packet: bytes | None = None
+
+    @property
+    def image(self) -> NDArray[np.uint8]:
+        """The image the daemon measures (a JPEG frame's decode, made now if not yet)."""
+        p = self.pixels
+        return p.image() if isinstance(p, JpegImage) else p
+
+    @property
+    def packet(self) -> bytes | None:
+        """The frame's JPEG in a Motion-JPEG scene, else None."""
+        p = self.pixels
+        return p.packet if isinstance(p, JpegImage) else None
 
 
 @dataclass(frozen=True)
@@ -236,22 +276,24 @@ class Pipeline:
         for j, k in enumerate(range(k0, k1 + 1)):
             s, t = float(areas[j]), float(times[j])
             if last is not None and last[0] == round(s):
-                f = last[1]
-                yield SimFrame(k, t, f.image, s, f.packet)
+                yield SimFrame(k, t, last[1].pixels, s)
                 continue
-            f = self._encoded(k, t, self.renderer.render_area(s), s)
-            f.image.flags.writeable = False
+            f = self._encoded(k, t, self.renderer.render_area(s), s, read_only=True)
+            if isinstance(f.pixels, np.ndarray):
+                f.pixels.flags.writeable = False
             last = (round(s), f)
             yield f
 
-    def _encoded(self, k: int, t: float, image: NDArray[np.uint8], s: float) -> SimFrame:
-        """The frame as the camera delivers it: raw, or its JPEG (encoded once) and the
-        decode of that JPEG."""
+    def _encoded(
+        self, k: int, t: float, image: NDArray[np.uint8], s: float, *, read_only: bool = False
+    ) -> SimFrame:
+        """The frame as the camera delivers it: raw, or its JPEG (encoded once, decoded when
+        its image is first read; ``read_only``: that decode is not writeable)."""
         q = self.encoding.jpeg_quality
         if q is None:
             return SimFrame(k, t, image, s)
         packet = encode_jpeg(image, q)
-        return SimFrame(k, t, decode_jpeg(packet, self._channels), s, packet)
+        return SimFrame(k, t, JpegImage(packet, self._channels, read_only=read_only), s)
 
     def _render(
         self,

@@ -3,8 +3,11 @@
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
+import cv2
 import pytest
 
 from stipi_daemon.cameras import (
@@ -14,6 +17,7 @@ from stipi_daemon.cameras import (
     CameraStalled,
     CameraStream,
 )
+from stipi_daemon.cameras.threaded import RawFrame
 from stipi_daemon.cameras.video_file import VideoFileCamera
 from stipi_daemon.clock import ScaledClock
 from stipi_daemon.errors import CameraError
@@ -130,3 +134,93 @@ def test_invalid_settings_rejected() -> None:
         CameraStream(cam, clock, stall_timeout_s=0.0)
     with pytest.raises(ValueError, match="max_reopens"):
         CameraStream(cam, clock, max_reopens=0)
+
+
+# ------------------------------------------------------------- behind is not stalled
+
+
+async def _events_with_hook(
+    cam: VideoFileCamera, stream: CameraStream, hook: Callable[[RawFrame], None]
+) -> list[tuple[CameraEvent, float]]:
+    cam.frame_hook = hook
+    out: list[tuple[CameraEvent, float]] = []
+    async with stream:
+        async for ev in stream.events():
+            out.append((ev, stream.clock.now()))
+    return out
+
+
+async def test_a_file_camera_behind_a_slow_consumer_is_late_not_stalled(tmp_path: Path) -> None:
+    """The consumer's work in the capture thread (the daemon's S_k, video and row) takes
+    three stall timeouts on one frame (a loaded machine): the paced file camera behind it
+    delivers every frame late, and that shows as lag, never as a stall and a reopen."""
+    p = tmp_path / "v.avi"
+    write_avi(p, 24, fps=30.0)
+    clock = ScaledClock(speed=4.0)
+    cam = VideoFileCamera(p, clock, pace=True)
+    stream = CameraStream(cam, clock, stall_timeout_s=1.0)
+    timeout_s = stream.effective_stall_timeout_s()
+
+    def slow_consumer(raw: RawFrame) -> None:
+        if raw.seq == 5:
+            time.sleep(3.0 * timeout_s / clock.speed)  # wall time: 3 stall timeouts
+
+    events = await _events_with_hook(cam, stream, slow_consumer)
+    frames = [e for e, _ in events if isinstance(e, CameraFrame)]
+    assert [type(e).__name__ for e, _ in events] == ["CameraFrame"] * 24
+    assert [f.seq for f in frames] == list(range(24))
+    assert cam.stats.stalls == 0 and cam.stats.reopens == 0 and cam.stats.dropped == 0
+    # frame 6 came at least 3 stall timeouts after its capture time (paced: after frame 5)
+    lag_6 = next(
+        now - e.t_capture_s for e, now in events if isinstance(e, CameraFrame) and e.seq == 6
+    )
+    assert lag_6 >= 3.0 * timeout_s - 1.0 / 30.0
+    assert cam.stats.max_lag_s >= lag_6
+
+
+async def test_a_hooked_camera_that_goes_silent_is_still_stalled(tmp_path: Path) -> None:
+    p = tmp_path / "v.avi"
+    write_avi(p, 60, fps=30.0)
+    clock = ScaledClock(speed=4.0)
+    cam = VideoFileCamera(p, clock, pace=True)
+    stream = CameraStream(cam, clock, stall_timeout_s=0.5, backoff_s=0.05)
+
+    def hook(raw: RawFrame) -> None:
+        if raw.seq == 5:
+            cam.stall(0.8)  # the source freezes for 0.8 s of session time
+
+    events = await _events_with_hook(cam, stream, hook)
+    kinds = [type(e).__name__ for e, _ in events]
+    assert kinds.count("CameraStalled") == 1 and cam.stats.stalls == 1
+    stalled = next(e for e, _ in events if isinstance(e, CameraStalled))
+    assert stalled.last_seq == 5 and stalled.silent_s >= 0.5
+    assert kinds[kinds.index("CameraStalled") + 1] == "CameraRecovered"
+
+
+async def test_a_file_camera_whose_decode_is_slow_is_late_not_stalled(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """One JPEG takes three stall timeouts to decode (a loaded machine; the real decoder,
+    slowed): the paced file camera is working behind its frames' capture times, so it is
+    late, not stalled."""
+    p = tmp_path / "v.avi"
+    write_avi(p, 24, fps=30.0)
+    clock = ScaledClock(speed=4.0)
+    cam = VideoFileCamera(p, clock, pace=True)
+    stream = CameraStream(cam, clock, stall_timeout_s=1.0)
+    timeout_s = stream.effective_stall_timeout_s()
+    real_imdecode = cv2.imdecode
+    calls = [0]
+
+    def slow_imdecode(*args: Any) -> Any:
+        calls[0] += 1
+        if calls[0] == 6:
+            time.sleep(3.0 * timeout_s / clock.speed)  # wall time: 3 stall timeouts
+        return real_imdecode(*args)
+
+    monkeypatch.setattr(cv2, "imdecode", slow_imdecode)
+    events = await _events_with_hook(cam, stream, lambda raw: None)
+    monkeypatch.undo()
+    assert [type(e).__name__ for e, _ in events] == ["CameraFrame"] * 24
+    assert cam.stats.stalls == 0 and cam.stats.reopens == 0
+    assert cam.stats.max_lag_s >= 3.0 * timeout_s - 1.0 / 30.0

@@ -13,10 +13,11 @@ import pytest
 
 from stipi_daemon.analysis.imaging import CircleROI, FrameProcessor
 from stipi_daemon.cameras import CameraFrame, VideoFileCameraConfig, open_camera
-from stipi_daemon.cameras.video_file import VideoFileCamera
+from stipi_daemon.cameras.video_file import DECODER_PYAV, VideoFileCamera
 from stipi_daemon.clock import ScaledClock
 from stipi_daemon.errors import CameraError
 from stipi_daemon.sim.output import write_outputs
+from tests.cameras._pyav_video import pyav_frames, write_pyav
 from tests.cameras._scenes import small_scene
 from tests.cameras._video import write_avi
 
@@ -282,3 +283,51 @@ async def test_consumer_cancel_then_close_does_not_hang(avi: Path) -> None:
     w0 = time.monotonic()
     await cam.close()
     assert time.monotonic() - w0 < 1.0
+
+
+# ------------------------------------------------- other codecs: PyAV, decoded at capture time
+
+
+@pytest.mark.parametrize("codec", ["ffv1", "mpeg4"])
+async def test_pyav_file_start_loop_and_reopen(tmp_path: Path, codec: str) -> None:
+    """FFV1 (every packet a keyframe: skipped undecoded) and MPEG-4 with B-frames (decoded
+    from the start to reach ``start_s``) replay from ``start_s``, loop and resume after a
+    reopen with the frames PyAV's own decoder gives, at the same times as MJPG files."""
+    path = tmp_path / f"{codec}.mkv"
+    write_pyav(path, 12, codec=codec, fps=10)
+    reference = pyav_frames(path)
+    assert len(reference) == 12
+    cam = VideoFileCamera(path, ScaledClock(), pace=False, gray=False, loop=True, start_s=0.5)
+    cam_t0 = VideoFileCamera(path, ScaledClock(), pace=False, gray=False, t0_s=1.0)
+    first = await collect(cam, limit=4)
+    rest = await collect(cam, limit=6)  # reopened: resumes after frame 8
+    frames = first + rest
+    assert cam.metadata()["decoder"] == DECODER_PYAV
+    assert [f.seq for f in frames] == list(range(5, 15))
+    assert rest[0].dropped_before == 0
+    file_index = [5, 6, 7, 8, 9, 10, 11, 5, 6, 7]  # 7 frames a pass from frame 5
+    for f, k in zip(frames, file_index, strict=True):
+        assert f.packet is None
+        np.testing.assert_array_equal(f.image, reference[k])
+    whole = await collect(cam_t0)
+    np.testing.assert_allclose([f.t_capture_s for f in whole], 1.0 + np.arange(12) / 10.0)
+
+
+async def test_pyav_truncated_file_ends_at_its_last_complete_frame(tmp_path: Path) -> None:
+    import av
+
+    path = tmp_path / "v.mkv"
+    write_pyav(path, 10, codec="ffv1", fps=10)
+    with av.open(str(path)) as container:
+        packets = [(p.pos, p.size) for p in container.demux(video=0) if p.size]
+    pos, size = packets[6]
+    cut = tmp_path / "cut.mkv"
+    cut.write_bytes(path.read_bytes()[: pos + size // 2])  # half of frame 6's packet
+    cam = VideoFileCamera(cut, ScaledClock(), pace=False, gray=False)
+    frames = await collect(cam)
+    assert [f.seq for f in frames] == list(range(6))
+    for f, ref in zip(frames, pyav_frames(path), strict=False):
+        np.testing.assert_array_equal(f.image, ref)
+    assert cam.notes == [
+        f"video file {cut}: ended after 6 of the 10 frames its header declares (truncated?)"
+    ]
