@@ -4,10 +4,13 @@ Part of ``benchmarks/accuracy_vs_time.py`` (its ``--only tissue`` runs this part
 Each tissue-model scene (``configs/scenes/tissue_*.yaml``: Kelvin-Voigt, standard linear
 solid, two time constants, poroelastic, power law; all grade III-like with T_r = 27.5 s)
 is rendered once per seed with realistic noise (sensor noise 2 levels + LED flicker 2 %)
-at a small resolution, JPEG-encoded as the simulator's MJPG, decoded and counted (fixed
-p, Eq. (2)'s binary count). Recovery windows of W = 5 ... 105 s are cut from that one
-series and each is analysed by the real analysis core (:func:`analyze_recovery`, with the
-recovery models and their bootstrap intervals). Estimators:
+at a small resolution and counted as the simulator's camera delivers each frame (fixed
+p, Eq. (2)'s binary count): raw, as rendered, unless the scene asks for compression (an
+MJPG camera or the ``jpeg_compression`` effect, :func:`stipi_daemon.sim.jpeg.scene_encoding`),
+whose JPEG is then decoded to gray as the daemon's MJPG camera does. Recovery windows of
+W = 5 ... 105 s are cut from that one series and each is analysed by the real analysis
+core (:func:`analyze_recovery`, with the recovery models and their bootstrap intervals).
+Estimators:
 
 * ``paper``: F_r from S_max of the window (Eq. 5), T_r the 98 % settling time (Eq. 6),
   eta = E T_r (Eq. 8);
@@ -35,7 +38,7 @@ import cv2
 import numpy as np
 
 from stipi_daemon.analysis.calibration import Calibration
-from stipi_daemon.analysis.imaging import CircleROI, FrameProcessor
+from stipi_daemon.analysis.imaging import CircleROI, FrameProcessor, to_gray
 from stipi_daemon.analysis.pitting import compute_pitting_parameters
 from stipi_daemon.analysis.recovery_fit import time_constant_from_settling_time
 from stipi_daemon.analysis.recovery_models import MODELS, fit_recovery_models, known_models
@@ -80,7 +83,6 @@ STATUS_KEYS = {
     "tau": "tau_s",
 }
 TARGETS_PERCENT = (2.0, 5.0, 10.0)
-JPEG_QUALITY = 95
 CAMERA = (320, 240, 30.0)
 REALISTIC = [
     {"name": "sensor_noise", "sigma_levels": 2.0},
@@ -195,7 +197,8 @@ def extrapolated(
 
 
 def render_series(spec: TissueSpec) -> tuple[Any, GroundTruth, np.ndarray, np.ndarray, float]:
-    """Scene, truth, frame times [s] and S_k [px] (JPEG round trip), hold force F_a [N]."""
+    """Scene, truth, frame times [s] and S_k [px] of the frames as delivered (a
+    Motion-JPEG scene's decoded to gray, others raw), hold force F_a [N]."""
     scene = build(spec)
     truth = ground_truth(scene, spec.seed)
     pipe = Pipeline(scene, spec.seed)
@@ -210,10 +213,13 @@ def render_series(spec: TissueSpec) -> tuple[Any, GroundTruth, np.ndarray, np.nd
     )
     times, counts = [], []
     for fr in pipe.frames(truth.t0_s - 0.5, truth.t0_s + truth.window_s):
-        ok, buf = cv2.imencode(".jpg", fr.image, [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])
-        assert ok
+        packet = fr.packet  # the JPEG of a Motion-JPEG scene, else None: the clean frame
+        if packet is None:
+            image = to_gray(fr.image)
+        else:
+            image = np.asarray(cv2.imdecode(np.frombuffer(packet, np.uint8), cv2.IMREAD_GRAYSCALE))
         times.append(fr.t_s)
-        counts.append(proc.count(cv2.imdecode(buf, cv2.IMREAD_GRAYSCALE)))
+        counts.append(proc.count(image))
     return scene, truth, np.asarray(times), np.asarray(counts, dtype=np.float64), force_n
 
 
@@ -512,7 +518,8 @@ def report_lines(
         "(E, T_r = 27.5 s) whose recovery follows each tissue model (docs/simulator.md, "
         '"Tissue models"), with sensor noise 2 levels + LED flicker 2 %, seeds '
         f"{seeds}, rendered once each at {CAMERA[0]}x{CAMERA[1]} and {CAMERA[2]:.0f} fps "
-        "(JPEG quality 95, fixed p, binary count); recovery windows W = "
+        "(frames as the simulator delivers them: raw, the scenes ask for no compression; "
+        "fixed p, binary count); recovery windows W = "
         f"{', '.join(f'{w:.0f}' for w in windows)} s are cut from that one recording and "
         "each analysed by `analyze_recovery` (all recovery models, "
         f"{first.spec.replicates} bootstrap replicates each).\n"
@@ -666,7 +673,7 @@ def _coverage_table(groups: dict[str, list[TissueRun]], windows: list[float]) ->
                 + ", ".join(low)
                 + ": an interval narrower than the error misses, and the bootstrap resamples "
                 "the noise of the residuals, not a systematic offset such as the binary "
-                "count's edge quantisation and the JPEG round trip.\n"
+                "count's edge quantisation.\n"
                 if low
                 else ". Coverage there is at least 90 % for every quantity.\n"
             )

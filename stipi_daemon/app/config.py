@@ -27,7 +27,15 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, ValidationInfo, field_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    ValidationError,
+    ValidationInfo,
+    field_validator,
+    model_validator,
+)
 
 from stipi_daemon.analysis.imaging import ROI
 from stipi_daemon.analysis.results import AnalysisSettings
@@ -149,7 +157,9 @@ class StorageSettings(_Model):
         ``lossless`` stores the decoded frames S_k is counted on (FFV1); ``off`` none.
     video_roi_only : bool
         Lossless video: store only the bounding box of the ROI, in gray (the rectangle S_k
-        is counted in), not the whole frame.
+        is counted in), not the whole frame. A passthrough of an MJPG source stores its
+        JPEGs whole (the session gets a ``video_roi_only_ignored`` event and a warning);
+        with ``video: off`` it is an error.
     """
 
     root: Path = Path("sessions")
@@ -163,6 +173,16 @@ class StorageSettings(_Model):
     def _yaml_off(cls, value: object) -> object:
         # YAML 1.1 (PyYAML) reads an unquoted `off` as false: `video: off` means "off"
         return "off" if value is False else value
+
+    @model_validator(mode="after")
+    def _roi_only_needs_video(self) -> StorageSettings:
+        if self.video_roi_only and self.video == "off":
+            raise ValueError(
+                "storage.video_roi_only is true but storage.video is off: there is no "
+                "video to store the ROI of (set storage.video: lossless, or drop "
+                "storage.video_roi_only)"
+            )
+        return self
 
 
 class SessionSettings(_Model):

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import sys
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -274,26 +275,19 @@ def _video_recorder(
     camera_metadata: dict[str, Any],
     frame_rate_hz: float | None = None,
 ) -> VideoRecorder | None:
-    """The session video's recorder as ``storage.video`` says (None: none).
+    """The session video's recorder as ``storage.video`` says (None: ``off``).
 
-    ``video_roi_only`` stores the gray bounding box of the ROI (lossless frames). The
-    default ``passthrough`` records a source without encoded frames losslessly only in
-    real time (clock speed 1): an accelerated simulation delivers its frames faster than
-    FFV1 encodes them on the CPU the measurement needs; ``lossless`` records it anyway (the
-    encoder leaves out frames it cannot keep up with, docs/storage.md). A simulated MJPG
-    camera (its metadata's ``jpeg_quality`` set) delivers JPEGs: passed through at any speed.
+    Every source is recorded, at any clock speed: ``passthrough`` (the default) stores the
+    JPEG packets of a source that delivers them (an MJPG camera or file, a simulated MJPG
+    camera) as received and records any other source (raw, YUYV, gray cameras; the
+    simulator's clean frames) losslessly, as ``lossless`` does; the simulator and a video
+    file wait for the encoders rather than leave frames out (docs/storage.md).
+    ``video_roi_only`` stores the gray bounding box of the ROI of lossless frames; a
+    passthrough of JPEG packets stores the whole frame (a packet cannot be cropped without
+    re-encoding it): said at start (:func:`_note_roi_only_ignored`).
     """
     storage, path = config.storage, writer.video_path
     if storage.video == "off" or path is None:
-        return None
-    speed = clock.speed
-    raw_sim = config.camera.kind == "simulator" and camera_metadata.get("jpeg_quality") is None
-    if storage.video == "passthrough" and raw_sim and speed != 1.0:
-        writer.add_event(
-            clock.now(),
-            "video_not_recorded",
-            {"reason": f"raw simulated frames at clock speed {speed:g}; set storage.video"},
-        )
         return None
 
     def roi_box(shape: tuple[int, ...]) -> tuple[int, int, int, int] | None:
@@ -303,21 +297,60 @@ def _video_recorder(
         return x0, y0, x1, y1
 
     if storage.video_roi_only:
+        if storage.video == "passthrough" and delivers_jpeg_packets(camera_metadata):
+            _note_roi_only_ignored(writer, clock.now(), camera_metadata)
         return VideoRecorder(
             path, writer, storage.video, crop=roi_box, to_gray=to_gray, frame_rate_hz=frame_rate_hz
         )
     return VideoRecorder(path, writer, storage.video, frame_rate_hz=frame_rate_hz)
 
 
+def delivers_jpeg_packets(metadata: dict[str, Any]) -> bool:
+    """Whether an opened camera delivers each frame's JPEG packet, by its metadata.
+
+    The simulator when its scene's camera is MJPG (``jpeg_quality`` set); a video file
+    read as raw MJPG packets (``decoder``); a V4L2 camera that takes the driver's JPEGs raw
+    and decodes them itself (``applied.jpeg_packets``, or its ``applied.decode`` mode).
+    """
+    applied = metadata.get("applied")
+    applied = applied if isinstance(applied, dict) else {}
+    v4l2 = applied.get("jpeg_packets", applied.get("decode") in ("jpeg_gray", "jpeg_bgr"))
+    return (
+        metadata.get("jpeg_quality") is not None
+        or str(metadata.get("decoder", "")).startswith("imdecode (raw MJPG packets)")
+        or v4l2 is True
+    )
+
+
+def _note_roi_only_ignored(writer: SessionWriter, t_s: float, metadata: dict[str, Any]) -> None:
+    """Event ``video_roi_only_ignored`` and one warning line on stderr: ``video_roi_only``
+    with a passthrough of JPEG packets stores the whole frame."""
+    reason = (
+        "storage.video_roi_only is ignored: storage.video passthrough stores the camera's "
+        "JPEG packets as received, whole (a packet cannot be cropped without re-encoding); "
+        "set storage.video: lossless to store the ROI's gray box"
+    )
+    writer.add_event(
+        t_s,
+        "video_roi_only_ignored",
+        {"reason": reason, "camera": metadata.get("kind"), "crop": None},
+    )
+    print(f"stipi-daemon: warning: {reason}", file=sys.stderr)
+
+
 def frame_size(metadata: dict[str, Any]) -> tuple[int, int] | None:
     """An opened camera's frame size ``(width, height)`` [px] from its metadata, or None.
 
-    Cameras record it as ``size: [w, h]`` (simulator, video file) or ``width`` and
-    ``height`` (V4L2, what the driver granted).
+    Cameras record it as ``size: [w, h]`` (simulator, video file) or, for V4L2, what the
+    driver granted as ``applied: {width, height}`` (top-level ``width`` and ``height`` are
+    read too).
     """
     size = metadata.get("size")
+    applied = metadata.get("applied")
     if isinstance(size, list | tuple) and len(size) == 2:
         w, h = size
+    elif isinstance(applied, dict) and "width" in applied:
+        w, h = applied.get("width"), applied.get("height")
     else:
         w, h = metadata.get("width"), metadata.get("height")
     if isinstance(w, int) and isinstance(h, int) and w > 0 and h > 0:

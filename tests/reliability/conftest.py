@@ -59,10 +59,14 @@ FAST_FRAME_PX = (160, 120)
 FAST_FPS = 20.0
 
 
-def fast_scene(directory: Path, recovery_s: float = 14.0, *, cheap: bool = True) -> Path:
+def fast_scene(
+    directory: Path, recovery_s: float = 14.0, *, cheap: bool = True, pixel_format: str = "bgr8"
+) -> Path:
     """Grade I scene that follows the daemon's prompts (16.5 s hold) with a short recovery,
     rendered at :data:`FAST_FRAME_PX` and :data:`FAST_FPS` (``cheap=False``: the camera's
-    own 640x480 at 60 fps, for tests that need the full data rate, e.g. to fill a disk).
+    own 640x480 at 60 fps, for tests that need the full data rate, e.g. to fill a disk),
+    its camera delivering ``pixel_format`` (``bgr8``: raw frames, recorded losslessly by
+    default; ``mjpg``: JPEGs, stored as they came).
 
     The operator lets go about 1.5 s after the release prompt (the 15 s pitting is counted
     from reaching the band), so a link that starts the scene a little late (BLE) still
@@ -78,8 +82,9 @@ def fast_scene(directory: Path, recovery_s: float = 14.0, *, cheap: bool = True)
         doc["camera"].update(
             {"width": FAST_FRAME_PX[0], "height": FAST_FRAME_PX[1], "fps": FAST_FPS}
         )
-    doc["name"] = "grade1_fast"
-    path = directory / "grade1_fast.yaml"
+    doc["camera"]["pixel_format"] = pixel_format
+    doc["name"] = "grade1_fast" if pixel_format == "bgr8" else f"grade1_fast_{pixel_format}"
+    path = directory / f"{doc['name']}.yaml"
     path.write_text(yaml.safe_dump(doc))
     return path
 

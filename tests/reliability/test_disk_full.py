@@ -8,6 +8,14 @@ of the last write that reached the disk (measured when its error line appears: b
 session is closed and the devices released), print one line saying why, exit non-zero,
 and leave a session that opens, passes its integrity check and holds every row it
 committed. (The interpreter's own teardown after that takes another 0.3-1 s; reported.)
+
+The session records its video (the default ``storage.video: passthrough``: FFV1 of the
+scene's raw frames; the JPEGs of an MJPG scene), which fills the disk first; video and rows
+must stop together (docs/storage.md, "Disk full"): FFmpeg (PyAV) decodes every frame the
+``video_frames`` rows name (but the newest, which the muxer may have held when the write
+failed), and the newest frame that plays and the newest stored frame row are within one
+commit interval, or the frames the encoders hold, of each other. A run without video
+(``video: off``) fills the disk with the database itself.
 """
 
 from __future__ import annotations
@@ -25,10 +33,31 @@ import pytest
 
 from stipi_daemon.cli import main
 from stipi_daemon.storage import SessionReader
+from stipi_daemon.storage.video import ENCODER_QUEUE_FRAMES, ENCODER_WORKERS
 
+from ._video import check_rows_in_video, stored_video
 from .conftest import PYTHON, REPO_ROOT, fast_scene, report, write_config
 
-FSIZE_LIMIT_B = 1_000_000
+SPEED = 4.0
+#: Largest file the daemon may write [B] (RLIMIT_FSIZE), by the session video's codec
+#: (None: no video). A video frame of the full-size scene is about 19 kB either way (FFV1
+#: of the clean frame, or its JPEG): 4 MB hold about 210 frames (3.5 s of the scene), so
+#: the run is well under way when the video reaches the limit; without video the database
+#: reaches 1 MB.
+FSIZE_LIMIT_B = {"ffv1": 4_000_000, "mjpeg": 4_000_000, None: 1_000_000}
+#: The tmpfs the root form mounts (session with FFV1 video).
+TMPFS_SIZE = "5000k"
+#: The scene's frame rate (``fast_scene(cheap=False)``) [fps].
+FPS = 60.0
+#: Commit interval of the daemon under test [s of wall time] (the config default).
+COMMIT_INTERVAL_S = 0.2
+#: How far apart the video and the rows may stop [s of session time]: one commit interval
+#: (rows of frames the video holds not yet committed, or the reverse), or the frames whose
+#: rows are stored while the FFV1 encoders still hold them (the queue, one per encoder, the
+#: newest held by the muxer), with a frame of slack.
+STOP_TOGETHER_S = (
+    max(COMMIT_INTERVAL_S * SPEED, (ENCODER_QUEUE_FRAMES + ENCODER_WORKERS + 1) / FPS) + 1.0 / FPS
+)
 
 
 @contextlib.contextmanager
@@ -60,12 +89,28 @@ def _watch_growth(root: Path, stop: threading.Event, last: list[float]) -> None:
         time.sleep(0.005)
 
 
-def _record_until_full(tmp_path: Path, root: Path, *, fsize: bool) -> None:
-    cfg = write_config(tmp_path / "c.yaml", fast_scene(tmp_path, cheap=False), root, speed=4.0)
+def _check_video(session: Path, codec: str) -> dict[str, float]:
+    """Video and rows stopped together (module docstring); the figures for the report."""
+    video = stored_video(session)
+    assert video.codec == codec, (video.codec, video.error)
+    check_rows_in_video(video, newest_may_be_missing=True)
+    apart_s = video.newest_frame_capture_s - video.plays_to_s
+    assert abs(apart_s) <= STOP_TOGETHER_S, (apart_s, video.decoded, len(video.row_index))
+    assert video.decoded > 100, video.decoded
+    return {"video_frames_decoded": video.decoded, "video_rows_minus_plays_s": apart_s}
+
+
+def _record_until_full(
+    tmp_path: Path, root: Path, *, fsize: bool, codec: str | None = "ffv1"
+) -> None:
+    scene = fast_scene(tmp_path, cheap=False, pixel_format="mjpg" if codec == "mjpeg" else "bgr8")
+    storage = {"video": "off"} if codec is None else {}
+    cfg = write_config(tmp_path / "c.yaml", scene, root, speed=SPEED, storage=storage)
+    limit_b = FSIZE_LIMIT_B[codec]
 
     def limit() -> None:
         if fsize:
-            resource.setrlimit(resource.RLIMIT_FSIZE, (FSIZE_LIMIT_B, FSIZE_LIMIT_B))
+            resource.setrlimit(resource.RLIMIT_FSIZE, (limit_b, limit_b))
 
     stop, last = threading.Event(), [time.monotonic()]
     watcher = threading.Thread(target=_watch_growth, args=(root, stop, last))
@@ -96,7 +141,9 @@ def _record_until_full(tmp_path: Path, root: Path, *, fsize: bool) -> None:
     ours = [(t, line) for t, line in stderr if line.startswith("stipi-daemon: error:")]
     assert len(ours) == 1, text
     t_line, line = ours[0]
-    assert "recording stopped" in line and "could not be stored" in line
+    # The rows' or the video's failure, whichever came first (the video fills the disk first).
+    assert "recording stopped" in line
+    assert "could not be stored" in line or "video could not be written" in line
     assert ("full" in line) or ("too large" in line) or ("disk I/O" in line)
     stopped_after_s = t_line - last[0]
     assert stopped_after_s < 1.0
@@ -106,8 +153,12 @@ def _record_until_full(tmp_path: Path, root: Path, *, fsize: bool) -> None:
         counts = r.counts()
         status = r.status
     assert counts["force_samples"] > 100 and counts["frames"] > 100
+    if codec is None:
+        assert not (session / "video.mkv").exists()
+    figures = {} if codec is None else _check_video(session, codec)
     report(
-        "disk_full_" + ("rlimit_fsize" if fsize else "tmpfs"),
+        "disk_full_" + ("rlimit_fsize" if fsize else "tmpfs") + f"_{codec or 'no_video'}",
+        **figures,
         stopped_after_last_write_s=stopped_after_s,
         exited_after_last_write_s=t_exit - last[0],
         rows_kept=counts,
@@ -117,14 +168,15 @@ def _record_until_full(tmp_path: Path, root: Path, *, fsize: bool) -> None:
 
 
 def test_file_system_full_tmpfs(tmp_path: Path) -> None:
-    with _tmpfs(tmp_path / "fs", "1500k") as mounted:
+    with _tmpfs(tmp_path / "fs", TMPFS_SIZE) as mounted:
         if not mounted:
             pytest.skip("mounting a tmpfs needs root; the RLIMIT_FSIZE form covers this")
         _record_until_full(tmp_path, tmp_path / "fs" / "sessions", fsize=False)
 
 
-def test_file_size_limit_rlimit_fsize(tmp_path: Path) -> None:
-    _record_until_full(tmp_path, tmp_path / "sessions", fsize=True)
+@pytest.mark.parametrize("codec", ["ffv1", "mjpeg", None], ids=["ffv1", "mjpeg", "no_video"])
+def test_file_size_limit_rlimit_fsize(tmp_path: Path, codec: str | None) -> None:
+    _record_until_full(tmp_path, tmp_path / "sessions", fsize=True, codec=codec)
 
 
 def test_free_space_is_checked_before_a_session_starts(

@@ -8,8 +8,16 @@ interval: the newest stored frame is compared with the kill instant on the host'
 monotonic clock (the ``session_clock`` event maps session times onto it), both by the time
 the daemon handed it to storage (the commit-interval promise, <= 0.25 s) and by the time
 the simulator captured it (end to end, including the camera pipeline's latency).
-``sessions list`` lists every session and ``analyze`` works on what was kept. 20 kills in
-the normal suite, 100 behind ``slow``.
+``sessions list`` lists every session and ``analyze`` works on what was kept.
+
+Each session records its video (the default ``storage.video: passthrough``: the scene's
+raw frames losslessly, FFV1; an MJPG scene's JPEGs as they came), and the video is checked
+on its own (:mod:`._video`: FFmpeg's decoding through PyAV, the rows through SQLite) under
+the rule of docs/storage.md: the file opens and plays every frame its ``video_frames``
+rows name (but the newest, which the muxer may still hold), up to within one commit
+interval of the newest stored ``frames`` row (FFV1: within the frames the encoders may
+still hold when that is longer). (Frames beyond the rows are the integrity check's.)
+20 kills in the normal suite (and 6 of an MJPG scene), 100 behind ``slow``.
 """
 
 from __future__ import annotations
@@ -29,8 +37,10 @@ import pytest
 
 from stipi_daemon.cli import main
 from stipi_daemon.storage import SessionReader, SessionState
+from stipi_daemon.storage.video import ENCODER_QUEUE_FRAMES, ENCODER_WORKERS
 
-from .conftest import PYTHON, REPO_ROOT, fast_scene, report, write_config
+from ._video import check_rows_in_video, stored_video
+from .conftest import FAST_FPS, PYTHON, REPO_ROOT, fast_scene, report, write_config
 
 #: Commit interval of the daemon under test [s] (the config default).
 COMMIT_INTERVAL_S = 0.2
@@ -49,6 +59,12 @@ PIPELINE_SLACK_S = MAX_LAG_S / SPEED
 #: The probe sends batches of 10 samples at 100 Hz: the newest sample arrives up to one
 #: batch after it was taken [s of session time].
 BATCH_S = 0.1
+#: Frames whose rows may be stored while the FFV1 encoders still hold them [-]: the queue,
+#: one in each encoder, and the newest, which the muxer holds until the next arrives.
+VIDEO_PENDING_FRAMES = ENCODER_QUEUE_FRAMES + ENCODER_WORKERS + 1
+#: How far the video may lag the newest stored frame row [s of wall time]: one commit
+#: interval (docs/storage.md), or the frames the encoders may hold when that is longer.
+VIDEO_LAG_S = max(COMMIT_INTERVAL_S, VIDEO_PENDING_FRAMES / FAST_FPS / SPEED) + LOSS_SLACK_S
 
 
 @dataclass(frozen=True)
@@ -58,6 +74,8 @@ class Kill:
     stored_lost_s: float
     frames_lost_s: float
     force_lost_s: float
+    video_lag_s: float
+    video_frames: int
 
 
 def _first_frame_committed(root: Path) -> Path | None:
@@ -78,7 +96,7 @@ def _first_frame_committed(root: Path) -> Path | None:
     return None
 
 
-def _kill_one(workdir: Path, scene: Path, seed: int) -> Kill:
+def _kill_one(workdir: Path, scene: Path, seed: int, codec: str) -> Kill:
     rng = random.Random(seed)
     root = workdir / "sessions"
     cfg = write_config(
@@ -109,7 +127,7 @@ def _kill_one(workdir: Path, scene: Path, seed: int) -> Kill:
         if proc.stderr:
             proc.stderr.close()
     assert proc.returncode == -signal.SIGKILL, "the daemon ended before it was killed"
-    return _check_session(directory, delay_s, t_kill)
+    return _check_session(directory, delay_s, t_kill, codec)
 
 
 def _contiguous(index: np.ndarray, gaps: np.ndarray) -> None:
@@ -122,7 +140,18 @@ def _contiguous(index: np.ndarray, gaps: np.ndarray) -> None:
     assert np.all(covered[first:] == 1), np.flatnonzero(covered[first:] != 1)[:10] + first
 
 
-def _check_session(directory: Path, delay_s: float, t_kill: float) -> Kill:
+def _check_video(directory: Path, codec: str) -> tuple[float, int]:
+    """The killed session's video against its rows (module docstring); returns how far it
+    lags the newest stored frame row [s of wall time] and the frames FFmpeg decodes."""
+    video = stored_video(directory)
+    assert video.codec == codec, (video.codec, video.error)
+    check_rows_in_video(video, newest_may_be_missing=True)
+    lag_s = (video.newest_frame_capture_s - video.plays_to_s) / SPEED
+    assert lag_s <= VIDEO_LAG_S, (lag_s, video.decoded, len(video.row_index), video.error)
+    return lag_s, video.decoded
+
+
+def _check_session(directory: Path, delay_s: float, t_kill: float, codec: str) -> Kill:
     with SessionReader(directory) as r:
         assert r.integrity_check().ok, r.integrity_check().problems
         assert r.status is SessionState.INTERRUPTED
@@ -147,17 +176,21 @@ def _check_session(directory: Path, delay_s: float, t_kill: float) -> Kill:
     bound_s = COMMIT_INTERVAL_S + LOSS_SLACK_S + PIPELINE_SLACK_S
     assert frames_lost_s <= bound_s, frames_lost_s
     assert force_lost_s <= bound_s + BATCH_S / SPEED, force_lost_s
-    return Kill(directory, delay_s, stored_lost_s, frames_lost_s, force_lost_s)
+    video_lag_s, video_frames = _check_video(directory, codec)
+    return Kill(
+        directory, delay_s, stored_lost_s, frames_lost_s, force_lost_s, video_lag_s, video_frames
+    )
 
 
-def _run_kills(tmp_path: Path, n: int, workers: int, name: str) -> None:
-    scene = fast_scene(tmp_path)
+def _run_kills(tmp_path: Path, n: int, workers: int, name: str, pixel_format: str = "bgr8") -> None:
+    scene = fast_scene(tmp_path, pixel_format=pixel_format)
+    codec = "mjpeg" if pixel_format == "mjpg" else "ffv1"
     dirs = [tmp_path / f"run{i:03d}" for i in range(n)]
     for d in dirs:
         d.mkdir()
     t0 = time.monotonic()
     with ThreadPoolExecutor(workers) as pool:
-        kills = list(pool.map(lambda i: _kill_one(dirs[i], scene, 1000 + i), range(n)))
+        kills = list(pool.map(lambda i: _kill_one(dirs[i], scene, 1000 + i, codec), range(n)))
     wall_s = time.monotonic() - t0
     assert len({k.directory for k in kills}) == n
 
@@ -182,6 +215,7 @@ def _run_kills(tmp_path: Path, n: int, workers: int, name: str) -> None:
     stored_lost = np.array([k.stored_lost_s for k in kills])
     frames_lost = np.array([k.frames_lost_s for k in kills])
     force_lost = np.array([k.force_lost_s for k in kills])
+    video_lag = np.array([k.video_lag_s for k in kills])
     report(
         name,
         kills=n,
@@ -192,6 +226,10 @@ def _run_kills(tmp_path: Path, n: int, workers: int, name: str) -> None:
         frames_lost_mean_s=frames_lost.mean(),
         force_lost_max_s=force_lost.max(),
         force_lost_mean_s=force_lost.mean(),
+        video_codec=codec,
+        video_lag_max_s=video_lag.max(),
+        video_lag_mean_s=video_lag.mean(),
+        video_frames_min=min(k.video_frames for k in kills),
         kill_delay_range_s=[min(k.delay_s for k in kills), max(k.delay_s for k in kills)],
         wall_s=wall_s,
         load_avg=os.getloadavg()[0],
@@ -201,6 +239,12 @@ def _run_kills(tmp_path: Path, n: int, workers: int, name: str) -> None:
 @pytest.mark.timeout(300)
 def test_kill_9_twenty_times(tmp_path: Path) -> None:
     _run_kills(tmp_path, 20, workers=3, name="kill_9_x20")
+
+
+@pytest.mark.timeout(300)
+def test_kill_9_mjpg_passthrough(tmp_path: Path) -> None:
+    """An MJPG scene: the JPEGs stored as they came (muxed before the frame's row)."""
+    _run_kills(tmp_path, 6, workers=3, name="kill_9_mjpg_x6", pixel_format="mjpg")
 
 
 @pytest.mark.slow
