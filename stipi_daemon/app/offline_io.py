@@ -405,6 +405,27 @@ def roi_in_video(
     return local
 
 
+def _processor_for(
+    processor: FrameProcessor | None,
+    frame: Any,
+    settings: tuple[int, CircleROI | RectROI | None, float],
+    path: Path,
+    index: int,
+) -> FrameProcessor:
+    """The frame processor for a video's frame ``index``: made for the first frame with
+    ``settings`` (threshold p, ROI in the video's pixels, saturation limit [-]); a later
+    frame of another shape is refused (:class:`DataFileError` naming the file and frame)."""
+    if processor is None:
+        threshold_p, roi, saturation = settings
+        return FrameProcessor(frame.shape, threshold_p, roi, saturation_limit_fraction=saturation)
+    if frame.shape != processor.frame_shape:
+        raise DataFileError(
+            f"{path}: frame {index} has shape {frame.shape}, the first frame "
+            f"{processor.frame_shape}"
+        )
+    return processor
+
+
 def count_video(
     path: str | Path,
     threshold_p: int,
@@ -464,17 +485,13 @@ def count_video(
                 local_roi = roi
                 if crop is not None or roi_field is not None:
                     local_roi = roi_in_video(roi, size, crop, roi_field or "the ROI", p)
-                processor = FrameProcessor(
-                    frame.shape,
-                    threshold_p,
-                    local_roi,
-                    saturation_limit_fraction=saturation_limit_fraction,
-                )
-            elif frame.shape != processor.frame_shape:
-                raise DataFileError(
-                    f"{p}: frame {len(counts)} has shape {frame.shape}, the first frame "
-                    f"{processor.frame_shape}"
-                )
+            processor = _processor_for(
+                processor,
+                frame,
+                (threshold_p, local_roi, saturation_limit_fraction),
+                p,
+                len(counts),
+            )
             m = processor.measure(frame)
             counts.append(m.s_k_px)
             flags.append(m.flags)
@@ -560,18 +577,13 @@ def count_session_video(
                 counts.append(math.nan)
                 flags.append(frozenset())
                 continue
-            if processor is None:
-                processor = FrameProcessor(
-                    frame.shape,
-                    threshold_p,
-                    local_roi,
-                    saturation_limit_fraction=saturation_limit_fraction,
-                )
-            elif frame.shape != processor.frame_shape:
-                raise DataFileError(
-                    f"{p}: frame {stored.frame_index} has shape {frame.shape}, the first "
-                    f"frame {processor.frame_shape}"
-                )
+            processor = _processor_for(
+                processor,
+                frame,
+                (threshold_p, local_roi, saturation_limit_fraction),
+                p,
+                stored.frame_index,
+            )
             m = processor.measure(frame)
             counts.append(float(m.s_k_px))
             flags.append(m.flags)
