@@ -83,3 +83,38 @@ def check_against_truth(summary: dict[str, Any], *, rel: dict[str, float]) -> di
     bad = {k: (measured[k], gt[k], errors[k]) for k in rel if errors[k] > rel[k]}
     assert not bad, f"results off the ground truth (measured, truth, rel. error): {bad}"
     return errors
+
+
+def short_session(
+    directory: Path,
+    storage: dict[str, Any],
+    *,
+    pixel_format: str | None = None,
+    speed: float = 2.0,
+) -> Path:
+    """Record one short measurement of the 160x120 short scene (:func:`short_scene`; camera
+    ``pixel_format``, None: the scene's own) at clock ``speed``, ``storage`` added to the
+    config's storage section; returns the session directory."""
+    from stipi_daemon.app.config import load_config
+    from stipi_daemon.app.daemon import run_measurement
+
+    scene = short_scene(directory, width=160, height=120)
+    if pixel_format is not None:
+        doc = yaml.safe_load(scene.read_text())
+        doc["camera"]["pixel_format"] = pixel_format
+        scene.write_text(yaml.safe_dump(doc))
+    path = write_config(
+        directory,
+        {
+            "probe": {"transport": {"kind": "emulated", "scene": str(scene)}},
+            "camera": {"kind": "simulator", "scene": str(scene)},
+            "measurement": SHORT_MEASUREMENT,
+            "run": {"speed": speed},
+        },
+    )
+    cfg = yaml.safe_load(path.read_text())
+    cfg["storage"].update(storage)
+    path.write_text(yaml.safe_dump(cfg))
+    session = run_measurement(load_config(path), quiet=True).session_dir
+    assert session is not None
+    return Path(session)

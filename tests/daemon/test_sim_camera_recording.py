@@ -16,34 +16,15 @@ from typing import Any
 
 import av
 import pytest
-import yaml
 
-from stipi_daemon.app.config import load_config
-from stipi_daemon.app.daemon import run_measurement
 from stipi_daemon.cli import main
 from stipi_daemon.sim import Pipeline, load_scene
 from stipi_daemon.storage import SessionReader
-from tests.daemon._support import SHORT_MEASUREMENT, short_scene, write_config
+from tests.daemon._support import short_session
 
 
 def _run(directory: Path, pixel_format: str, storage: dict[str, Any]) -> Path:
-    scene = short_scene(directory, width=160, height=120)
-    doc = yaml.safe_load(scene.read_text())
-    doc["camera"]["pixel_format"] = pixel_format
-    scene.write_text(yaml.safe_dump(doc))
-    path = write_config(
-        directory,
-        {
-            "probe": {"transport": {"kind": "emulated", "scene": str(scene)}},
-            "camera": {"kind": "simulator", "scene": str(scene)},
-            "measurement": SHORT_MEASUREMENT,
-            "run": {"speed": 2.0},
-        },
-    )
-    cfg = yaml.safe_load(path.read_text())
-    cfg["storage"].update(storage)
-    path.write_text(yaml.safe_dump(cfg))
-    return run_measurement(load_config(path), quiet=True).session_dir
+    return short_session(directory, storage, pixel_format=pixel_format, speed=2.0)
 
 
 def _show(session: Path, capsys: pytest.CaptureFixture[str]) -> str:

@@ -15,37 +15,17 @@ from typing import Any
 
 import av
 import pytest
-import yaml
 
 from stipi_daemon.app.config import load_config
-from stipi_daemon.app.daemon import run_measurement
 from stipi_daemon.storage import SessionReader
-from tests.daemon._support import SHORT_MEASUREMENT, short_scene, write_config
+from tests.daemon._support import short_session
 
 SPEED = 4.0
 
 
 def _run(directory: Path, pixel_format: str, storage: dict[str, Any]) -> Path:
     """One short measurement of a 160x120 scene at :data:`SPEED`, ``storage`` added."""
-    scene = short_scene(directory, width=160, height=120)
-    doc = yaml.safe_load(scene.read_text())
-    doc["camera"]["pixel_format"] = pixel_format
-    scene.write_text(yaml.safe_dump(doc))
-    path = write_config(
-        directory,
-        {
-            "probe": {"transport": {"kind": "emulated", "scene": str(scene)}},
-            "camera": {"kind": "simulator", "scene": str(scene)},
-            "measurement": SHORT_MEASUREMENT,
-            "run": {"speed": SPEED},
-        },
-    )
-    cfg = yaml.safe_load(path.read_text())
-    cfg["storage"].update(storage)
-    path.write_text(yaml.safe_dump(cfg))
-    session = run_measurement(load_config(path), quiet=True).session_dir
-    assert session is not None
-    return Path(session)
+    return short_session(directory, storage, pixel_format=pixel_format, speed=SPEED)
 
 
 def _decoded(path: Path) -> tuple[str, int, list[int]]:

@@ -18,16 +18,13 @@ import av
 import cv2
 import numpy as np
 import pytest
-import yaml
 from matplotlib.figure import Figure
 from matplotlib.image import AxesImage
 
-from stipi_daemon.app.config import load_config
-from stipi_daemon.app.daemon import run_measurement
 from stipi_daemon.report.load import load_report_input
 from stipi_daemon.report.panels import frame_panels
 from stipi_daemon.report.render import draw_frames
-from tests.daemon._support import SHORT_MEASUREMENT, short_scene, write_config
+from tests.daemon._support import short_session
 
 KINDS = ("pitting", "recovery_start", "recovered")
 
@@ -36,20 +33,7 @@ KINDS = ("pitting", "recovery_start", "recovered")
 def cropped_session(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A daemon session whose video holds only the ROI's gray bounding box (FFV1)."""
     directory = tmp_path_factory.mktemp("cropped")
-    scene = short_scene(directory, width=160, height=120)
-    config = write_config(
-        directory,
-        {
-            "probe": {"transport": {"kind": "emulated", "scene": str(scene)}},
-            "camera": {"kind": "simulator", "scene": str(scene)},
-            "measurement": SHORT_MEASUREMENT,
-            "run": {"speed": 2.0},
-        },
-    )
-    doc = yaml.safe_load(config.read_text())
-    doc["storage"].update({"video": "lossless", "video_roi_only": True})
-    config.write_text(yaml.safe_dump(doc))
-    return Path(run_measurement(load_config(config), quiet=True).session_dir)
+    return short_session(directory, {"video": "lossless", "video_roi_only": True}, speed=2.0)
 
 
 def _figure(session: Path) -> tuple[Figure, dict[str, AxesImage]]:
