@@ -27,21 +27,28 @@ SCENE = REPO_ROOT / "configs" / "scenes" / "demo_grade3.yaml"
 
 
 #: Clock speeds of the attempts at a run that keeps up with its clock (see :func:`_run`).
-SPEEDS = (4.0, 2.0, 2.0)
+SPEEDS = (4.0, 2.0, 1.0)
 
 
 def _run(tmp_path: Path, transport: dict[str, Any], name: str) -> dict[str, Any]:
     """One measurement that kept up with its clock (:func:`kept_up`). On a loaded machine the
     renderer can stall (its frames are then skipped, the release frame among them, and the
     results flagged: correct, but not the same frames as the other run), so a run that
-    lost frames or fell behind is made again at a lower speed, at most ``len(SPEEDS)`` times."""
+    lost frames or fell behind is made again at a lower speed, at most ``len(SPEEDS)`` times.
+    The video keeps the ROI's gray box, as the demo's does (configs/demo.yaml): whole
+    640 x 480 BGR frames in FFV1 at speed 2, beside Bumble's radio in this process, fell
+    behind in CI (docs/storage.md), and the video is not what this test compares."""
     lost: list[dict[str, Any]] = []
     for k, speed in enumerate(SPEEDS):
         cfg = parse_config(
             {
                 "probe": {"transport": transport, "rate_hz": 100},
                 "camera": {"kind": "simulator", "scene": str(SCENE)},
-                "storage": {"root": str(tmp_path / f"{name}-{k}"), "min_free_mb": 0},
+                "storage": {
+                    "root": str(tmp_path / f"{name}-{k}"),
+                    "min_free_mb": 0,
+                    "video_roi_only": True,
+                },
                 "run": {"speed": speed},
             },
             "test",
@@ -50,7 +57,10 @@ def _run(tmp_path: Path, transport: dict[str, Any], name: str) -> dict[str, Any]
         if kept_up(outcome.summary):
             assert outcome.exit_code == 0, outcome.summary.get("end_reason")
             return outcome.summary
-        lost.append({k: v for k, v in outcome.summary["run"]["camera"].items() if k != "source"})
+        run = outcome.summary["run"]
+        lost.append({k: v for k, v in run["camera"].items() if k != "source"})
+        lost[-1]["late_frames"] = run.get("late_frames", 0)
+        lost[-1]["video_left_out"] = (run.get("video") or {}).get("left_out", 0)
         lost[-1]["end_reason"] = outcome.summary.get("end_reason")
     raise AssertionError(f"{name}: no run kept up (frames lost or fell behind): {lost}")
 
