@@ -103,11 +103,19 @@ def _video_text(path: Path) -> str:
     )
 
 
+def _integrity_text(problems: Sequence[str], decoded: bool) -> str:
+    """``ok`` or ``FAILED: ...``; with ``decoded``, that every video frame was decoded."""
+    checked = " (every video frame decoded)" if decoded else ""
+    return ("ok" if not problems else "FAILED: " + "; ".join(problems)) + checked
+
+
 def _indent(text: str) -> str:
     return "\n".join("  " + line for line in text.splitlines())
 
 
-def _facts(reader: SessionReader, problems: Sequence[str]) -> list[tuple[str, str]]:
+def _facts(
+    reader: SessionReader, problems: Sequence[str], *, decoded: bool = False
+) -> list[tuple[str, str]]:
     status = reader.status
     video = reader.video_path
     if video is None:
@@ -131,19 +139,21 @@ def _facts(reader: SessionReader, problems: Sequence[str]) -> list[tuple[str, st
     facts += [
         ("label", _opt(reader.label)),
         ("video", video_text),
-        ("integrity", "ok" if not problems else "FAILED: " + "; ".join(problems)),
+        ("integrity", _integrity_text(problems, decoded and video is not None)),
     ]
     if status.value == "recording" and reader.writer_owner is not None:
         facts.append(("writer", json.dumps(reader.writer_owner)))
     return facts
 
 
-def show_text(directory: Path) -> tuple[str, int]:
+def show_text(directory: Path, *, decode: bool = False) -> tuple[str, int]:
     """The ``sessions show`` output and exit status (1: integrity failed or the summary is
-    unreadable)."""
+    unreadable). ``decode``: the integrity check also decodes every video frame
+    (:meth:`SessionReader.integrity_check`), which finds a frame whose bytes are whole but
+    that does not decode; the ``integrity`` line says which check ran."""
     with SessionReader(directory) as reader:
-        report = reader.integrity_check()
-        facts = _facts(reader, report.problems)
+        report = reader.integrity_check(decode=decode)
+        facts = _facts(reader, report.problems, decoded=decode)
         counts = reader.counts()
         width = max(len(k) for k, _ in facts)
         lines = [f"{key.ljust(width)}  {value}" for key, value in facts]

@@ -3,8 +3,9 @@
 Thin shell over :mod:`stipi_daemon.storage` and :mod:`stipi_daemon.app.sessions_view`:
 ``list`` prints one line per session under the root (``--subject/--site/--operator``
 keep exact matches), ``show`` prints a session's metadata, manifest, summary, row counts
-and integrity, ``export`` writes one session to CSV, Parquet or MATLAB (default
-``exports/<ID>`` next to the sessions directory), and ``table`` writes one row per session
+and integrity (``--decode``: every video frame decoded too), ``export`` writes one
+session to CSV, Parquet or MATLAB (default ``exports/<ID>`` next to the sessions
+directory), and ``table`` writes one row per session
 (metadata, verdict, every quantity's value and validity) to CSV or Parquet (default
 ``exports/results.csv`` next to the sessions directory). The root is ``--root``, else the
 ``storage.root`` of ``--config FILE`` (where that config's daemon records), else
@@ -84,6 +85,12 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
 
     p_show = sub.add_parser("show", help="metadata, manifest, summary, row counts, integrity")
     p_show.add_argument("session_id", metavar="ID", help="session id or directory path")
+    p_show.add_argument(
+        "--decode",
+        action="store_true",
+        help="the integrity check also decodes every video frame (finds a frame whose bytes "
+        "are whole but do not decode; seconds to minutes for a long session)",
+    )
     add_root(p_show)
     p_show.set_defaults(handler=_cmd_show)
 
@@ -201,7 +208,7 @@ def _cmd_list(args: argparse.Namespace) -> int:
 def _cmd_show(args: argparse.Namespace) -> int:
     from stipi_daemon.app.sessions_view import show_text
 
-    text, status = show_text(_session_dir(_root(args), args.session_id))
+    text, status = show_text(_session_dir(_root(args), args.session_id), decode=args.decode)
     print(text)
     return status
 

@@ -24,6 +24,7 @@ import numpy as np
 import pytest
 
 from stipi_daemon.app.sessions_view import show_text
+from stipi_daemon.cli import main
 from stipi_daemon.storage import SessionReader, SessionWriter, StorageOptions
 from stipi_daemon.storage.video import (
     UNINDEXED_FRAMES_MAX,
@@ -144,7 +145,9 @@ def test_a_frame_damaged_mid_file_is_found_and_named(tmp_path: Path, codec: str)
     assert status == 1 and "integrity  FAILED: " in text and "frame 12" in text
 
 
-def test_a_frame_that_only_decoding_finds_is_found_with_decode(tmp_path: Path) -> None:
+def test_a_frame_that_only_decoding_finds_is_found_with_decode(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     """A passthrough packet that is no JPEG (what a camera could hand over) is stored
     whole: its bytes pass the cheap check; decoding every frame (``decode=True``) finds it,
     as OpenCV's own decoder cannot read it."""
@@ -160,6 +163,18 @@ def test_a_frame_that_only_decoding_finds_is_found_with_decode(tmp_path: Path) -
         list(iter_video_images(rec.video))
     checked = check_video(rec.video, decode=True)
     assert checked.decoded and [f.frame_index for f in checked.damaged] == [3]
+    # ``sessions show`` runs the cheap check; ``--decode`` decodes every frame and says so.
+    assert main(["sessions", "show", str(rec.directory)]) == 0
+    (line,) = [ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("integrity")]
+    assert line.split(None, 1)[1] == "ok"
+    assert main(["sessions", "show", str(rec.directory), "--decode"]) == 1
+    (line,) = [ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("integrity")]
+    assert "FAILED: " in line and "frame 3 (seq 3, byte" in line and "does not decode" in line
+    assert line.endswith("(every video frame decoded)")
+    good = _record(tmp_path / "good", "mjpeg", 6)
+    assert main(["sessions", "show", str(good.directory), "--decode"]) == 0
+    out = capsys.readouterr().out
+    assert "integrity  ok (every video frame decoded)" in out
 
 
 @pytest.mark.parametrize("codec", ["mjpeg", "ffv1"])
