@@ -4,7 +4,7 @@ Run as ``./dev python benchmarks/sim_video_fidelity.py [SCENE]`` (default
 ``configs/scenes/grade3.yaml``; about a minute per format). For ``gray8``, ``bgr8`` and
 ``mjpg`` (quality 95) cameras it writes the scene with
 :func:`stipi_daemon.sim.write_outputs`, reads the video back with
-:func:`stipi_daemon.storage.video.iter_video_images`, counts S_k (Eqs. 1-2,
+:func:`stipi_daemon.storage.video_readback.iter_video_images`, counts S_k (Eqs. 1-2,
 :class:`~stipi_daemon.analysis.imaging.FrameProcessor`, the renderer's ROI and the scene's
 threshold) and prints, as Markdown rows, on how many frames S_k differs from the rendered
 true area round(S), the largest difference, and the file's size per minute of video.
@@ -24,7 +24,7 @@ sys.path.insert(0, str(ROOT))
 from stipi_daemon.analysis.imaging import FrameProcessor  # noqa: E402
 from stipi_daemon.sim import Pipeline, load_scene, write_outputs  # noqa: E402
 from stipi_daemon.sim.scene import Scene  # noqa: E402
-from stipi_daemon.storage.video import iter_video_images  # noqa: E402
+from stipi_daemon.storage.video_readback import iter_video_images  # noqa: E402
 
 
 def measure(scene: Scene, out: Path) -> str:

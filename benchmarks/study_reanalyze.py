@@ -111,7 +111,7 @@ def _plain_task(args: tuple[str, str, str]) -> float:
     import cv2
     from threadpoolctl import threadpool_limits
 
-    from stipi_daemon.storage.video import set_decode_threads
+    from stipi_daemon.storage.video_readback import set_decode_threads
     from stipi_daemon.study.reanalyze import Plan, SessionTask, analyse_session
 
     threadpool_limits(1)
@@ -310,7 +310,7 @@ def _report(n: int, repeat: int, m: dict[str, Any], command: str) -> str:
         "pool and FFmpeg's video decoder to one thread (the task sets them), so one "
         "worker is the one-CPU baseline the speed-up is measured against. Before the "
         "decoder was held to one thread and the stored frames were read from their "
-        "planes (`storage/video.py`), each session's decode started two threads per "
+        "planes (`storage/video_readback.py`), each session's decode started two threads per "
         "frame and switched context about 13,000 times: a session cost 0.89 s on one "
         "worker and 2 workers reached 1.43x (plain processes 1.46x), with 1.5 of the 2 "
         "CPUs busy. The projection assumes one "

@@ -460,7 +460,7 @@ def _recount(
     threshold and ROI any S_k not reproduced; always, stored frames missing from the video
     or undecodable there. ``notes`` gets what the reader should know; ``frame_size`` is the
     camera's ``(width, height)`` [px] when known."""
-    from stipi_daemon.storage.video import check_video
+    from stipi_daemon.storage.video_readback import check_video
 
     if data.video_path is None:
         raise SessionError(f"{data.directory}: --recompute-sk: the session has no video file")

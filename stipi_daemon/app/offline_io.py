@@ -340,7 +340,7 @@ def video_crop(path: Path) -> Crop | None:
     """
     import av
 
-    from stipi_daemon.storage.video import TAG_CROP
+    from stipi_daemon.storage.video_readback import TAG_CROP
 
     try:
         with av.open(str(path), "r") as container:
@@ -532,7 +532,7 @@ def count_session_video(
     frame_size: tuple[int, int] | None = None,
 ) -> VideoCount:
     """Count S_k (Eqs. 1-2) on a session's ``video.mkv``, on the images as the daemon counted
-    them (:func:`stipi_daemon.storage.video.iter_video_frames`: the JPEGs decoded as the
+    them (:func:`stipi_daemon.storage.video_readback.iter_video_frames`: the JPEGs decoded as the
     camera decoded them, FFV1 bit-exact). ``roi`` is in camera-frame coordinates; a video
     of the ROI's bounding box is counted with the ROI moved into it (:func:`roi_in_video`,
     which refuses an ROI outside the frame or the stored box, naming ``roi_field``, before
@@ -552,7 +552,7 @@ def count_session_video(
     DataFileError
         It holds no decodable frame, or frames of different sizes.
     """
-    from stipi_daemon.storage.video import VideoDamageError, iter_video_frames, probe_video
+    from stipi_daemon.storage.video_readback import VideoDamageError, iter_video_frames, probe_video
 
     p = Path(path)
     info = probe_video(p)

@@ -90,7 +90,7 @@ def list_text(root: Path, where: dict[str, str | None] | None = None) -> str:
 def _video_text(path: Path) -> str:
     """``video.mkv (1234567 B, mjpeg 1920x1080, 7200 frames)``; why not, if it cannot be
     probed (unreadable, or holding no frame yet)."""
-    from stipi_daemon.storage.video import probe_video
+    from stipi_daemon.storage.video_readback import probe_video
 
     try:
         info = probe_video(path)

@@ -150,7 +150,7 @@ class _Video:
 def _open_video(session_dir: Path) -> _Video | str:
     """The session's video, or one line saying why its frames cannot be read from it."""
     from stipi_daemon.storage import SessionReader
-    from stipi_daemon.storage.video import probe_video
+    from stipi_daemon.storage.video_readback import probe_video
 
     try:
         with SessionReader(session_dir) as reader:
@@ -173,7 +173,7 @@ def _video_image(video: _Video | str, seq: int, shape: Sequence[int]) -> FrameIm
     """Frame ``seq`` from the session's video (the primary data) in camera coordinates of
     the recorded ``shape`` (a crop placed at its offset, the rest :data:`NOT_STORED_FILL`),
     or one line saying why it cannot be read from there."""
-    from stipi_daemon.storage.video import read_video_image
+    from stipi_daemon.storage.video_readback import read_video_image
 
     if isinstance(video, str):
         return video

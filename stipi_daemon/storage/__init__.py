@@ -3,11 +3,12 @@
 ``<root>/<session_id>/`` holds ``session.sqlite`` (every force sample, frame, event,
 transition, gap, clock probe and live parameter), ``manifest.json`` (format, versions,
 config, calibration, firmware; written at creation), ``summary.json`` (final results,
-written atomically at the end), optionally ``video.mkv`` (the camera stream,
-:mod:`.video`), and ``writer.lock`` while a writer is alive. :class:`SessionWriter` records,
-:class:`SessionReader` reads (also while another process records), :func:`export_session`
-writes CSV/Parquet. This package is an adapter: it stores what it is given and computes
-nothing. The layout, schema and durability argument are in ``docs/storage.md``.
+written atomically at the end), optionally ``video.mkv`` (the camera stream, recorded by
+:mod:`.video`, read back by :mod:`.video_readback`), and ``writer.lock`` while a writer is
+alive. :class:`SessionWriter` records, :class:`SessionReader` reads (also while another
+process records), :func:`export_session` writes CSV/Parquet. This package is an adapter:
+it stores what it is given and computes nothing. The layout, schema and durability
+argument are in ``docs/storage.md``.
 """
 
 from stipi_daemon.storage.export import EXPORT_FORMATS, export_session

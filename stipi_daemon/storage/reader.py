@@ -55,7 +55,7 @@ from stipi_daemon.storage.schema import (
 )
 
 if TYPE_CHECKING:
-    from stipi_daemon.storage.video import VideoCheck
+    from stipi_daemon.storage.video_readback import VideoCheck
 
 _MAX_INTEGRITY_MESSAGES: Final = 5
 
@@ -421,8 +421,9 @@ class SessionReader:
     def _video_problems(self, decode: bool) -> list[str]:
         """The video, its ``video_frames`` rows and their ``frames`` rows.
 
-        The file must be sound (:func:`~.video.check_video`: no frame failing its CRC-32 or,
-        with ``decode``, its decoding; no damaged header or broken structure). The rows:
+        The file must be sound (:func:`~.video_readback.check_video`: no frame failing its
+        CRC-32 or, with ``decode``, its decoding; no damaged header or broken structure). The
+        rows:
         frame indices 0, 1, 2, ..., each row's ``pts_ms`` the file's for that frame, each
         ``seq`` once and in ``frames`` (once) with the same capture time. Frames against
         rows: a recording that ended cleanly (``complete``, ``aborted``, and ``fault``
@@ -441,7 +442,7 @@ class SessionReader:
         if path is None or not path.is_file():
             missing = f"{path or self.directory}: video is missing, {n} video_frames rows"
             return [missing] if n else []
-        from stipi_daemon.storage.video import check_video
+        from stipi_daemon.storage.video_readback import check_video
 
         check = check_video(path, decode=decode)
         problems = list(check.problems) + _damage_problem(check, rows)

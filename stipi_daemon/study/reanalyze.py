@@ -191,7 +191,7 @@ def _one_thread_on_a_worker() -> None:
         return
     import cv2
 
-    from stipi_daemon.storage.video import set_decode_threads
+    from stipi_daemon.storage.video_readback import set_decode_threads
 
     if cv2.getNumThreads() != 1:
         cv2.setNumThreads(1)

@@ -22,6 +22,8 @@ from stipi_daemon.storage.video import (
     ENCODER_QUEUE_FRAMES,
     ENCODER_WORKERS,
     VideoRecorder,
+)
+from stipi_daemon.storage.video_readback import (
     iter_video_images,
     probe_video,
     read_video_image,

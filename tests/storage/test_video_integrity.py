@@ -26,10 +26,9 @@ import pytest
 from stipi_daemon.app.sessions_view import show_text
 from stipi_daemon.cli import main
 from stipi_daemon.storage import SessionReader, SessionWriter, StorageOptions
-from stipi_daemon.storage.video import (
-    UNINDEXED_FRAMES_MAX,
+from stipi_daemon.storage.video import UNINDEXED_FRAMES_MAX, VideoRecorder
+from stipi_daemon.storage.video_readback import (
     VideoDamageError,
-    VideoRecorder,
     check_video,
     iter_video_frames,
     iter_video_images,
