@@ -536,7 +536,8 @@ def count_session_video(
     camera decoded them, FFV1 bit-exact). ``roi`` is in camera-frame coordinates; a video
     of the ROI's bounding box is counted with the ROI moved into it (:func:`roi_in_video`,
     which refuses an ROI outside the frame or the stored box, naming ``roi_field``, before
-    anything is counted; ``frame_size`` is the camera's ``(width, height)`` [px] when known).
+    anything is counted; the camera frame's size is the video's own record of it, else
+    ``frame_size`` ``(width, height)`` [px] when known).
 
     The result has one S_k per stored frame (file index), NaN for a frame the readback
     reports damaged (listed in :attr:`VideoCount.undecodable`, with the readback's reasons
@@ -556,7 +557,8 @@ def count_session_video(
 
     p = Path(path)
     info = probe_video(p)
-    local_roi = roi_in_video(roi, (info.width, info.height), info.crop, roi_field, p, frame_size)
+    camera = info.frame_size if info.frame_size is not None else frame_size  # the file's own
+    local_roi = roi_in_video(roi, (info.width, info.height), info.crop, roi_field, p, camera)
     processor: FrameProcessor | None = None
     counts: list[float] = []
     flags: list[frozenset[Flag]] = []

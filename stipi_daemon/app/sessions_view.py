@@ -97,6 +97,8 @@ def _video_text(path: Path) -> str:
     except SessionError as exc:
         return f"{path.name} ({path.stat().st_size} B: {exc})"
     crop = "" if info.crop is None else ", crop " + ",".join(str(v) for v in info.crop)
+    if info.crop is not None and info.frame_size is not None:
+        crop += f" of {info.frame_size[0]}x{info.frame_size[1]}"
     return (
         f"{path.name} ({info.size_bytes} B, {info.codec} {info.width}x{info.height} "
         f"{info.image}{crop}, {info.frames} frames)"

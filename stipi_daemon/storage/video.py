@@ -53,7 +53,7 @@ import numpy as np
 
 from stipi_daemon.errors import SessionError
 from stipi_daemon.storage.ordered_workers import OrderedWorkers
-from stipi_daemon.storage.video_readback import TAG_CROP, TAG_IMAGE, Crop, Image
+from stipi_daemon.storage.video_readback import TAG_CROP, TAG_FRAME_SIZE, TAG_IMAGE, Crop, Image
 
 if TYPE_CHECKING:
     from stipi_daemon.storage.writer import SessionWriter
@@ -393,6 +393,7 @@ class VideoRecorder:
             image = self._to_gray(image)
         layout = "gray" if image.ndim == 2 else "bgr"
         h, w = image.shape[:2]
+        frame_size = (w, h)
         if crop is not None:
             x0, y0, x1, y1 = crop
             if not (0 <= x0 < x1 <= w and 0 <= y0 < y1 <= h):
@@ -401,7 +402,13 @@ class VideoRecorder:
         self._crop = crop
         codec: Literal["mjpeg", "ffv1"] = "mjpeg" if passthrough else "ffv1"
         container, stream = open_video_file(
-            self.path, codec, layout, (w, h), crop=crop, frame_rate=self._frame_rate
+            self.path,
+            codec,
+            layout,
+            (w, h),
+            crop=crop,
+            frame_size=frame_size,
+            frame_rate=self._frame_rate,
         )
         self._container, self._stream = container, stream
         self._codec = "mjpeg" if passthrough else "ffv1"
@@ -501,6 +508,7 @@ def open_video_file(
     size: tuple[int, int],
     *,
     crop: Crop | None = None,
+    frame_size: tuple[int, int] | None = None,
     frame_rate: Fraction | None = None,
     options: dict[str, str] | None = None,
 ) -> tuple[Any, Any]:
@@ -510,9 +518,11 @@ def open_video_file(
     ``ffv1``: frames encoded losslessly (level 3, every frame intra, CRC per slice), ``gray``
     or ``bgr0`` by ``layout`` (``"gray"`` or ``"bgr"``, stored as the :data:`TAG_IMAGE` tag).
     Times are in :data:`PTS_TIME_BASE`. ``size`` is ``(width, height)`` [px]; ``crop``, if
-    any, is stored as the :data:`TAG_CROP` tag; ``frame_rate`` [1/s], if known, is declared
-    (players and OpenCV read it as the file's frame rate); ``options`` are the muxer's
-    (default :data:`MUXER_OPTIONS`). Returns ``(container, stream)``; close the container.
+    any, is stored as the :data:`TAG_CROP` tag, with the camera frame's ``frame_size``
+    ``(width, height)`` [px] it was cut from as :data:`TAG_FRAME_SIZE`; ``frame_rate``
+    [1/s], if known, is declared (players and OpenCV read it as the file's frame rate);
+    ``options`` are the muxer's (default :data:`MUXER_OPTIONS`). Returns ``(container,
+    stream)``; close the container.
     """
     import av
 
@@ -532,6 +542,8 @@ def open_video_file(
         container.metadata[TAG_IMAGE] = layout
         if crop is not None:
             container.metadata[TAG_CROP] = ",".join(str(v) for v in crop)
+            if frame_size is not None:
+                container.metadata[TAG_FRAME_SIZE] = f"{frame_size[0]}x{frame_size[1]}"
     except BaseException:
         container.close()
         raise

@@ -29,6 +29,7 @@ from stipi_daemon.errors import SessionError
 
 __all__ = [
     "TAG_CROP",
+    "TAG_FRAME_SIZE",
     "TAG_IMAGE",
     "StoredFrame",
     "VideoCheck",
@@ -46,6 +47,9 @@ __all__ = [
 TAG_IMAGE: Final = "STIPI_IMAGE"
 #: Matroska tag holding the stored rectangle ``x0,y0,x1,y1`` of the camera frame [px].
 TAG_CROP: Final = "STIPI_CROP"
+#: Matroska tag holding the camera frame's size ``WIDTHxHEIGHT`` [px] a cropped video was cut
+#: from (only with :data:`TAG_CROP`; files recorded before it have none).
+TAG_FRAME_SIZE: Final = "STIPI_FRAME_SIZE"
 
 Image = npt.NDArray[np.uint8]
 Crop = tuple[int, int, int, int]
@@ -71,6 +75,9 @@ class VideoInfo:
         Pixel layout the frames decode to for counting (``gray`` or ``bgr``).
     crop : tuple of int or None
         ``(x0, y0, x1, y1)`` of the camera frame the file stores [px]; None: the whole frame.
+    frame_size : tuple of int or None
+        The camera frame's ``(width, height)`` [px]: the stored size without a crop; with
+        one, the :data:`TAG_FRAME_SIZE` tag (None where the file has none).
     """
 
     path: Path
@@ -81,6 +88,7 @@ class VideoInfo:
     height: int
     image: str
     crop: tuple[int, int, int, int] | None
+    frame_size: tuple[int, int] | None
 
 
 #: Threads FFmpeg's decoder may use per video read (0: FFmpeg's choice, one per CPU).
@@ -240,6 +248,15 @@ def _frame_image(frame: Any, gray: bool) -> Image:
             return rows.copy()
         return np.asarray(cv2.cvtColor(rows.reshape(h, w, 4), cv2.COLOR_BGRA2BGR))
     return np.asarray(frame.to_ndarray(format="gray" if gray else "bgr24"))
+
+
+def _size_tag(text: str | None) -> tuple[int, int] | None:
+    """``WIDTHxHEIGHT`` as ``(width, height)``; None when absent or not two positive integers
+    (a tag someone else wrote: the size is then unknown, not guessed)."""
+    parts = (text or "").split("x")
+    if len(parts) != 2 or not all(v.isdigit() and int(v) > 0 for v in parts):
+        return None
+    return int(parts[0]), int(parts[1])
 
 
 def _crop_tag(text: str | None) -> tuple[int, int, int, int] | None:
@@ -747,15 +764,18 @@ def probe_video(path: Path | str) -> VideoInfo:
         except av.FFmpegError:  # damage: counted up to there (check_video names it)
             pass
         tags = dict(container.metadata)
+        width, height = int(stream.codec_context.width), int(stream.codec_context.height)
+        crop = _crop_tag(tags.get(TAG_CROP))
         return VideoInfo(
             path=p,
             size_bytes=p.stat().st_size,
             codec=str(stream.codec_context.name),
             frames=frames,
-            width=int(stream.codec_context.width),
-            height=int(stream.codec_context.height),
+            width=width,
+            height=height,
             image=str(tags.get(TAG_IMAGE, "bgr")),
-            crop=_crop_tag(tags.get(TAG_CROP)),
+            crop=crop,
+            frame_size=(width, height) if crop is None else _size_tag(tags.get(TAG_FRAME_SIZE)),
         )
     finally:
         container.close()

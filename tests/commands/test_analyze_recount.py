@@ -24,6 +24,8 @@ from stipi_daemon.analysis.imaging import CircleROI, RectROI
 from stipi_daemon.app.imaging import recorded_source
 from stipi_daemon.app.offline_io import count_session_video, count_video
 from stipi_daemon.cli import main
+from stipi_daemon.errors import ConfigError
+from stipi_daemon.storage.video_readback import probe_video
 from tests.commands.test_analyze_video import (
     decoded_gray,
     digest,
@@ -137,6 +139,17 @@ def test_roi_off_the_frame_or_the_stored_box_is_refused(
         err = _error(capsys, ["analyze", str(session), "--recompute-sk", "--roi", roi])
         assert err.startswith(expected), (roi, err)
     assert digest(session) == before  # nothing written
+    # The camera frame's size is the video's own record (a tag beside the box; PyAV reads
+    # it), so a session without a simulator's ground truth names the frame too.
+    with av.open(str(video)) as container:
+        assert container.metadata["STIPI_FRAME_SIZE"] == f"{FRAME[0]}x{FRAME[1]}"
+    assert probe_video(video).frame_size == FRAME
+    assert main(["sessions", "show", str(session)]) == 0
+    assert f"crop {x0},{y0},{x1},{y1} of {FRAME[0]}x{FRAME[1]}, " in capsys.readouterr().out
+    off = CircleROI(kind="circle", cx_px=1000.0, cy_px=1000.0, radius_px=10.0)
+    with pytest.raises(ConfigError) as raised:  # no frame size given by the caller
+        count_session_video(video, 128, off, roi_field="--roi")
+    assert str(raised.value).startswith(cases["circle:1000,1000,10"])
 
 
 def test_roi_is_given_in_camera_coordinates(
