@@ -169,14 +169,11 @@ class StoredFrame:
 
 @dataclass(frozen=True)
 class VideoCheck:
-    """What :func:`check_video` found in a stored video.
+    """What :func:`check_video` found in a stored video (``path`` and ``size_bytes`` as in
+    :class:`VideoInfo`).
 
     Attributes
     ----------
-    path : Path
-        The file.
-    size_bytes : int
-        File size [B].
     frames : int
         Complete frames (Matroska blocks) in the file [-].
     pts_ms : tuple of (int or None)

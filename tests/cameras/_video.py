@@ -55,3 +55,18 @@ def decode_all(path: Path) -> list[npt.NDArray[np.uint8]]:
         out.append(img)
     cap.release()
     return out
+
+
+def raw_packets(path: Path) -> list[npt.NDArray[np.uint8]]:
+    """Every packet as OpenCV's FFmpeg backend demuxes it, undecoded (``CAP_PROP_FORMAT``
+    -1): an MJPG file's JPEGs as they are stored, one flat byte array each."""
+    cap = cv2.VideoCapture(str(path), cv2.CAP_FFMPEG)
+    assert cap.set(cv2.CAP_PROP_FORMAT, -1)
+    out = []
+    while True:
+        ok, pk = cap.read()
+        if not ok:
+            break
+        out.append(pk.reshape(-1).copy())
+    cap.release()
+    return out

@@ -28,7 +28,7 @@ from stipi_daemon.cameras.threaded import RawFrame
 from stipi_daemon.cameras.v4l2 import V4L2Camera, _Handle, decode_mode, device_path
 from stipi_daemon.clock import ScaledClock
 from stipi_daemon.errors import CameraError
-from tests.cameras._video import write_avi
+from tests.cameras._video import raw_packets, write_avi
 
 
 @pytest.mark.parametrize("device", ["/dev/video99", 99])
@@ -97,19 +97,6 @@ def test_decode_mode_takes_mjpg_raw_in_colour_too() -> None:
         assert asked == ([] if (fourcc, gray) in (("YUYV", False), ("GREY", True)) else [fourcc])
 
 
-def _raw_packets(path: Path) -> list[bytes]:
-    cap = cv2.VideoCapture(str(path), cv2.CAP_FFMPEG)
-    assert cap.set(cv2.CAP_PROP_FORMAT, -1)
-    out = []
-    while True:
-        ok, pk = cap.read()
-        if not ok:
-            break
-        out.append(pk.tobytes())
-    cap.release()
-    return out
-
-
 def _read_all(cam: V4L2Camera, cap: cv2.VideoCapture, n: int) -> list[RawFrame]:
     mode = cam._configure(cap)  # the camera's own settings, read-back and decode choice
     handle = _Handle(cap, mode, cam.nominal_fps)
@@ -133,7 +120,7 @@ def test_mjpg_frames_carry_the_cameras_jpeg(tmp_path: Path, gray: bool) -> None:
     assert applied["jpeg_packets"] is True
     assert not any("refused raw MJPG" in n for n in cam.notes)
     flag = cv2.IMREAD_GRAYSCALE if gray else cv2.IMREAD_COLOR
-    for f, jpeg in zip(frames, _raw_packets(path), strict=True):
+    for f, jpeg in zip(frames, [p.tobytes() for p in raw_packets(path)], strict=True):
         assert f.packet == jpeg  # the JPEG as the camera sent it: passthrough recording
         assert f.image.shape == ((120, 160) if gray else (120, 160, 3))
         np.testing.assert_array_equal(f.image, cv2.imdecode(np.frombuffer(jpeg, np.uint8), flag))

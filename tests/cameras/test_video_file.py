@@ -19,7 +19,7 @@ from stipi_daemon.errors import CameraError
 from stipi_daemon.sim.output import write_outputs
 from tests.cameras._pyav_video import pyav_frames, write_pyav
 from tests.cameras._scenes import small_scene
-from tests.cameras._video import write_avi
+from tests.cameras._video import raw_packets, write_avi
 
 FPS = 30.0
 
@@ -44,19 +44,6 @@ def avi(tmp_path: Path) -> Path:
     return p
 
 
-def _packets(path: Path) -> list[np.ndarray]:
-    cap = cv2.VideoCapture(str(path), cv2.CAP_FFMPEG)
-    assert cap.set(cv2.CAP_PROP_FORMAT, -1)
-    out = []
-    while True:
-        ok, pk = cap.read()
-        if not ok:
-            break
-        out.append(pk.reshape(-1).copy())
-    cap.release()
-    return out
-
-
 async def test_unpaced_color_delivers_every_frame(avi: Path) -> None:
     clock = ScaledClock()
     cam = VideoFileCamera(avi, clock, pace=False, gray=False, t0_s=5.0)
@@ -64,7 +51,7 @@ async def test_unpaced_color_delivers_every_frame(avi: Path) -> None:
     assert [f.seq for f in frames] == list(range(24))
     assert all(f.dropped_before == 0 for f in frames)
     np.testing.assert_allclose([f.t_capture_s for f in frames], 5.0 + np.arange(24) / FPS)
-    expected = [cv2.imdecode(p, cv2.IMREAD_COLOR) for p in _packets(avi)]
+    expected = [cv2.imdecode(p, cv2.IMREAD_COLOR) for p in raw_packets(avi)]
     for f, e in zip(frames, expected, strict=True):
         assert f.image.shape == (120, 160, 3) and f.image.dtype == np.uint8
         np.testing.assert_array_equal(f.image, e)
@@ -76,7 +63,7 @@ async def test_unpaced_color_delivers_every_frame(avi: Path) -> None:
 
 async def test_mjpg_frames_carry_their_jpeg_packet(avi: Path) -> None:
     frames = await collect(VideoFileCamera(avi, ScaledClock(), pace=False, gray=True))
-    packets = _packets(avi)
+    packets = raw_packets(avi)
     assert [f.packet for f in frames] == [p.tobytes() for p in packets]
     for f in frames:
         assert f.packet is not None
@@ -147,7 +134,7 @@ async def test_truncated_file_ends_at_last_complete_frame(
 ) -> None:
     full = await collect(VideoFileCamera(avi, ScaledClock(), pace=False, gray=False))
     data = avi.read_bytes()
-    packet = _packets(avi)[cut_in_frame]
+    packet = raw_packets(avi)[cut_in_frame]
     start = data.find(packet[-64:].tobytes()) - (packet.size - 64)  # headers repeat: match tails
     cut = tmp_path / "cut.avi"
     cut.write_bytes(data[: start + packet.size // 2])  # half of the frame's JPEG survives
@@ -174,7 +161,7 @@ async def test_file_missing_only_its_index_replays_every_frame(avi: Path, tmp_pa
 async def test_damaged_frame_inside_file_is_skipped(avi: Path, tmp_path: Path) -> None:
     # Overwrite the middle of frame 5's JPEG data (including its end marker) with zeros.
     data = bytearray(avi.read_bytes())
-    packets = _packets(avi)
+    packets = raw_packets(avi)
     start = bytes(data).find(packets[5][-64:].tobytes()) - (packets[5].size - 64)
     assert start > 0
     end = start + packets[5].size
