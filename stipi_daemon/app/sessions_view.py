@@ -141,7 +141,7 @@ def _facts(
     facts += [
         ("label", _opt(reader.label)),
         ("video", video_text),
-        ("integrity", _integrity_text(problems, decoded and video is not None)),
+        ("integrity", _integrity_text(problems, decoded and video is not None and video.exists())),
     ]
     if status.value == "recording" and reader.writer_owner is not None:
         facts.append(("writer", json.dumps(reader.writer_owner)))

@@ -174,6 +174,10 @@ def test_a_frame_that_only_decoding_finds_is_found_with_decode(
     assert main(["sessions", "show", str(good.directory), "--decode"]) == 0
     out = capsys.readouterr().out
     assert "integrity  ok (every video frame decoded)" in out
+    good.video.unlink()  # nothing decoded: the line does not claim it
+    assert main(["sessions", "show", str(good.directory), "--decode"]) == 1
+    (line,) = [ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("integrity")]
+    assert "FAILED: " in line and "missing" in line and "decoded" not in line
 
 
 @pytest.mark.parametrize("codec", ["mjpeg", "ffv1"])
