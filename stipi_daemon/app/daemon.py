@@ -245,7 +245,7 @@ async def run_daemon(
     except SessionError as exc:
         # Storage failed (disk full, I/O error, the video's muxer): stop recording now, keep
         # what is stored; the summary says why the measurement did not end.
-        storage_error = exc
+        storage_error, status = exc, "fault"
         summary = unfinished_summary("fault", f"recording stopped: {exc.__cause__ or exc}")
     finally:
         await acquisition.stop()
@@ -261,8 +261,9 @@ async def run_daemon(
             keeper=keeper,
         ) | {"lag_s": percentiles(acquisition.lag_s), "max_lag_s": config.run.max_lag_s}
         finish_session(writer, status, summary, storage_error)
-        if status == "aborted":  # interrupted (Ctrl-C) or an unexpected error
-            console.line(f"measurement aborted; what was recorded is in {writer.directory}")
+        if status == "aborted" or storage_error is not None:  # did not end: say so, and where
+            how = "aborted" if storage_error is None else "stopped: storing failed"
+            console.line(f"measurement {how}; what was recorded is in {writer.directory}")
             console.line(_RESCUE_HINT.format(writer.directory))
     if storage_error is not None:
         video_error = (summary["run"].get("video") or {}).get("error")
