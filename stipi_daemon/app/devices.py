@@ -312,12 +312,14 @@ def delivers_jpeg_packets(metadata: dict[str, Any]) -> bool:
     read as raw MJPG packets (``decoder``); a V4L2 camera that takes the driver's JPEGs raw
     and decodes them itself (``applied.jpeg_packets``, or its ``applied.decode`` mode).
     """
+    from stipi_daemon.cameras.video_file import DECODER_JPEG
+
     applied = metadata.get("applied")
     applied = applied if isinstance(applied, dict) else {}
     v4l2 = applied.get("jpeg_packets", applied.get("decode") in ("jpeg_gray", "jpeg_bgr"))
     return (
         metadata.get("jpeg_quality") is not None
-        or str(metadata.get("decoder", "")).startswith("imdecode (raw MJPG packets)")
+        or metadata.get("decoder") == DECODER_JPEG
         or v4l2 is True
     )
 

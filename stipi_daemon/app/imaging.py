@@ -313,13 +313,14 @@ def _pair(rng: tuple[float, float] | None) -> list[float] | None:
 _MAX_EXACT_ROI_PX = 16_000_000
 
 
-def _describe_roi(roi: CircleROI | RectROI) -> str:
+def describe_roi(roi: CircleROI | RectROI) -> str:
+    """The ROI in words for messages: ``circle centre (x, y) r R px`` or ``rect at ...``."""
     if isinstance(roi, CircleROI):
         return f"circle centre ({roi.cx_px:g}, {roi.cy_px:g}) r {roi.radius_px:g} px"
     return f"rect at ({roi.x_px}, {roi.y_px}) size {roi.width_px}x{roi.height_px} px"
 
 
-def _roi_placement(roi: CircleROI | RectROI, width_px: int, height_px: int) -> str:
+def roi_placement(roi: CircleROI | RectROI, width_px: int, height_px: int) -> str:
     """``inside``, ``partly`` or ``outside`` the ``width_px`` x ``height_px`` frame."""
     if isinstance(roi, CircleROI):
         # Distance from the centre to the nearest pixel centre of the frame [px].
@@ -365,7 +366,7 @@ def roi_fit_problem(
     """
     if roi is None:
         return None
-    placement = _roi_placement(roi, width_px, height_px)
+    placement = roi_placement(roi, width_px, height_px)
     if placement == "inside":
         return None
     where = "outside" if placement == "outside" else "partly outside"
@@ -375,7 +376,7 @@ def roi_fit_problem(
         else "pixels beyond the border are not counted, so S_k and D_p would read low"
     )
     return (
-        f"{field}: {_describe_roi(roi)} lies {where} the {width_px}x{height_px} frame "
+        f"{field}: {describe_roi(roi)} lies {where} the {width_px}x{height_px} frame "
         f"({why}; the ROI must lie within the frame)"
     )
 

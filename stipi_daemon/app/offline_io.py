@@ -30,7 +30,7 @@ from pydantic import ValidationError
 
 from stipi_daemon.analysis.flags import Flag
 from stipi_daemon.analysis.imaging import CircleROI, FrameProcessor, RectROI
-from stipi_daemon.app.imaging import check_roi_fits, roi_fit_problem
+from stipi_daemon.app.imaging import check_roi_fits, describe_roi, roi_placement
 from stipi_daemon.errors import ConfigError, DataFileError
 from stipi_daemon.measurement.replay import Recording
 from stipi_daemon.measurement.state_machine import (
@@ -322,12 +322,6 @@ class VideoCount:
         return sum(1 for f in self.flags if Flag.SATURATED_FRAME in f)
 
 
-def _describe_roi(roi: CircleROI | RectROI) -> str:
-    if isinstance(roi, CircleROI):
-        return f"circle centre ({roi.cx_px:g}, {roi.cy_px:g}) r {roi.radius_px:g} px"
-    return f"rect at ({roi.x_px}, {roi.y_px}) size {roi.width_px}x{roi.height_px} px"
-
-
 def video_crop(path: Path) -> Crop | None:
     """The ``STIPI_CROP`` tag of a video (a session video that stores only the ROI's
     bounding box, or its export): ``(x0, y0, x1, y1)`` of the camera frame [px]; None when
@@ -340,7 +334,7 @@ def video_crop(path: Path) -> Crop | None:
     """
     import av
 
-    from stipi_daemon.storage.video_readback import TAG_CROP
+    from stipi_daemon.storage.video_readback import TAG_CROP, crop_tag
 
     try:
         with av.open(str(path), "r") as container:
@@ -350,7 +344,7 @@ def video_crop(path: Path) -> Crop | None:
     if not text:
         return None
     try:
-        x0, y0, x1, y1 = (int(v) for v in str(text).split(","))
+        x0, y0, x1, y1 = crop_tag(str(text)) or (0, 0, 0, 0)
     except ValueError:
         raise DataFileError(f"{path}: tag {TAG_CROP} {text!r} is not x0,y0,x1,y1 [px]") from None
     if not (0 <= x0 < x1 and 0 <= y0 < y1):
@@ -395,11 +389,12 @@ def roi_in_video(
     if frame_size is not None:
         check_roi_fits(roi, frame_size[0], frame_size[1], field)
     local = _shifted_roi(roi, crop)
-    problem = roi_fit_problem(local, x1 - x0, y1 - y0, field)
-    if problem is not None:
-        where = "partly outside" if "partly outside" in problem else "outside"
+    assert local is not None
+    placement = roi_placement(local, x1 - x0, y1 - y0)
+    if placement != "inside":
+        where = "outside" if placement == "outside" else "partly outside"
         raise ConfigError(
-            f"{field}: {_describe_roi(roi)} lies {where} {box}, all the video {path} holds "
+            f"{field}: {describe_roi(roi)} lies {where} {box}, all the video {path} holds "
             "(pixels beyond it were not recorded; the ROI must lie within that box)"
         )
     return local
@@ -567,11 +562,6 @@ def count_session_video(
     broken = False
     try:
         for stored in iter_video_frames(p):
-            while len(counts) < stored.frame_index:  # the readback skips none; to be sure
-                damage.append(f"frame {len(counts)}: not given by the readback")
-                undecodable.append(len(counts))
-                counts.append(math.nan)
-                flags.append(frozenset())
             frame = stored.image
             if frame is None:
                 damage.append(f"frame {len(counts)} (byte {stored.pos_bytes}): {stored.damage}")

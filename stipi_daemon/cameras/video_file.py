@@ -54,7 +54,7 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
-from stipi_daemon.cameras.base import VideoFileCameraConfig
+from stipi_daemon.cameras.base import VideoFileCameraConfig, av_frame_pixels
 from stipi_daemon.cameras.threaded import RawFrame, ThreadedCamera
 from stipi_daemon.clock import SessionClock
 from stipi_daemon.errors import CameraError
@@ -532,18 +532,15 @@ class VideoFileCamera(ThreadedCamera[_Handle]):
 
     def _image(self, frame: av.video.frame.VideoFrame) -> npt.NDArray[np.uint8]:
         """A decoded frame as the camera delivers it: gray ``(H, W)`` or BGR ``(H, W, 3)``."""
-        fmt = frame.format.name
-        if fmt == "gray":
-            gray = np.asarray(frame.to_ndarray(), dtype=np.uint8)
-            return gray if self.gray else np.asarray(cv2.cvtColor(gray, cv2.COLOR_GRAY2BGR))
-        if fmt in ("bgr0", "bgra"):  # FFV1's BGR: 4 bytes a pixel, read in place
-            plane = frame.planes[0]
-            rows = np.frombuffer(memoryview(plane), np.uint8).reshape(-1, plane.line_size)
-            bgrx = rows[: frame.height, : 4 * frame.width].reshape(frame.height, frame.width, 4)
+        pixels = av_frame_pixels(frame)
+        if pixels.ndim == 2:
+            return (
+                pixels.copy() if self.gray else np.asarray(cv2.cvtColor(pixels, cv2.COLOR_GRAY2BGR))
+            )
+        if pixels.shape[2] == 4:  # FFV1's BGR: 4 bytes a pixel, read in place
             code = cv2.COLOR_BGRA2GRAY if self.gray else cv2.COLOR_BGRA2BGR
-            return np.asarray(cv2.cvtColor(bgrx, code), dtype=np.uint8)
-        bgr = np.asarray(frame.to_ndarray(format="bgr24"), dtype=np.uint8)
-        return np.asarray(cv2.cvtColor(bgr, cv2.COLOR_BGR2GRAY)) if self.gray else bgr
+            return np.asarray(cv2.cvtColor(pixels, code), dtype=np.uint8)
+        return np.asarray(cv2.cvtColor(pixels, cv2.COLOR_BGR2GRAY)) if self.gray else pixels
 
     def _note_short_end(self, h: _Handle) -> None:
         if h.bad_frames and h.bad_frames[-1] == h.pos - 1:

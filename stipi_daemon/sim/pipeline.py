@@ -279,8 +279,6 @@ class Pipeline:
                 yield SimFrame(k, t, last[1].pixels, s)
                 continue
             f = self._encoded(k, t, self.renderer.render_area(s), s, read_only=True)
-            if isinstance(f.pixels, np.ndarray):
-                f.pixels.flags.writeable = False
             last = (round(s), f)
             yield f
 
@@ -291,6 +289,8 @@ class Pipeline:
         its image is first read; ``read_only``: that decode is not writeable)."""
         q = self.encoding.jpeg_quality
         if q is None:
+            if read_only:
+                image.flags.writeable = False
             return SimFrame(k, t, image, s)
         packet = encode_jpeg(image, q)
         return SimFrame(k, t, JpegImage(packet, self._channels, read_only=read_only), s)

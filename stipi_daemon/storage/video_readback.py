@@ -36,6 +36,7 @@ __all__ = [
     "VideoDamageError",
     "VideoInfo",
     "check_video",
+    "crop_tag",
     "iter_video_frames",
     "iter_video_images",
     "probe_video",
@@ -231,19 +232,17 @@ def _open_input(path: Path, threads: int | None = None) -> Any:
 
 def _frame_image(frame: Any, gray: bool) -> Image:
     """A decoded FFV1 frame as the daemon counted it: ``gray`` as stored, ``bgr0`` without
-    its padding byte (the recorder padded the BGR bytes: the same pixels). Read from the
-    frame's plane directly: PyAV's ``to_ndarray(format=...)`` makes a scaler per frame,
-    which cost more than the decode (0.6 ms per 160x120 frame, two threads started each)."""
+    its padding byte (the recorder padded the BGR bytes: the same pixels), read from the
+    frame's plane (:func:`~stipi_daemon.cameras.base.av_frame_pixels`); another layout
+    converted by FFmpeg's scaler."""
     import cv2
+
+    from stipi_daemon.cameras.base import av_frame_pixels
 
     fmt = frame.format.name
     if (fmt == "gray") == gray and fmt in ("gray", "bgr0"):
-        plane = frame.planes[0]
-        h, w, c = frame.height, frame.width, 1 if gray else 4
-        rows = np.frombuffer(plane, np.uint8).reshape(h, plane.line_size)[:, : w * c]
-        if gray:
-            return rows.copy()
-        return np.asarray(cv2.cvtColor(rows.reshape(h, w, 4), cv2.COLOR_BGRA2BGR))
+        pixels = av_frame_pixels(frame)
+        return pixels.copy() if gray else np.asarray(cv2.cvtColor(pixels, cv2.COLOR_BGRA2BGR))
     return np.asarray(frame.to_ndarray(format="gray" if gray else "bgr24"))
 
 
@@ -256,7 +255,14 @@ def _size_tag(text: str | None) -> tuple[int, int] | None:
     return int(parts[0]), int(parts[1])
 
 
-def _crop_tag(text: str | None) -> tuple[int, int, int, int] | None:
+def crop_tag(text: str | None) -> tuple[int, int, int, int] | None:
+    """A :data:`TAG_CROP` value ``x0,y0,x1,y1`` as integers [px]; None when empty.
+
+    Raises
+    ------
+    ValueError
+        Not four comma-separated integers.
+    """
     if not text:
         return None
     x0, y0, x1, y1 = (int(v) for v in text.split(","))
@@ -519,6 +525,20 @@ class _Slot:
     done: bool = False
 
 
+def _is_gray(container: Any) -> bool:
+    """Whether the daemon counted the file's frames as gray (its :data:`TAG_IMAGE`)."""
+    return bool(dict(container.metadata).get(TAG_IMAGE, "bgr") == "gray")
+
+
+def _jpeg_image(pkt: Any, gray: bool) -> Image | None:
+    """A JPEG packet decoded as the camera decoded it (``cv2.imdecode``); None: it does not."""
+    import cv2
+
+    flag = cv2.IMREAD_GRAYSCALE if gray else cv2.IMREAD_COLOR
+    img = cv2.imdecode(np.frombuffer(bytes(pkt), np.uint8), flag)
+    return None if img is None else np.asarray(img, dtype=np.uint8)
+
+
 def _jpeg_whole(payload: bytes) -> bool:
     """A JPEG's SOI and EOI markers are where they belong (trailing zero padding allowed,
     as UVC cameras send it): the check of a packet whose cluster holds no CRC-32."""
@@ -532,18 +552,18 @@ class _FrameReader:
     threads hand them out later)."""
 
     def __init__(self, path: Path, buf: _Buf, lay: _Layout, ctx: Any, gray: bool, decode: bool):
-        import cv2
-
         self._path, self._buf, self._lay, self._ctx = path, buf, lay, ctx
         self._released = 0  # mapped bytes let go of (:func:`_release`) [B]
         self._jpeg = ctx.name == "mjpeg"
         self._gray = gray
-        self._flag = cv2.IMREAD_GRAYSCALE if gray else cv2.IMREAD_COLOR
         self._decode = decode
         self._index = {pos: i for i, pos in enumerate(lay.blocks)}
         self._next = 0  # the next block the demuxer should give
         self._slots: deque[_Slot] = deque()
-        self._crc: dict[int, bool | None] = {}  # each cluster's CRC-32 check, once
+        # The last cluster's CRC-32 check (blocks come in file order: a cluster's are
+        # consecutive, so each cluster is checked once; older files hold several frames each)
+        self._crc_cluster = -1
+        self._crc_last: bool | None = None
         self._error = "no error given"  # FFmpeg's last decoding error
 
     def known(self, pos: int | None) -> bool:
@@ -569,23 +589,20 @@ class _FrameReader:
         if slot.damage is not None or not self._decode:
             slot.done = True
         elif self._jpeg:  # decoded as the camera did
-            import cv2
-
-            img = cv2.imdecode(np.frombuffer(bytes(pkt), np.uint8), self._flag)
-            if img is None:
+            slot.image = _jpeg_image(pkt, self._gray)
+            if slot.image is None:
                 slot.damage = "its JPEG does not decode"
-            else:
-                slot.image = np.asarray(img, dtype=np.uint8)
             slot.done = True
         else:
             self._feed(pkt)
 
     def _check(self, i: int, pkt: Any) -> str | None:
         cluster = self._lay.cluster_of[i]
-        if cluster not in self._crc:  # once per cluster (older files: several frames each)
-            self._crc[cluster] = _crc_ok(self._buf, self._lay.clusters[cluster])
+        if cluster != self._crc_cluster:
+            self._crc_cluster = cluster
+            self._crc_last = _crc_ok(self._buf, self._lay.clusters[cluster])
             self._released = _release(self._buf, self._lay.clusters[cluster][2], self._released)
-        crc = self._crc[cluster]
+        crc = self._crc_last
         if crc is False:
             return "its Matroska cluster fails its CRC-32"
         if crc is None and self._jpeg and not _jpeg_whole(bytes(pkt)):
@@ -658,8 +675,7 @@ def _read_frames(path: Path, buf: _Buf, lay: _Layout, *, decode: bool) -> Iterat
         container = _open_input(path)
         try:
             stream = container.streams.video[0]
-            gray = dict(container.metadata).get(TAG_IMAGE, "bgr") == "gray"
-            reader = _FrameReader(path, buf, lay, stream.codec_context, gray, decode)
+            reader = _FrameReader(path, buf, lay, stream.codec_context, _is_gray(container), decode)
             error = None
             try:
                 for pkt in container.demux(stream):
@@ -762,7 +778,7 @@ def probe_video(path: Path | str) -> VideoInfo:
             pass
         tags = dict(container.metadata)
         width, height = int(stream.codec_context.width), int(stream.codec_context.height)
-        crop = _crop_tag(tags.get(TAG_CROP))
+        crop = crop_tag(tags.get(TAG_CROP))
         return VideoInfo(
             path=p,
             size_bytes=p.stat().st_size,
@@ -869,21 +885,18 @@ def _decode_one(path: Path, pos: int) -> Image | None:
     """The image of the frame whose block data starts at byte ``pos``, as the daemon
     counted it; None when it does not decode or the demuxer does not reach it."""
     import av
-    import cv2
 
     container = _open_input(path, threads=1)  # one frame: no decoder threads to start
     try:
         stream = container.streams.video[0]
-        gray = dict(container.metadata).get(TAG_IMAGE, "bgr") == "gray"
+        gray = _is_gray(container)
         for pkt in container.demux(stream):
             if not pkt.size or pkt.pos is None or pkt.pos < pos:
                 continue
             if pkt.pos > pos:
                 return None
             if stream.codec_context.name == "mjpeg":
-                flag = cv2.IMREAD_GRAYSCALE if gray else cv2.IMREAD_COLOR
-                img = cv2.imdecode(np.frombuffer(bytes(pkt), np.uint8), flag)
-                return None if img is None else np.asarray(img, dtype=np.uint8)
+                return _jpeg_image(pkt, gray)
             for frame in [*stream.codec_context.decode(pkt), *stream.codec_context.decode(None)]:
                 return None if frame.is_corrupt else _frame_image(frame, gray)
             return None
