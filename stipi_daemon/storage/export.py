@@ -238,13 +238,13 @@ def check_export_target(
             )
 
 
-def _conflicts(pairs: Sequence[tuple[Path | None, Path]]) -> list[Path]:
-    """Targets that exist; a copy whose target already holds the same bytes is none."""
-    return [
-        dst
-        for src, dst in pairs
-        if dst.exists() and not (src is not None and filecmp.cmp(src, dst, shallow=False))
-    ]
+def _refuse_conflicts(pairs: Sequence[tuple[Path | None, Path]]) -> None:
+    """Raise :class:`SessionError` naming the first ``(source, target)`` pair whose target
+    exists (without ``--overwrite``); a copy whose target already holds the same bytes is
+    no conflict."""
+    for src, dst in pairs:
+        if dst.exists() and not (src is not None and filecmp.cmp(src, dst, shallow=False)):
+            raise SessionError(f"{dst}: exists already (use --overwrite to replace it)")
 
 
 def _integrity_line(reader: SessionReader, problems: tuple[str, ...]) -> str:
@@ -337,10 +337,9 @@ def export_session(
     if problems:
         written_here.append(out / INTEGRITY_NAME)
     if not overwrite:
-        pairs = [*((None, t) for t in written_here), *((src, out / src.name) for src in extras)]
-        conflicts = _conflicts(pairs)
-        if conflicts:
-            raise SessionError(f"{conflicts[0]}: exists already (use --overwrite to replace it)")
+        _refuse_conflicts(
+            [*((None, t) for t in written_here), *((src, out / src.name) for src in extras)]
+        )
     writer = _write_csv if fmt == "csv" else _write_parquet
     written: list[Path] = []
     try:
@@ -377,16 +376,13 @@ def _export_mat_files(
     """``<out>/<session_id>.mat`` and the session's video beside it, ``<session_id>.mkv``
     (byte for byte; named in the ``.mat``'s ``video_file``); the files written."""
     target = out / f"{reader.session_id}.mat"
-    video = reader.video_path
-    video = video if video is not None and video.is_file() else None
-    video_target = None if video is None else out / f"{reader.session_id}{video.suffix}"
+    video, video_target = reader.video_path, None
     pairs: list[tuple[Path | None, Path]] = [(None, target)]
-    if video is not None and video_target is not None:
+    if video is not None and video.is_file():
+        video_target = out / f"{reader.session_id}{video.suffix}"
         pairs.append((video, video_target))
     if not overwrite:
-        conflicts = _conflicts(pairs)
-        if conflicts:
-            raise SessionError(f"{conflicts[0]}: exists already (use --overwrite to replace it)")
+        _refuse_conflicts(pairs)
     try:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
@@ -397,7 +393,7 @@ def _export_mat_files(
         video_file=None if video_target is None else video_target.name,
         integrity_problems=problems,
     )
-    if video is None or video_target is None:
+    if video is None or video_target is None:  # no video file to copy
         return [target]
     try:
         return [target, _copy(video, video_target)]
