@@ -266,8 +266,7 @@ async def run_daemon(
             console.line(f"measurement {how}; what was recorded is in {writer.directory}")
             console.line(_RESCUE_HINT.format(writer.directory))
     if storage_error is not None:
-        video_error = (summary["run"].get("video") or {}).get("error")
-        raise storage_failure(writer, storage_error, video_error) from storage_error
+        raise storage_failure(writer, storage_error) from storage_error
     print_results(console, summary, writer.db_path.parent, acquisition.stop_error)
     if status != "complete":
         console.line(_RESCUE_HINT.format(writer.directory))

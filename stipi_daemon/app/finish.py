@@ -178,15 +178,15 @@ def unfinished_summary(status: str, end_reason: str) -> dict[str, Any]:
     }
 
 
-def storage_failure(
-    writer: SessionWriter, storage_error: SessionError, video_error: str | None = None
-) -> SessionError:
+def storage_failure(writer: SessionWriter, storage_error: SessionError) -> SessionError:
     """The one-line error the daemon raises when storing failed while recording: the
-    session's rows, or its video (``video_error``: the recorder's reason, from the run
-    statistics' ``video.error``, when the video was what failed)."""
+    session's rows, or its video (caused by the recorder's
+    :class:`~stipi_daemon.storage.video.VideoError`)."""
+    from stipi_daemon.storage.video import VideoError
+
     cause = storage_error.__cause__ or storage_error
     what = "the session could not be stored"
-    if video_error is not None and video_error in str(cause):
+    if isinstance(cause, VideoError):
         what = "the session video could not be written"
     return SessionError(
         f"{writer.directory}: recording stopped, {what} ({cause}); "

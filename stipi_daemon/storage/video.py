@@ -62,6 +62,7 @@ __all__ = [
     "ROW_BATCH_MAX_FRAMES",
     "UNINDEXED_FRAMES_MAX",
     "VIDEO_MODES",
+    "VideoError",
     "VideoMode",
     "VideoRecorder",
     "open_video_file",
@@ -69,6 +70,14 @@ __all__ = [
 ]
 
 _log = logging.getLogger(__name__)
+
+
+class VideoError(SessionError):
+    """The session video's own failure (FFmpeg could not write it: a full disk, any muxer
+    or encoder error), as the recorder hands it to the session writer
+    (:meth:`~.writer.SessionWriter.fail`): the writer's next call raises a
+    :class:`SessionError` caused by it, so the daemon can say that the video failed."""
+
 
 VideoMode = Literal["passthrough", "lossless", "off"]
 #: The ``storage.video`` settings.
@@ -451,7 +460,7 @@ class VideoRecorder:
                 )
             except SessionError as exc:  # the writer failed too: its error goes on
                 error = exc
-        self._writer.fail(error if error is not None else SessionError(reason))
+        self._writer.fail(error if error is not None else VideoError(reason))
         if join:
             self._close_container()
 
