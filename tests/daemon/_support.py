@@ -85,19 +85,16 @@ def check_against_truth(summary: dict[str, Any], *, rel: dict[str, float]) -> di
     return errors
 
 
-def short_session(
+def short_config(
     directory: Path,
     storage: dict[str, Any],
     *,
     pixel_format: str | None = None,
     speed: float = 2.0,
 ) -> Path:
-    """Record one short measurement of the 160x120 short scene (:func:`short_scene`; camera
-    ``pixel_format``, None: the scene's own) at clock ``speed``, ``storage`` added to the
-    config's storage section; returns the session directory."""
-    from stipi_daemon.app.config import load_config
-    from stipi_daemon.app.daemon import run_measurement
-
+    """Write the config of one short measurement of the 160x120 short scene
+    (:func:`short_scene`; camera ``pixel_format``, None: the scene's own) at clock
+    ``speed``, ``storage`` added to its storage section; returns the config's path."""
     scene = short_scene(directory, width=160, height=120)
     if pixel_format is not None:
         doc = yaml.safe_load(scene.read_text())
@@ -115,6 +112,22 @@ def short_session(
     cfg = yaml.safe_load(path.read_text())
     cfg["storage"].update(storage)
     path.write_text(yaml.safe_dump(cfg))
+    return path
+
+
+def short_session(
+    directory: Path,
+    storage: dict[str, Any],
+    *,
+    pixel_format: str | None = None,
+    speed: float = 2.0,
+) -> Path:
+    """Record the measurement of :func:`short_config` (quietly); returns the session
+    directory."""
+    from stipi_daemon.app.config import load_config
+    from stipi_daemon.app.daemon import run_measurement
+
+    path = short_config(directory, storage, pixel_format=pixel_format, speed=speed)
     session = run_measurement(load_config(path), quiet=True).session_dir
     assert session is not None
     return Path(session)

@@ -12,10 +12,9 @@ from typing import Any
 
 import av
 import pytest
-import yaml
 
 from stipi_daemon.cli import main
-from tests.daemon._support import SHORT_MEASUREMENT, short_scene, write_config
+from tests.daemon._support import short_config
 
 
 def test_a_video_failure_says_stopped_not_aborted(
@@ -23,19 +22,8 @@ def test_a_video_failure_says_stopped_not_aborted(
 ) -> None:
     from stipi_daemon.storage import video as video_module
 
-    scene = short_scene(tmp_path, width=160, height=120)
-    doc = yaml.safe_load(scene.read_text())
-    doc["camera"]["pixel_format"] = "mjpg"  # passthrough: muxed in the capture thread
-    scene.write_text(yaml.safe_dump(doc))
-    config = write_config(
-        tmp_path,
-        {
-            "probe": {"transport": {"kind": "emulated", "scene": str(scene)}},
-            "camera": {"kind": "simulator", "scene": str(scene)},
-            "measurement": SHORT_MEASUREMENT,
-            "run": {"speed": 2.0},
-        },
-    )
+    # an MJPG camera: passthrough, muxed in the capture thread
+    config = short_config(tmp_path, {}, pixel_format="mjpg", speed=2.0)
     write, calls = video_module.write_video_frame, [0]
 
     def failing_at_the_20th(*args: Any, **kwargs: Any) -> None:
