@@ -460,7 +460,7 @@ def _recount(
     threshold and ROI any S_k not reproduced; always, stored frames missing from the video
     or undecodable there. ``notes`` gets what the reader should know; ``frame_size`` is the
     camera's ``(width, height)`` [px] when known."""
-    from stipi_daemon.storage.video_readback import check_video
+    from stipi_daemon.storage.video_readback import count_video_frames
 
     if data.video_path is None:
         raise SessionError(f"{data.directory}: --recompute-sk: the session has no video file")
@@ -473,8 +473,9 @@ def _recount(
     field = "the ROI (none recorded)" if imaging.roi is None else _roi_field(imaging.roi.source)
     if roi is None and field == "--roi":
         field = "--roi full"
-    # the frames (Matroska blocks) the file holds, read cheaply before anything is counted
-    index, more = _pair_rows(data, data.video_path, check_video(data.video_path).frames)
+    # the frames (Matroska blocks) the file holds, from its structure before anything is
+    # counted: a pairing that cannot be made is refused at once
+    index, more = _pair_rows(data, data.video_path, count_video_frames(data.video_path))
     video = count_session_video(
         data.video_path,
         threshold.value,

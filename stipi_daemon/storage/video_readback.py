@@ -7,7 +7,8 @@ optionally every frame decoded), :func:`iter_video_frames` (every frame in file 
 sound with its image or damaged with the reason: nothing skipped), :func:`iter_video_images`
 (the images exactly as the daemon counted them: JPEG packets decoded by ``cv2.imdecode`` as
 the camera did, FFV1 frames decoded to the recorded pixel layout; :class:`VideoDamageError`
-at a damaged frame), :func:`read_video_image`. It computes nothing about the images.
+at a damaged frame), :func:`read_video_image`, :func:`count_video_frames` (the frames its
+structure holds, no frame read). It computes nothing about the images.
 """
 
 from __future__ import annotations
@@ -36,6 +37,7 @@ __all__ = [
     "VideoDamageError",
     "VideoInfo",
     "check_video",
+    "count_video_frames",
     "crop_tag",
     "iter_video_frames",
     "iter_video_images",
@@ -741,6 +743,20 @@ def check_video(path: Path | str, *, decode: bool = False) -> VideoCheck:
         cut_at=lay.cut_at,
         decoded=decode,
     )
+
+
+def count_video_frames(path: Path | str) -> int:
+    """The number of frames (Matroska blocks) in a stored video, as :func:`check_video`
+    counts them (``frames``), from its element headers alone: no frame's bytes read, none
+    checked, nothing demuxed (a damaged file: the blocks before the break).
+
+    Raises
+    ------
+    SessionError
+        The file is missing or cannot be read.
+    """
+    with _mapped(Path(path)) as buf:
+        return len(_walk(buf).blocks)
 
 
 def probe_video(path: Path | str) -> VideoInfo:

@@ -30,6 +30,7 @@ from stipi_daemon.storage.video import UNINDEXED_FRAMES_MAX, VideoRecorder
 from stipi_daemon.storage.video_readback import (
     VideoDamageError,
     check_video,
+    count_video_frames,
     iter_video_frames,
     iter_video_images,
     read_video_image,
@@ -114,6 +115,7 @@ def test_a_frame_damaged_mid_file_is_found_and_named(tmp_path: Path, codec: str)
     pos, size = packets[12]
     _flip(rec.video, pos + size // 2, 8)
     assert len(_packets(rec.video)) == 30  # the count alone cannot see it
+    assert count_video_frames(rec.video) == 30
     if codec == "ffv1":
         with av.open(str(rec.video)) as container:  # FFmpeg decodes on, no error raised
             decoded = [f.to_ndarray(format="gray") for f in container.decode(video=0)]
@@ -192,7 +194,7 @@ def test_a_cut_off_tail_is_allowed_only_where_the_recording_did_not_end_cleanly(
         pos, size = _packets(rec.video)[-1]
         with open(rec.video, "r+b") as f:
             f.truncate(pos + size // 2)
-        assert len(_packets(rec.video)) == 19
+        assert len(_packets(rec.video)) == 19 == count_video_frames(rec.video)
         frames = list(iter_video_frames(rec.video))
         assert len(frames) == 19 and all(f.damage is None for f in frames)
         assert len(list(iter_video_images(rec.video))) == 19
@@ -221,6 +223,7 @@ def test_a_broken_structure_ends_readback_with_an_error(tmp_path: Path) -> None:
     assert raised.value.pos_bytes is not None and raised.value.pos_bytes > pos
     assert [f.frame_index for f in frames if f.damage is None] == list(range(8))
     assert frames[8].damage is not None  # its cluster's CRC-32 fails
+    assert count_video_frames(rec.video) == check_video(rec.video).frames == 9
     problems = _problems(rec.directory)
     assert any("breaks off at byte" in p for p in problems)
     assert all(p.startswith(str(rec.video)) for p in problems)
@@ -264,7 +267,10 @@ def test_a_recording_killed_after_its_first_frame_leaves_a_sound_session(
         assert r.integrity_check().ok, r.integrity_check().problems
     text, status = show_text(session)
     assert status == 0 and "integrity  ok" in text and "holds no frame" in text
-    assert check_video(video).frames == 0 and list(iter_video_frames(video)) == []
+    assert (
+        check_video(video).frames == 0 == count_video_frames(video)
+        and list(iter_video_frames(video)) == []
+    )
     with sqlite3.connect(session / "session.sqlite") as conn:  # rows whose frames are lost
         conn.executemany(
             "INSERT INTO frames (seq, t_capture_host_s, t_host_s, s_k, flags) VALUES (?,?,?,0,'')",
@@ -382,7 +388,7 @@ def test_a_killed_recording_passes_its_check_at_every_cut(
         rec.video.write_bytes(whole[:cut])
         n = len(_packets(rec.video))
         checked = check_video(rec.video)
-        assert checked.ok and checked.frames == n, (cut, checked)
+        assert checked.ok and checked.frames == n == count_video_frames(rec.video), (cut, checked)
         assert sum(1 for f in iter_video_frames(rec.video, decode=False) if f.damage is None) == n
         assert _problems(rec.directory) == (), cut
 
