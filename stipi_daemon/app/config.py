@@ -40,7 +40,7 @@ from pydantic import (
 from stipi_daemon.analysis.imaging import ROI
 from stipi_daemon.analysis.results import AnalysisSettings
 from stipi_daemon.cameras import CameraConfig
-from stipi_daemon.errors import ConfigError
+from stipi_daemon.errors import ConfigError, SessionError
 from stipi_daemon.measurement.state_machine import MeasurementConfig
 from stipi_daemon.probe.transports import TransportConfig
 from stipi_daemon.storage.layout import DEFAULT_ROOT
@@ -57,6 +57,7 @@ __all__ = [
     "RunSettings",
     "SessionSettings",
     "StorageSettings",
+    "find_session",
     "load_config",
     "parse_override",
     "sessions_root",
@@ -501,3 +502,31 @@ def sessions_root(root: Path | None, config: Path | None) -> Path:
     if config is not None:
         return load_config(config).storage.root
     return DEFAULT_ROOT
+
+
+def find_session(root: Path, text: str) -> Path:
+    """The session directory a command's ``SESSION``/``ID`` argument names, by one rule for
+    every command (``sessions show``/``export``, ``analyze``, ``report``).
+
+    A path (it contains ``/``, or is ``.`` or ``..``) is taken as it is; a name is the
+    session of that id under ``root`` (:func:`sessions_root`), else a directory of that
+    name in the current directory.
+
+    Raises
+    ------
+    SessionError
+        A name that is neither: one line naming both places looked in.
+    """
+    if "/" in text or text in (".", ".."):
+        return Path(text)
+    directory = root / text
+    if text and directory.is_dir():
+        return directory
+    here = Path(text)
+    if text and here.is_dir():
+        return here
+    raise SessionError(
+        f"{text}: no such session: neither a session id in the sessions directory "
+        f"({directory}) nor a directory in the current one ({Path.cwd() / text}) "
+        "(list them: stipi-daemon sessions list)"
+    )

@@ -27,9 +27,9 @@ import argparse
 from pathlib import Path
 
 from stipi_daemon.app.analyze import AnalyzeRequest, analyze
-from stipi_daemon.app.config import load_config, sessions_root
+from stipi_daemon.app.config import find_session, load_config, sessions_root
 from stipi_daemon.app.offline_io import parse_roi
-from stipi_daemon.errors import ConfigError, SessionError
+from stipi_daemon.errors import ConfigError
 from stipi_daemon.storage import DEFAULT_ROOT
 
 
@@ -159,14 +159,9 @@ def _check(args: argparse.Namespace) -> None:
 
 
 def _session_dir(args: argparse.Namespace) -> Path:
-    """SESSION as a directory: a path, or an id under ``--root``."""
-    text: str = args.session
-    if "/" in text or Path(text).is_dir():
-        return Path(text)
-    directory = sessions_root(args.root, args.config) / text
-    if not directory.is_dir():
-        raise SessionError(f"{directory}: no such session (list them: stipi-daemon sessions list)")
-    return directory
+    """SESSION as a directory: a path, or an id under the sessions root (one rule for every
+    command, :func:`~stipi_daemon.app.config.find_session`)."""
+    return find_session(sessions_root(args.root, args.config), args.session)
 
 
 def run(args: argparse.Namespace) -> int:

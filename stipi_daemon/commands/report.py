@@ -13,7 +13,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from stipi_daemon.errors import ConfigError, SessionError
+from stipi_daemon.errors import ConfigError
 from stipi_daemon.storage import DEFAULT_ROOT
 
 #: Default output directory of ``--compare`` (relative to the working directory).
@@ -76,17 +76,8 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     parser.set_defaults(handler=run)
 
 
-def _session_dir(root: Path, text: str) -> Path:
-    if "/" in text or Path(text).is_dir():
-        return Path(text)
-    directory = root / text
-    if not directory.is_dir():
-        raise SessionError(f"{directory}: no such session (list them: stipi-daemon sessions list)")
-    return directory
-
-
 def run(args: argparse.Namespace) -> int:
-    from stipi_daemon.app.config import sessions_root
+    from stipi_daemon.app.config import find_session, sessions_root
     from stipi_daemon.report.write import write_compare_report, write_session_report
 
     if args.session is not None and args.compare:
@@ -103,11 +94,11 @@ def run(args: argparse.Namespace) -> int:
                 f"--labels: {len(args.labels)} labels for {len(args.compare)} sessions"
             )
         root = sessions_root(args.root, getattr(args, "config", None))
-        dirs = [_session_dir(root, s) for s in args.compare]
+        dirs = [find_session(root, s) for s in args.compare]
         written = write_compare_report(dirs, args.out or DEFAULT_COMPARE_OUT, args.labels)
     else:
         root = sessions_root(args.root, getattr(args, "config", None))
-        written = write_session_report(_session_dir(root, args.session), args.out)
+        written = write_session_report(find_session(root, args.session), args.out)
     print(f"report: {written.html_path}")
     if written.verdict:
         print(f"verdict: {written.verdict}")

@@ -22,7 +22,6 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-from stipi_daemon.errors import SessionError
 from stipi_daemon.storage import DEFAULT_ROOT, EXPORT_FORMATS, SessionReader, export_session
 from stipi_daemon.storage.export import (
     default_export_dir,
@@ -175,23 +174,10 @@ def _root(args: argparse.Namespace) -> Path:
     return sessions_root(args.root, getattr(args, "config", None))
 
 
-def _session_dir(root: Path, session_id: str) -> Path:
-    """``ID`` as a session directory: a path when it contains a ``/``; else the session of
-    that id under ``root``, else a directory of that name in the current directory (as
-    ``analyze`` and ``report`` take it)."""
-    if "/" in session_id:
-        return Path(session_id)
-    directory = root / session_id
-    if directory.is_dir():
-        return directory
-    here = Path(session_id)
-    if session_id not in ("", ".", "..") and here.is_dir():
-        return here
-    raise SessionError(
-        f"{session_id}: no such session: neither a session id in the sessions directory "
-        f"({directory}) nor a directory in the current one ({Path.cwd() / session_id}) "
-        "(list them: stipi-daemon sessions list)"
-    )
+def _session_dir(root: Path, text: str) -> Path:
+    from stipi_daemon.app.config import find_session
+
+    return find_session(root, text)
 
 
 def _where(args: argparse.Namespace) -> dict[str, str | None]:

@@ -79,6 +79,9 @@ __all__ = [
 ANALYSIS_FORMAT: Final = "stipi-study-analysis"
 #: ``--scheduler`` value that runs every task in this process (the reference path).
 SYNCHRONOUS: Final = "synchronous"
+#: How long ``--scheduler`` is tried before the run is refused [s] (Dask retries a refused
+#: connection until then: a scheduler that is still starting is waited for).
+SCHEDULER_CONNECT_TIMEOUT_S: Final = 30.0
 #: Times a task that raised is run again (the analysis itself never raises: its errors
 #: are rows; this covers a worker's own failures, e.g. out of memory).
 TASK_RETRIES: Final = 2
@@ -348,7 +351,7 @@ def dask_client(scheduler: str | None, workers: int | None) -> Iterator[tuple[An
 
     if scheduler is not None:
         try:
-            client = Client(scheduler, timeout="30s")  # type: ignore[no-untyped-call]
+            client = Client(scheduler, timeout=SCHEDULER_CONNECT_TIMEOUT_S)  # type: ignore[no-untyped-call]
         except (OSError, TimeoutError, ValueError) as exc:
             raise StudyError(
                 f"--scheduler {scheduler}: cannot connect ({_one_line(exc)})"

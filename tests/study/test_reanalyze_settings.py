@@ -151,10 +151,16 @@ def test_bad_options_are_refused_in_one_line(
 
 
 def test_not_a_dataset_and_no_scheduler_are_one_line(
-    tmp_path: Path, dataset: Path, capsys: pytest.CaptureFixture[str]
+    tmp_path: Path, dataset: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
+    """The scheduler is tried for SCHEDULER_CONNECT_TIMEOUT_S (30 s; 2 s here), then the
+    run is refused in one line."""
+    from stipi_daemon.study import reanalyze as module
+
+    monkeypatch.setattr(module, "SCHEDULER_CONNECT_TIMEOUT_S", 2.0)
     path = _write(tmp_path / "S.yaml", "{}\n")
-    with pytest.raises(StudyError, match="not a study dataset"):
+    with pytest.raises(StudyError, match="not a study dataset") as not_dataset:
         reanalyze(tmp_path / "nothing", path)
-    with pytest.raises(StudyError, match=r"--scheduler tcp://127.0.0.1:9: cannot connect"):
+    with pytest.raises(StudyError, match=r"--scheduler tcp://127.0.0.1:9: cannot connect") as no:
         reanalyze(dataset, path, scheduler="tcp://127.0.0.1:9")
+    assert "\n" not in str(not_dataset.value) and "\n" not in str(no.value)
