@@ -101,6 +101,7 @@ def write_representative_frames(
     return written
 
 
+_Pixels = npt.NDArray[np.uint8]
 #: A rectangle of the camera frame, ``(x0, y0, x1, y1)`` [px] (x1 and y1 exclusive).
 Box = tuple[int, int, int, int]
 #: Value of the pixels of a cropped recording's frame that the video does not store (white:
@@ -169,23 +170,47 @@ def _open_video(session_dir: Path) -> _Video | str:
     return _Video(video, np.asarray(rows["seq"]), np.asarray(rows["frame_index"]), crop)
 
 
-def _video_image(video: _Video | str, seq: int, shape: Sequence[int]) -> FrameImage | str:
-    """Frame ``seq`` from the session's video (the primary data) in camera coordinates of
-    the recorded ``shape`` (a crop placed at its offset, the rest :data:`NOT_STORED_FILL`),
-    or one line saying why it cannot be read from there."""
-    from stipi_daemon.storage.video_readback import read_video_image
+def _video_images(video: _Video | str, seqs: Sequence[int]) -> dict[int, _Pixels | str]:
+    """The stored images of the frames ``seqs`` from the session's video (the primary
+    data), read in one pass, or for each one line saying why it cannot be read there."""
+    from stipi_daemon.storage.video_readback import read_video_images
 
     if isinstance(video, str):
+        return dict.fromkeys(seqs, video)
+    name = video.path.name
+    out: dict[int, _Pixels | str] = {}
+    index: dict[int, int] = {}
+    for seq in seqs:
+        where = video.frame_index[video.seqs == seq]
+        if where.size:
+            index[seq] = int(where[0])
+        else:
+            out[seq] = f"{name} holds no frame {seq} (no video_frames row: left out of the video)"
+    try:
+        images = read_video_images(video.path, list(index.values()))
+    except SessionError:
+        images = [SessionError("unreadable")] * len(index)
+    for (seq, k), image in zip(index.items(), images, strict=True):
+        out[seq] = (
+            f"{name} frame {k} (seq {seq}) is missing or does not decode"
+            if isinstance(image, SessionError)
+            else image
+        )
+    return out
+
+
+def _video_image(
+    video: _Video | str, seq: int, image: _Pixels | str, shape: Sequence[int]
+) -> FrameImage | str:
+    """Frame ``seq``'s stored ``image`` (:func:`_video_images`) in camera coordinates of
+    the recorded ``shape`` (a crop placed at its offset, the rest :data:`NOT_STORED_FILL`),
+    or one line saying why it cannot be shown from the video."""
+    if isinstance(image, str):
+        return image
+    if isinstance(video, str):  # not reached: without a video every image is a line
         return video
     name = video.path.name
-    where = video.frame_index[video.seqs == seq]
-    if not where.size:
-        return f"{name} holds no frame {seq} (no video_frames row: left out of the video)"
-    k = int(where[0])
-    try:
-        image = read_video_image(video.path, k)
-    except SessionError:
-        return f"{name} frame {k} (seq {seq}) is missing or does not decode"
+    k = int(video.frame_index[video.seqs == seq][0])
     if video.crop is None:
         if list(image.shape) != list(shape):
             return f"{name} frame {k} is {list(image.shape)}, the index says {list(shape)}"
@@ -225,8 +250,7 @@ def read_representative_frames(session_dir: Path) -> tuple[RepresentativeFrame, 
         raise SessionError(f"{index_path}: not readable JSON: {exc}") from exc
     if not isinstance(index, dict):
         raise SessionError(f"{index_path}: expected an object keyed by frame kind")
-    out: list[RepresentativeFrame] = []
-    video = _open_video(Path(session_dir)) if index else ""
+    entries: list[tuple[str, str, int, float, int, list[int]]] = []
     for kind in KINDS:
         entry = index.get(kind)
         if entry is None:
@@ -234,13 +258,16 @@ def read_representative_frames(session_dir: Path) -> tuple[RepresentativeFrame, 
         try:
             name, seq = str(entry["file"]), int(entry["seq"])
             t_s, s_k, shape = float(entry["t_capture_s"]), int(entry["s_k_px"]), entry["shape"]
-            shape = [int(v) for v in shape]
+            entries.append((kind, name, seq, t_s, s_k, [int(v) for v in shape]))
         except (KeyError, TypeError, ValueError) as exc:
             raise SessionError(f"{index_path}: entry {kind!r} is malformed ({exc})") from exc
-        path = index_path.parent / name
-        image = _video_image(video, seq, shape)
+    video = _open_video(Path(session_dir)) if entries else ""
+    stored = _video_images(video, [e[2] for e in entries])
+    out: list[RepresentativeFrame] = []
+    for kind, name, seq, t_s, s_k, shape in entries:
+        image = _video_image(video, seq, stored[seq], shape)
         if isinstance(image, str):
-            image = _png_image(path, shape, image)
+            image = _png_image(index_path.parent / name, shape, image)
         out.append(RepresentativeFrame(kind, seq, t_s, s_k, image))
     return tuple(out)
 

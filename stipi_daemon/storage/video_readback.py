@@ -7,8 +7,9 @@ optionally every frame decoded), :func:`iter_video_frames` (every frame in file 
 sound with its image or damaged with the reason: nothing skipped), :func:`iter_video_images`
 (the images exactly as the daemon counted them: JPEG packets decoded by ``cv2.imdecode`` as
 the camera did, FFV1 frames decoded to the recorded pixel layout; :class:`VideoDamageError`
-at a damaged frame), :func:`read_video_image`, :func:`count_video_frames` (the frames its
-structure holds, no frame read). It computes nothing about the images.
+at a damaged frame), :func:`read_video_image` (one frame; :func:`read_video_images`: a few
+in one pass), :func:`count_video_frames` (the frames its structure holds, no frame read).
+It computes nothing about the images.
 """
 
 from __future__ import annotations
@@ -17,7 +18,7 @@ import mmap
 import os
 import zlib
 from collections import deque
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -43,6 +44,7 @@ __all__ = [
     "iter_video_images",
     "probe_video",
     "read_video_image",
+    "read_video_images",
     "set_decode_threads",
 ]
 
@@ -875,49 +877,94 @@ def read_video_image(path: Path | str, frame_index: int) -> Image:
     VideoDamageError
         That frame is damaged.
     """
-    p = Path(path)
-    with _mapped(p) as buf:
-        lay = _walk(buf)
-        if not 0 <= frame_index < len(lay.blocks):
-            raise SessionError(f"{p}: holds no frame {frame_index}")
-        pos = lay.blocks[frame_index]
-        if lay.header_damage or _crc_ok(buf, lay.clusters[lay.cluster_of[frame_index]]) is False:
-            why = lay.header_damage[0] if lay.header_damage else "fails its CRC-32"
-            raise VideoDamageError(
-                f"{p}: frame {frame_index} (byte {pos}) is damaged: {why}", p, frame_index, pos
-            )
-    image = _decode_one(p, pos)
-    if image is None:
-        raise VideoDamageError(
-            f"{p}: frame {frame_index} (byte {pos}) is damaged: it does not decode",
-            p,
-            frame_index,
-            pos,
-        )
+    (image,) = read_video_images(path, [frame_index])
+    if isinstance(image, SessionError):
+        raise image
     return image
 
 
-def _decode_one(path: Path, pos: int) -> Image | None:
-    """The image of the frame whose block data starts at byte ``pos``, as the daemon
-    counted it; None when it does not decode or the demuxer does not reach it."""
+def read_video_images(path: Path | str, frame_indices: Sequence[int]) -> list[Image | SessionError]:
+    """The stored frames at ``frame_indices``, each as :func:`read_video_image` gives it or
+    the error it would raise (:class:`SessionError`: no such frame; :class:`VideoDamageError`:
+    that frame is damaged), in the order asked: one walk and one demux pass for all (a
+    report's few frames), each frame's bytes checked and decoded alone.
+
+    Raises
+    ------
+    SessionError
+        The file is missing or cannot be read.
+    """
+    p = Path(path)
+    out: dict[int, Image | SessionError] = {}
+    wanted: dict[int, int] = {}  # block data offset [B] -> frame index
+    with _mapped(p) as buf:
+        lay = _walk(buf)
+        for i in frame_indices:
+            if not 0 <= i < len(lay.blocks):
+                out[i] = SessionError(f"{p}: holds no frame {i}")
+                continue
+            pos = lay.blocks[i]
+            if lay.header_damage or _crc_ok(buf, lay.clusters[lay.cluster_of[i]]) is False:
+                why = lay.header_damage[0] if lay.header_damage else "fails its CRC-32"
+                out[i] = VideoDamageError(
+                    f"{p}: frame {i} (byte {pos}) is damaged: {why}", p, i, pos
+                )
+            else:
+                wanted[pos] = i
+    images = _decode_at(p, set(wanted))
+    for pos, i in wanted.items():
+        image = images.get(pos)
+        out[i] = (
+            image
+            if image is not None
+            else VideoDamageError(
+                f"{p}: frame {i} (byte {pos}) is damaged: it does not decode", p, i, pos
+            )
+        )
+    return [out[i] for i in frame_indices]
+
+
+def _decode_at(path: Path, positions: set[int]) -> dict[int, Image | None]:
+    """The images of the frames whose block data start at the byte offsets ``positions``,
+    as the daemon counted them, in one demux pass up to the last; None for one that does not
+    decode, none for one the demuxer does not reach."""
     import av
 
-    container = _open_input(path, threads=1)  # one frame: no decoder threads to start
+    out: dict[int, Image | None] = {}
+    if not positions:
+        return out
+    last = max(positions)
+    container = _open_input(path, threads=1)  # a few frames: no decoder threads to start
     try:
         stream = container.streams.video[0]
         gray = _is_gray(container)
         for pkt in container.demux(stream):
-            if not pkt.size or pkt.pos is None or pkt.pos < pos:
+            if not pkt.size or pkt.pos is None or pkt.pos not in positions:
+                if pkt.pos is not None and pkt.pos > last:
+                    break
                 continue
-            if pkt.pos > pos:
-                return None
-            if stream.codec_context.name == "mjpeg":
-                return _jpeg_image(pkt, gray)
-            for frame in [*stream.codec_context.decode(pkt), *stream.codec_context.decode(None)]:
-                return None if frame.is_corrupt else _frame_image(frame, gray)
-            return None
+            out[int(pkt.pos)] = _packet_image(stream.codec_context, pkt, gray)
+            if pkt.pos == last:
+                break
     except av.FFmpegError:
-        return None
+        pass  # the frames not reached are absent: damaged where they are asked for
     finally:
         container.close()
-    return None
+    return out
+
+
+def _packet_image(ctx: Any, pkt: Any, gray: bool) -> Image | None:
+    """One packet's image as the daemon counted it (None: it does not decode); the decoder
+    is drained and reset after it (every stored frame is intra)."""
+    import av
+
+    if ctx.name == "mjpeg":
+        return _jpeg_image(pkt, gray)
+    try:
+        frames = [*ctx.decode(pkt), *ctx.decode(None)]
+    except av.FFmpegError:
+        frames = []
+    ctx.flush_buffers()
+    if not frames or frames[0].is_corrupt:
+        return None
+    return _frame_image(frames[0], gray)

@@ -34,6 +34,7 @@ from stipi_daemon.storage.video_readback import (
     iter_video_frames,
     iter_video_images,
     read_video_image,
+    read_video_images,
 )
 
 OPTS = StorageOptions(min_free_bytes=0, background_commit=False)
@@ -142,6 +143,14 @@ def test_a_frame_damaged_mid_file_is_found_and_named(tmp_path: Path, codec: str)
     with pytest.raises(VideoDamageError, match="frame 12"):
         read_video_image(rec.video, 12)
     assert np.array_equal(read_video_image(rec.video, 13), rec.images[13])
+    # several at once, in one pass (the decoder reset after each): as read one by one
+    got = read_video_images(rec.video, [29, 12, 0, 30, 13, 29])
+    kinds = ["ndarray", "VideoDamageError", "ndarray", "SessionError", "ndarray", "ndarray"]
+    assert [type(g).__name__ for g in got] == kinds
+    for g, k in zip(got, [29, 12, 0, 30, 13, 29], strict=True):
+        if isinstance(g, np.ndarray):
+            assert np.array_equal(g, rec.images[k]), k
+    assert "frame 12" in str(got[1]) and "holds no frame 30" in str(got[3])
     text, status = show_text(rec.directory)
     assert status == 1 and "integrity  FAILED: " in text and "frame 12" in text
 
