@@ -101,6 +101,7 @@ def write_representative_frames(
     return written
 
 
+#: A frame's pixels as the video stores them (gray, or BGR; a crop's rectangle only).
 _Pixels = npt.NDArray[np.uint8]
 #: A rectangle of the camera frame, ``(x0, y0, x1, y1)`` [px] (x1 and y1 exclusive).
 Box = tuple[int, int, int, int]
