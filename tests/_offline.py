@@ -84,10 +84,27 @@ def record_session(
     }
     if calibration is not None:
         cfg["calibration"] = str(calibration)
-    path = directory / "config.yaml"
-    path.write_text(yaml.safe_dump(cfg))
-    outcome = run_measurement(load_config(path), quiet=True)
-    return outcome.session_dir
+    # The tests read a whole recording: one whose camera frames a starved machine dropped
+    # or stored late (the summary's run.dropped_frames, run.late_frames) is removed and
+    # made again at half the speed, down to speed 1 (the test measures the analysis, not
+    # spare CPU); then the test fails with the counts.
+    lost: list[tuple[float, int]] = []
+    speed = 8.0
+    while True:
+        cfg["run"] = {"speed": speed}
+        path = directory / "config.yaml"
+        path.write_text(yaml.safe_dump(cfg))
+        session = run_measurement(load_config(path), quiet=True).session_dir
+        assert session is not None
+        run = json.loads((Path(session) / "summary.json").read_text()).get("run", {})
+        n = int(run.get("dropped_frames") or 0) + int(run.get("late_frames") or 0)
+        if n == 0:
+            return Path(session)
+        lost.append((speed, n))
+        if speed <= 1.0:
+            raise AssertionError(f"every recording lost camera frames (speed, frames): {lost}")
+        shutil.rmtree(session)
+        speed /= 2.0
 
 
 def interrupted_copy(source: Path, root: Path, session_id: str, until_s: float) -> Path:
