@@ -414,6 +414,12 @@ def verdict(
         return Verdict("invalid", f"Not valid: {names(bad)} ({first or 'no value'}).")
     if caveat:
         return Verdict("flagged", f"Complete with caveats on {names(caveat)}.")
+    # the secondary quantities do not decide the verdict, but the line never calls a
+    # flagged or invalid one valid
+    others = [q for q in SECONDARY_QUANTITIES if q in validity and validity[q].status != "valid"]
+    if others:
+        said = ", ".join(f"{QUANTITY_SYMBOLS[q]} {validity[q].status}" for q in others)
+        return Verdict("complete", f"Complete: every primary result is valid ({said}).")
     return Verdict("complete", "Complete: every result is valid.")
 
 

@@ -15,7 +15,9 @@ from stipi_daemon.analysis.validity import (
     FLAG_RULES,
     PRIMARY_QUANTITIES,
     SECONDARY_QUANTITIES,
+    QuantityValidity,
     assess_validity,
+    verdict,
 )
 
 CAL = Calibration(
@@ -182,6 +184,33 @@ def test_a_short_gap_away_from_release_crossing_and_maximum_changes_nothing() ->
     assert len(res.pitting.observed.gaps) == 1
     out = assess_validity(res, ended_done=True)
     assert out["verdict"]["status"] == "complete", out
+
+
+def test_a_complete_verdict_never_calls_a_flagged_secondary_quantity_valid() -> None:
+    # 15 s of frames missing late in the recovery: only the fit of tau is concerned (a
+    # secondary quantity), so the verdict stays complete, and its line says what is not valid
+    t, s = noisy_kv(7.5)
+    out = assess_validity(analyse(*gap(t, s, 60.0, 75.0), 19.5), ended_done=True)
+    assert {q for q, v in out["validity"].items() if v["status"] != "valid"} == {"tau_s"}
+    assert out["verdict"] == {
+        "status": "complete",
+        "line": "Complete: every primary result is valid (tau flagged).",
+    }
+
+
+def test_a_complete_verdict_names_each_secondary_quantity_that_is_not_valid() -> None:
+    ok = QuantityValidity("valid", (), None)
+    validity = dict.fromkeys(PRIMARY_QUANTITIES, ok) | {
+        "tau_s": QuantityValidity("invalid", ("fit_not_converged",), "the fit did not converge"),
+        "applied_force_n": QuantityValidity("flagged", ("x",), "y"),
+    }
+    v = verdict(validity, ended_done=True)
+    assert (v.status, v.line) == (
+        "complete",
+        "Complete: every primary result is valid (tau invalid, F_a flagged).",
+    )
+    clean = verdict(validity | dict.fromkeys(SECONDARY_QUANTITIES, ok), ended_done=True)
+    assert clean.line == "Complete: every result is valid."
 
 
 # --- issue 14 case 4: one outlier frame ------------------------------------------------------
