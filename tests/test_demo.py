@@ -68,11 +68,26 @@ def test_demo_config_runs_a_whole_measurement(tmp_path: Path) -> None:
     video = summary["run"]["video"]
     assert video["codec"] == "ffv1" and video["frames"] == stored > 0
     assert stored + video["left_out"] == counts["frames"]
+    _assert_documented(summary)
     res, gt = summary["results"], summary["ground_truth"]
     assert res["pitting"]["depth_mm"] == pytest.approx(gt["depth_mm"], rel=0.01)
     assert res["pitting"]["rebound_force_n"] == pytest.approx(gt["rebound_force_n"], rel=0.01)
     assert res["fitted_recovery"]["tau_s"] == pytest.approx(gt["time_constant_s"], rel=0.02)
     assert res["paper_estimator"]["elasticity_kpa"] == pytest.approx(gt["elasticity_kpa"], rel=0.01)
+
+
+def _assert_documented(summary: dict[str, object]) -> None:
+    """Every field of the summary and of its ``run`` (with its camera, probe and video) is
+    named in docs/storage.md's ``summary.json`` section."""
+    doc = (REPO_ROOT / "docs" / "storage.md").read_text()
+    section = doc.split("### `summary.json`", 1)[1].split("\n## ", 1)[0]
+    run = summary["run"]
+    assert isinstance(run, dict)
+    keys = set(summary) | set(run)
+    for part in ("camera", "probe", "video"):
+        keys |= set(run[part])
+    missing = sorted(k for k in keys if f"`{k}`" not in section)
+    assert not missing, f"summary.json fields not described in docs/storage.md: {missing}"
 
 
 def test_bad_config_is_one_line_and_nonzero(tmp_path: Path) -> None:

@@ -118,7 +118,9 @@ def run_stats(
     counts : dict
         Frames, force samples, gaps and dropped frames recorded.
     latencies_s : list of float
-        Per frame: capture to committed row [s of session time].
+        Per frame: capture to the moment the measurement took its S_k [s of session time]
+        (the row was added before, in the capture thread, and committed within
+        :data:`~stipi_daemon.app.frame_measurer.COMMIT_SPACING_WALL_S` of wall time).
     merge_released_by_timeout : int
         Items the merger fed without waiting for the other stream.
     keeper : RepresentativeFrames
