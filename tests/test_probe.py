@@ -325,6 +325,40 @@ async def test_reconnect_gives_up_after_the_budget(probe: Factory) -> None:
     assert len(col.of(LinkDown)) == 1
 
 
+async def test_a_link_lost_during_stream_start_starts_the_stream_on_its_return() -> None:
+    # the probe goes away as STREAM_START is written: start_stream() only records the wish
+    # (as while the link is down), and the reconnection starts the stream
+    clock = ScaledClock(SPEED)
+    transport = EmulatedTransport(EmulatedTransportConfig(scene=SCENE), clock)
+    link = ProbeLink(transport, clock=clock, reconnect_initial_s=0.1)
+    await link.connect()
+    col = Collector(link)
+    try:
+        transport.feather.unplug(duration_s=1.0)
+        await link.start_stream()  # raised LinkLostError before
+        await col.until(lambda: len(col.of(LinkUp)) >= 2, "the link back")
+        await col.until(lambda: len(col.rows()) >= 100, "samples after the return")
+        assert len(col.of(LinkDown)) == 1 and link.connects == 2
+        assert not col.of(Gap)  # nothing was streamed before the drop: nothing lost
+    finally:
+        await link.close()
+    with contextlib.suppress(asyncio.CancelledError):
+        await asyncio.wait_for(col.task, 5)
+
+
+async def test_a_probe_that_does_not_answer_stream_start_still_raises(probe: Factory) -> None:
+    link, feather, col, _clock = await probe(command_retries=0)
+    await col.until(lambda: len(col.rows()) >= 20, "samples")
+    real_handle = feather.core._handle
+    feather.core._handle = lambda seq, msg: None  # the MCU ignores every command
+    try:
+        with pytest.raises(LinkLostError, match="no answer to StreamStart"):
+            await link.start_stream()
+    finally:
+        feather.core._handle = real_handle
+    assert link.is_up
+
+
 async def test_uncalibrated_probe_gives_no_force_unless_configured(probe: Factory) -> None:
     link, _, col, _ = await probe(emu={"calibrated": False})
     assert link.calibration is None and link.calibration_source == "none"

@@ -247,6 +247,9 @@ class _Restarted(Exception):
 
 #: Wall time below which the link's timeouts do not shrink on an accelerated clock [s].
 LINK_MIN_WALL_S: Final = 1.0
+#: Longest a command whose write failed waits for the reader to declare the link lost
+#: (it does within a few loop iterations: the transport wakes it) [s of wall time].
+_LOST_NOTICE_WALL_S: Final = 0.5
 
 
 def wall_floored_timeout_s(timeout_s: float, speed: float, min_wall_s: float) -> float:
@@ -429,10 +432,31 @@ class ProbeLink:
         """Ask the probe to stream, now and after every reconnect.
 
         While the link is down this only records the wish; the reconnection starts the stream.
+        So does a link that goes down while STREAM_START waits for its ACK (a BLE drop at that
+        moment): the reconnection sends it again, and a link that does not come back ends
+        :meth:`events` with :class:`~stipi_daemon.errors.LinkLostError`.
+
+        Raises
+        ------
+        LinkLostError
+            The link stayed up and the probe did not answer.
+        ProtocolError
+            The probe refused.
         """
         self._want_stream = True
-        if self._up:
+        if not self._up:
+            return
+        lost = self._lost
+        try:
             await self._command_ok(StreamStart())
+        except LinkLostError:
+            if self._closed or lost is None:
+                raise
+            if not lost.done():  # a failed write: the reader declares the link lost at once
+                await asyncio.wait([lost], timeout=_LOST_NOTICE_WALL_S)
+            if not lost.done():  # the link is up and the probe did not answer
+                raise
+            # the link went down meanwhile (LinkDown is queued): its return starts the stream
 
     async def stop_stream(self) -> None:
         """Ask the probe to stop streaming (and not to stream after a reconnect)."""

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import asyncio
 import statistics
 
 from stipi_daemon.clock import ScaledClock
@@ -15,7 +16,7 @@ from .conftest import SCENES, ProbeRecorder, check_accounting_against_ledger
 
 
 async def _start(
-    radio: VirtualRadio, speed: float
+    radio: VirtualRadio, speed: float, *, stream: bool = True
 ) -> tuple[ProbeRecorder, BleTransport, ScaledClock]:
     clock = ScaledClock(speed)
     cfg = BleTransportConfig(
@@ -35,7 +36,8 @@ async def _start(
         reconnect_max_s=0.2,
     )
     await probe.connect()
-    await probe.start_stream()
+    if stream:
+        await probe.start_stream()
     return ProbeRecorder(probe), transport, clock
 
 
@@ -101,3 +103,28 @@ async def test_probe_disappears_and_comes_back(radio: VirtualRadio) -> None:
     lost = check_accounting_against_ledger(rec, emulator.ledger)
     assert lost >= 1.5 * 100 * 0.9  # about 1.5 s of samples at 100 Hz never reached the host
     assert len(rec.gaps) == 1
+
+
+async def test_a_drop_while_stream_start_waits_for_its_ack_starts_the_stream_on_return(
+    radio: VirtualRadio,
+) -> None:
+    # the radio drops the connection as STREAM_START is written (the probe never sees it):
+    # start_stream() returns, as while the link is down, and the reconnection starts the
+    # stream; before, the daemon's start failed with "disconnected by the peripheral"
+    rec, transport, _clock = await _start(radio, 4.0, stream=False)
+    peripheral = transport.emulator.peripheral
+    deliver = peripheral.on_receive
+    drops: list[asyncio.Task[bool]] = []
+
+    def drop_instead(data: bytes) -> None:
+        peripheral.on_receive = deliver
+        drops.append(asyncio.get_running_loop().create_task(peripheral.drop_link()))
+
+    peripheral.on_receive = drop_instead
+    try:
+        await rec.probe.start_stream()
+        await rec.until(lambda: len(rec.ups) >= 2 and rec.rows_since_up >= 20)
+    finally:
+        await rec.stop()
+    assert len(drops) == 1 and await drops[0]
+    assert len(rec.downs) == 1 and not rec.gaps  # nothing was streamed before the drop
