@@ -66,10 +66,11 @@ MAX_OFFSET_S = 0.25
 LATE_S = 0.01
 #: Session seconds per wall second of each attempt at a run (bench or reference): a run
 #: that did not keep up on a loaded machine (:func:`kept_up`), or whose STREAM_START went out
-#: late, is made again, slower (:func:`_bench_on_time`, :func:`_reference`). The last is
-#: real time: beside the suite and a CPU hog on each core, the in-process reference dropped
-#: 41-126 of its 1,128 frames at speed 2 in each of three attempts.
-SPEEDS = (SPEED, SPEED / 2, 1.0)
+#: late, is made again, slower (:func:`_bench_on_time`, :func:`_reference`). Beside the
+#: suite and a CPU hog on each core, the in-process reference dropped 41-126 of its 1,128
+#: frames at speed 2 in each of three attempts, and since it records its video (issue 16)
+#: 21-49 at speeds 4, 2 and 1 in two whole-suite runs: the last attempt is half real time.
+SPEEDS = (SPEED, SPEED / 2, 1.0, 0.5)
 
 
 @dataclass
@@ -248,7 +249,7 @@ def _reference(tmp: Path) -> Run:
     raise AssertionError(f"no reference run kept up (host overloaded): {missed}")
 
 
-@pytest.mark.timeout(480)  # up to 3 bench and 3 reference runs on a loaded machine
+@pytest.mark.timeout(900)  # up to 4 bench and 4 reference runs on a loaded machine
 def test_a_whole_measurement_over_the_loopback_radio_matches_the_in_process_probe(
     tmp_path: Path,
 ) -> None:
