@@ -16,6 +16,7 @@ import yaml
 from stipi_daemon.app.config import load_config
 from stipi_daemon.app.daemon import run_measurement
 from stipi_daemon.storage import SessionReader, SessionWriter, StorageOptions
+from tests.daemon._support import kept_up
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
 SCENES = REPO_ROOT / "configs" / "scenes"
@@ -84,10 +85,10 @@ def record_session(
     }
     if calibration is not None:
         cfg["calibration"] = str(calibration)
-    # The tests read a whole recording: one whose camera frames a starved machine dropped
-    # or stored late (the summary's run.dropped_frames, run.late_frames) is removed and
-    # made again at half the speed, down to speed 1 (the test measures the analysis, not
-    # spare CPU); then the test fails with the counts.
+    # The tests read a whole recording: one that did not keep up with its clock on a starved
+    # machine (tests.daemon._support.kept_up: frames dropped, stored late or left out of the
+    # video) is removed and made again at half the speed, down to speed 1 (the test
+    # measures the analysis, not spare CPU); then the test fails with the counts.
     lost: list[tuple[float, int]] = []
     speed = 8.0
     while True:
@@ -96,11 +97,12 @@ def record_session(
         path.write_text(yaml.safe_dump(cfg))
         session = run_measurement(load_config(path), quiet=True).session_dir
         assert session is not None
-        run = json.loads((Path(session) / "summary.json").read_text()).get("run", {})
-        n = int(run.get("dropped_frames") or 0) + int(run.get("late_frames") or 0)
-        if n == 0:
+        summary = json.loads((Path(session) / "summary.json").read_text())
+        if kept_up(summary):
             return Path(session)
-        lost.append((speed, n))
+        run = summary["run"]
+        left_out = int((run.get("video") or {}).get("left_out", 0))
+        lost.append((speed, int(run["dropped_frames"]) + int(run["late_frames"]) + left_out))
         if speed <= 1.0:
             raise AssertionError(f"every recording lost camera frames (speed, frames): {lost}")
         shutil.rmtree(session)
