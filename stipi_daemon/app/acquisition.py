@@ -31,6 +31,8 @@ lag behind), so the session never ends while frames of its window are still queu
 Frames delivered more than half of ``run.max_lag_s`` late are not measured but stored as
 gaps (reason ``processing_behind``, missing frames to the analysis, never silent); a lag
 above ``run.max_lag_s`` ends the run with a fault and one line (:attr:`Acquisition.fault_line`).
+So does a frame of another size than the session's first (a gap, reason
+``frame_size_changed``): its S_k would count pixels of another size.
 
 All times are on the session clock [s]. Opening devices, the summary, the stored frames
 and the report are not done here (:mod:`stipi_daemon.app.devices`,
@@ -58,6 +60,8 @@ from stipi_daemon.app.frame_measurer import (
     FrameMeasurer,
     FrameResult,
     LateFrame,
+    ResizedFrame,
+    describe_shape,
 )
 from stipi_daemon.cameras import CameraRecovered as CamRecovered
 from stipi_daemon.cameras import CameraStalled as CamStalled
@@ -100,6 +104,8 @@ MERGE_HOLD_S = 0.5
 QUEUE_MAX_EVENTS = 2048
 #: Gap reason of frames that arrived too late to be measured.
 LATE_GAP_REASON = "processing_behind"
+#: Gap reason of frames of another size than the session's first frame (the run ends).
+RESIZED_GAP_REASON = "frame_size_changed"
 #: Shortest wall time between two frames' S_k shown on the console [s] (it redraws at 4 Hz).
 CONSOLE_FRAME_INTERVAL_WALL_S = 0.05
 #: Live computations (snapshots taken every LIVE_INTERVAL_S) waiting on the worker thread
@@ -162,7 +168,8 @@ class Acquisition:
         Per frame (measured or late): session time when handled minus capture time [s].
     fault_line : str or None
         Why the acquisition ended the run itself (it fell behind by more than
-        ``run.max_lag_s``), in one line; None otherwise.
+        ``run.max_lag_s``, or the camera's frames changed size), in one line; None
+        otherwise.
     """
 
     def __init__(
@@ -215,6 +222,7 @@ class Acquisition:
             ForceRows: self._on_force,
             FrameResult: self._on_frame,
             LateFrame: self._on_late_frame,
+            ResizedFrame: self._on_resized_frame,
             Gap: self._on_gap,
             ClockProbe: self._on_clock_probe,
             LinkDown: self._on_link_down,
@@ -425,17 +433,41 @@ class Acquisition:
         bound = self._config.run.max_lag_s
         if lag <= bound or self.fault_line is not None:
             return []
-        self.fault_line = (
+        line = (
             f"falling behind: a frame was handled {lag:.1f} s after its capture (more than "
             f"run.max_lag_s {bound:g} s); this machine does not sustain run.speed "
             f"{self._clock.speed:g}: lower it"
         )
-        self._writer.add_event(now, "fault:falling_behind", {"lag_s": lag, "max_lag_s": bound})
-        self._console.line(f"FAULT {self.fault_line}")
+        return self._end_with_fault(now, line, "falling_behind", {"lag_s": lag, "max_lag_s": bound})
+
+    def _end_with_fault(
+        self, now: float, line: str, kind: str, detail: dict[str, Any]
+    ) -> list[Output]:
+        """End the run at session time ``now`` [s] because of ``line`` (the fault's one line,
+        :attr:`fault_line`; event ``fault:<kind>`` with ``detail``): what the merger holds
+        is fed, then the measurement is closed."""
+        self.fault_line = line
+        self._writer.add_event(now, f"fault:{kind}", detail)
+        self._console.line(f"FAULT {line}")
         outputs: list[Output] = []
-        for kind, value in self.merger.drain():
-            outputs += _feed(self._pipeline, kind, value)
+        for kind_, value in self.merger.drain():
+            outputs += _feed(self._pipeline, kind_, value)
         return outputs + self._pipeline.close(now)
+
+    def _on_resized_frame(self, ev: ResizedFrame) -> list[Output]:
+        """A frame of another size than the session's: a gap, and the run ends (fault)."""
+        self._camera_gaps(ev.seq, ev.t_capture_s, ev.dropped_before)
+        self._writer.add_gap("frames", ev.seq, 1, ev.t_capture_s, RESIZED_GAP_REASON)
+        if self.fault_line is not None:
+            return []
+        now = self._clock.now()
+        line = (
+            f"camera: frame {ev.seq} is {describe_shape(ev.shape)}, the session's frames are "
+            f"{describe_shape(ev.session_shape)} (S_k, the ROI and the calibration are for "
+            "that size); the measurement stopped there"
+        )
+        detail = {"seq": ev.seq, "shape": list(ev.shape), "session_shape": list(ev.session_shape)}
+        return self._end_with_fault(now, line, "frame_size_changed", detail)
 
     def _on_late_frame(self, ev: LateFrame) -> list[Output]:
         self.counts["late_frames"] += 1

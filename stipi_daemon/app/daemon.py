@@ -96,8 +96,9 @@ _RESCUE_HINT = (
 )
 
 
-def _fell_behind(pipeline: MeasurementPipeline, line: str) -> dict[str, Any]:
-    """The summary entries of a run the acquisition ended because it fell behind."""
+def _acquisition_fault(pipeline: MeasurementPipeline, line: str) -> dict[str, Any]:
+    """The summary entries of a run the acquisition ended itself (it fell behind, the
+    camera's frames changed size)."""
     return {
         "status": "fault",
         "end_reason": line,
@@ -241,7 +242,7 @@ async def run_daemon(
             status = "complete" if pipeline.phase == Phase.DONE else "fault"
             if acquisition.fault_line is not None:
                 status = "fault"
-                summary |= _fell_behind(pipeline, acquisition.fault_line)
+                summary |= _acquisition_fault(pipeline, acquisition.fault_line)
     except SessionError as exc:
         # Storage failed (disk full, I/O error, the video's muxer): stop recording now, keep
         # what is stored; the summary says why the measurement did not end.

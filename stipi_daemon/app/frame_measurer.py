@@ -12,6 +12,10 @@ representative-frame keeper (:mod:`stipi_daemon.measurement.representative_frame
 
 A frame due more than ``skip_late_s`` ago when it is delivered is neither measured nor
 stored: a :class:`LateFrame`, which the loop stores as a gap (reason ``processing_behind``).
+A frame whose shape (size, gray or colour) is not the session's first frame's is neither
+measured nor stored either: a :class:`ResizedFrame`, which ends the run with a fault (S_k
+counts pixels, and the ROI, the threshold and the calibration are those of the first
+frame's size; a video stream cannot change its frame size either).
 Once the measurement has ended (:meth:`FrameMeasurer.stop_storing`) frames are no longer
 stored. When storing fails (a full disk: the writer's or the video's error), nothing more is
 stored and the error travels with the frame's result to the loop, which stops the run as
@@ -42,7 +46,14 @@ from stipi_daemon.measurement.representative_frames import RepresentativeFrames
 from stipi_daemon.storage.video import VideoRecorder
 from stipi_daemon.storage.writer import SessionWriter
 
-__all__ = ["COMMIT_SPACING_WALL_S", "FrameMeasurer", "FrameResult", "LateFrame"]
+__all__ = [
+    "COMMIT_SPACING_WALL_S",
+    "FrameMeasurer",
+    "FrameResult",
+    "LateFrame",
+    "ResizedFrame",
+    "describe_shape",
+]
 
 #: Shortest wall time between two commits made for frame rows [s]. In real time (60 fps: a
 #: frame every 16.7 ms) each frame's row is committed as soon as it is measured; faster (an
@@ -104,16 +115,49 @@ class LateFrame:
 
 
 @dataclass(frozen=True, slots=True)
+class ResizedFrame:
+    """A frame of another shape than the session's first frame: not measured, not stored;
+    the acquisition ends the run with a fault (see the module docstring).
+
+    Attributes
+    ----------
+    seq : int
+        The camera's frame number.
+    t_capture_s : float
+        Capture time on the session clock [s].
+    shape, session_shape : tuple of int
+        This frame's array shape and the session's (its first frame's): ``(H, W)`` gray or
+        ``(H, W, C)`` [px].
+    dropped_before : int
+        Frames the camera dropped just before this one.
+    """
+
+    seq: int
+    t_capture_s: float
+    shape: tuple[int, ...]
+    session_shape: tuple[int, ...]
+    dropped_before: int
+
+
+def describe_shape(shape: tuple[int, ...]) -> str:
+    """A frame's shape as a person reads it: ``640x480 gray``, ``640x480 BGR``."""
+    layout = "gray" if len(shape) == 2 else {2: "YUYV", 3: "BGR", 4: "BGRA"}.get(shape[2], "")
+    return f"{shape[1]}x{shape[0]} {layout or f'{shape[2]} channels'}"
+
+
+@dataclass(frozen=True, slots=True)
 class _Captured:
     """What :meth:`FrameMeasurer.on_capture` made of a frame: S_k [px] and its sorted flags
-    (or, late, its lag [s] and no measurement), the session time it was done [s], and why
-    storing it failed, if it did."""
+    (or, late, its lag [s] and no measurement; or, of another shape than the session's, the
+    session's shape and no measurement), the session time it was done [s], and why storing
+    it failed, if it did."""
 
     s_k: int
     flags: tuple[str, ...]
     late_lag_s: float | None
     t_done_s: float
     error: SessionError | None = None
+    resized_from: tuple[int, ...] | None = None
 
 
 class FrameMeasurer:
@@ -171,6 +215,8 @@ class FrameMeasurer:
         self._storing = True
         self._error: SessionError | None = None
         self._last_commit_wall_s = float("-inf")
+        #: Shape of the session's frames: its first frame's (None before it).
+        self.shape: tuple[int, ...] | None = None
         #: Frames whose rows were stored [-] (also those stored after the loop's last look).
         self.stored = 0
 
@@ -196,6 +242,11 @@ class FrameMeasurer:
         captured = ev.measured
         if not isinstance(captured, _Captured):
             captured = self._measure(ev.seq, ev.t_capture_s, ev.image, ev.packet, in_thread=False)
+        if captured.resized_from is not None:
+            shape = tuple(ev.image.shape)
+            return ResizedFrame(
+                ev.seq, ev.t_capture_s, shape, captured.resized_from, ev.dropped_before
+            )
         if captured.late_lag_s is not None:
             return LateFrame(ev.seq, ev.t_capture_s, captured.late_lag_s, ev.dropped_before)
         s_k = captured.s_k
@@ -223,6 +274,10 @@ class FrameMeasurer:
         in_thread: bool,
     ) -> _Captured:
         now = self._clock.now()
+        if self.shape is None:
+            self.shape = image.shape
+        elif image.shape != self.shape:  # S_k of another size: not the session's quantity
+            return _Captured(0, (), None, now, resized_from=self.shape)
         lag_s = now - t_capture_s
         if self._skip_late_s is not None and lag_s > self._skip_late_s:
             return _Captured(0, (), lag_s, now)

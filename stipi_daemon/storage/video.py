@@ -203,6 +203,7 @@ class VideoRecorder:
         if frame_rate_hz is not None and math.isfinite(frame_rate_hz) and frame_rate_hz > 0:
             self._frame_rate = Fraction(frame_rate_hz).limit_denominator(1001)
         self._crop: Crop | None = None
+        self._shape: tuple[int, ...] = ()  # of the frames handed to record (the first's)
         self._container: Any = None
         self._stream: Any = None
         self._codec = ""
@@ -267,7 +268,9 @@ class VideoRecorder:
         t_capture_s : float
             Capture time on the session clock [s].
         image : numpy.ndarray
-            The decoded frame the daemon counts S_k on (gray ``(H, W)`` or BGR ``(H, W, 3)``).
+            The decoded frame the daemon counts S_k on (gray ``(H, W)`` or BGR ``(H, W, 3)``);
+            every frame of the shape of the first (another one stops the recording: FFmpeg
+            encodes an FFV1 frame of another size at the stream's size without an error).
         packet : bytes or None
             The camera's encoded frame (a complete JPEG), if it has one.
         """
@@ -277,6 +280,12 @@ class VideoRecorder:
         try:
             if self._container is None:
                 self._open(t_capture_s, image, packet)
+                self._shape = image.shape
+            elif image.shape != self._shape:  # FFmpeg would encode or mux it regardless
+                raise ValueError(
+                    f"frame {seq} has shape {image.shape}, the video's frames {self._shape} "
+                    "(a stream keeps its frame size)"
+                )
             if self._encoders is not None:  # FFV1: encoded in the encoder threads
                 return self._submit(seq, t_capture_s, image, wait)
             self._store(seq, t_capture_s, image, packet)

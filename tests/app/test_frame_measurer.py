@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 from stipi_daemon.app.acquisition import Acquisition
-from stipi_daemon.app.frame_measurer import FrameMeasurer, FrameResult, LateFrame
+from stipi_daemon.app.frame_measurer import FrameMeasurer, FrameResult, LateFrame, ResizedFrame
 from stipi_daemon.cameras import CameraFrame
 from stipi_daemon.cameras.threaded import RawFrame, ThreadedCamera
 from stipi_daemon.clock import ScaledClock
@@ -133,6 +133,38 @@ def test_a_late_frame_is_neither_measured_nor_stored(tmp_path: Path) -> None:
     with SessionReader(writer.directory) as r:
         assert r.frames().size == 0 and r.video_frames().size == 0
     assert measurer.recorder is not None
+    measurer.recorder.close()
+    writer.close()
+
+
+def test_a_frame_of_another_shape_is_neither_measured_nor_stored(tmp_path: Path) -> None:
+    """S_k counts pixels: a frame of another size (or gray after colour) than the session's
+    first is not the session's quantity, nor can its video stream take it. It becomes a
+    ResizedFrame naming both shapes (the loop ends the run); the frames before are kept."""
+    clock = ScaledClock(1.0)
+    measurer, writer = _measurer(tmp_path, clock)
+    gray, pk = _frame(2)
+    small = np.ascontiguousarray(gray[:24, :32])
+    small_pk = cv2.imencode(".jpg", small)[1].tobytes()
+    bgr = np.ascontiguousarray(np.dstack([gray] * 3))
+    raws = [
+        RawFrame(0, clock.now(), gray, pk),
+        RawFrame(1, clock.now(), small, small_pk),
+        RawFrame(2, clock.now(), bgr, pk),
+    ]
+    captured = _in_thread(measurer, raws)
+    results = [
+        measurer(CameraFrame(r.seq, r.t_capture_s, r.image, 2 * (r.seq == 1), r.packet, c))
+        for r, c in zip(raws, captured, strict=True)
+    ]
+    assert isinstance(results[0], FrameResult) and results[0].s_k == 2 * 64
+    assert results[1] == ResizedFrame(1, raws[1].t_capture_s, (24, 32), (48, 64), 2)
+    assert results[2] == ResizedFrame(2, raws[2].t_capture_s, (48, 64, 3), (48, 64), 0)
+    writer.commit()
+    with SessionReader(writer.directory) as r:
+        assert r.frames()["seq"].tolist() == [0]
+    assert measurer.recorder is not None
+    assert measurer.recorder.failed is None and measurer.recorder.frames == 1
     measurer.recorder.close()
     writer.close()
 

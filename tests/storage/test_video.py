@@ -195,6 +195,35 @@ def test_write_failure_stops_rows_too(tmp_path: Path) -> None:
         assert not rec.record(1, 0.1, images[1], None)
 
 
+@pytest.mark.parametrize("mode", ["passthrough", "lossless"])
+@pytest.mark.parametrize("other", [(8, 16), (32, 16), (16, 16, 3)])
+def test_a_frame_of_another_shape_stops_the_video_naming_both(
+    tmp_path: Path, mode: str, other: tuple[int, ...]
+) -> None:
+    """A stream keeps its frame size, and FFmpeg encodes an FFV1 frame of another size at
+    the stream's size without an error (and muxes a JPEG of any size): the recorder
+    refuses it, the video stops with one line naming both shapes, the rows with it; the
+    frames before stay whole."""
+    images = _images(3, (16, 16))
+    odd = _images(1, other)[0]
+    with _writer(tmp_path) as w:
+        assert w.video_path is not None
+        rec = VideoRecorder(w.video_path, w, mode)  # type: ignore[arg-type]
+        for k in range(2):
+            pk = cv2.imencode(".jpg", images[k])[1].tobytes()
+            assert _store(w, rec, k, k / 60, images[k], pk)
+        assert not _store(w, rec, 2, 2 / 60, odd, cv2.imencode(".jpg", odd)[1].tobytes())
+        assert rec.failed is not None
+        assert f"frame 2 has shape {other}, the video's frames (16, 16)" in rec.failed
+        assert "\n" not in rec.failed
+        with pytest.raises(SessionError, match="frame 2 has shape"):
+            w.commit()
+        rec.close()
+        assert rec.frames == 2
+    info = probe_video(tmp_path / "s" / "video.mkv")
+    assert info.frames == 2 and (info.width, info.height) == (16, 16)
+
+
 _KILLED_WRITER = textwrap.dedent(
     """
     import sys, time

@@ -1,0 +1,116 @@
+"""A camera whose frames change size mid-measurement ends the run with one clear line.
+
+S_k counts pixels: the ROI, the threshold and the calibration (Eqs. 3-5) are those of the
+session's frame size, so a frame of another size is not the session's quantity, and the
+session video's stream cannot take it either (FFmpeg would encode an FFV1 frame of another
+size at the stream's size without an error). The real daemon replays, as its camera, an
+H.264 recording whose frames change from 160x120 to 320x240 during the hold: two MPEG-TS
+files written by libx264 and joined byte for byte, as a lab joins two recordings, and
+decoded by FFmpeg, which hands over frames of the new size after the second stream's
+sequence parameter set. The emulated Feather plays the same scene on a pty.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import io
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from stipi_daemon.analysis.calibration import save_calibration
+from stipi_daemon.app.config import load_config
+from stipi_daemon.app.daemon import run_daemon
+from stipi_daemon.cli import main
+from stipi_daemon.sim.physics import scaled_calibration
+from stipi_daemon.sim.scene import load_scene
+from stipi_daemon.storage import SessionReader
+from stipi_daemon.storage.schema import GAPS
+from stipi_daemon.storage.video_readback import iter_video_images, probe_video
+from tests.daemon._support import SHORT_MEASUREMENT, short_scene, write_config
+
+FPS = 20
+#: The first frame of the larger size: 4 s into the file, during the 5.5 s hold.
+CHANGE_AT = 4 * FPS
+
+
+def _h264_ts(path: Path, images: list[np.ndarray], first_pts: int) -> None:
+    """``images`` (gray) as one lossless H.264 stream in an MPEG-TS file (libx264)."""
+    import av
+
+    h, w = images[0].shape
+    with av.open(str(path), "w", format="mpegts") as out:
+        stream = out.add_stream("libx264", rate=FPS)
+        stream.width, stream.height, stream.pix_fmt = w, h, "yuv420p"
+        stream.options = {"qp": "0", "preset": "ultrafast"}
+        for k, image in enumerate(images):
+            frame = av.VideoFrame.from_ndarray(cv2.cvtColor(image, cv2.COLOR_GRAY2BGR), "bgr24")
+            frame.pts = first_pts + k
+            out.mux(stream.encode(frame))
+        out.mux(stream.encode(None))
+
+
+def _joined_recording(tmp_path: Path, scene: Path) -> Path:
+    """The scene rendered at 160x120 (the simulator), re-encoded as two H.264 TS files,
+    the second at 320x240 from frame CHANGE_AT on, joined byte for byte."""
+    rendered = tmp_path / "render"
+    assert main(["simulate", str(scene), "--out", str(rendered), "--fps", str(FPS), "--quiet"]) == 0
+    video = next(p for p in rendered.iterdir() if p.name.startswith("video."))
+    images = [
+        img if img.ndim == 2 else cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
+        for img in iter_video_images(video)
+    ]
+    first, rest = images[:CHANGE_AT], images[CHANGE_AT : 8 * FPS]
+    larger = [cv2.resize(img, (320, 240), interpolation=cv2.INTER_NEAREST) for img in rest]
+    _h264_ts(tmp_path / "a.ts", first, 0)
+    _h264_ts(tmp_path / "b.ts", larger, CHANGE_AT)
+    joined = tmp_path / "joined.ts"
+    joined.write_bytes((tmp_path / "a.ts").read_bytes() + (tmp_path / "b.ts").read_bytes())
+    return joined
+
+
+def test_frames_that_change_size_end_the_run_with_one_line_and_keep_what_came_before(
+    tmp_path: Path,
+) -> None:
+    scene = short_scene(tmp_path, width=160, height=120)
+    joined = _joined_recording(tmp_path, scene)
+    sc = load_scene(scene).with_camera(width=160, height=120, fps=FPS)
+    cal = save_calibration(tmp_path / "cal.json", scaled_calibration(sc)[0])
+    cfg = write_config(
+        tmp_path,
+        {
+            "probe": {"transport": {"kind": "emulated", "scene": str(scene)}},
+            "camera": {"kind": "file", "path": str(joined), "pace": True},
+            "calibration": str(cal),
+            "measurement": SHORT_MEASUREMENT,
+            "run": {"speed": 2.0},
+        },
+    )
+    out = io.StringIO()
+    outcome = asyncio.run(run_daemon(load_config(cfg), out=out, live=False))
+    summary = outcome.summary
+    line = (
+        f"camera: frame {CHANGE_AT} is 320x240 gray, the session's frames are 160x120 gray "
+        "(S_k, the ROI and the calibration are for that size); the measurement stopped there"
+    )
+    assert summary["status"] == "fault" and summary["end_reason"] == line
+    assert summary["verdict"]["status"] == "incomplete", summary["verdict"]
+    assert f"FAULT {line}" in out.getvalue()
+    with SessionReader(outcome.session_dir) as reader:
+        assert reader.status == "fault" and outcome.exit_code != 0
+        seqs = reader.frames()["seq"].tolist()
+        assert seqs == list(range(CHANGE_AT))  # every frame before the change, none after
+        gaps = reader.array(GAPS)
+        resized = gaps[gaps["cause"] == "frame_size_changed"]
+        assert resized["start_index"].tolist() == [CHANGE_AT]
+        (fault,) = [e for e in reader.events() if e.kind == "fault:frame_size_changed"]
+        assert fault.detail == {
+            "seq": CHANGE_AT,
+            "shape": [240, 320],
+            "session_shape": [120, 160],
+        }
+        assert reader.video_frames()["seq"].tolist() == seqs
+        assert reader.integrity_check().ok, reader.integrity_check().problems
+        info = probe_video(outcome.session_dir / "video.mkv")
+        assert (info.width, info.height, info.frames) == (160, 120, CHANGE_AT)
