@@ -32,7 +32,9 @@ Frames delivered more than half of ``run.max_lag_s`` late are not measured but s
 gaps (reason ``processing_behind``, missing frames to the analysis, never silent); a lag
 above ``run.max_lag_s`` ends the run with a fault and one line (:attr:`Acquisition.fault_line`).
 So does a frame of another size than the session's first (a gap, reason
-``frame_size_changed``): its S_k would count pixels of another size.
+``frame_size_changed``): its S_k would count pixels of another size. Before the first frame
+arrives, the lag of a camera that waits for the daemon (simulator, file) is that of its
+first frame, due since its known capture time.
 
 All times are on the session clock [s]. Opening devices, the summary, the stored frames
 and the report are not done here (:mod:`stipi_daemon.app.devices`,
@@ -190,6 +192,7 @@ class Acquisition:
         # S_k is counted and the video stored in the camera's capture thread, beside the
         # event loop (frames that come before this is set are measured on the loop).
         source = getattr(devices.camera, "camera", None)
+        self._source = source if isinstance(source, ThreadedCamera) else None
         if isinstance(source, ThreadedCamera):
             source.frame_hook = measurer.on_capture
             measurer.wait_for_encoder = source.waits_for_consumer
@@ -524,7 +527,33 @@ class Acquisition:
         self._writer.add_event(ev.t_s, "camera_recovered", {"detail": str(ev)})
         return self._pipeline.feed(CameraRecovered(ev.t_s))
 
+    def _first_frame_lag(self) -> list[Output]:
+        """Before the loop has seen a frame, the lag is that of the camera's first frame,
+        due since its capture time (a source that waits for its consumer: the simulator, a
+        file; rendered, decoded, measured and stored, it may not have come yet), so that the
+        merger and the ticks run behind it as behind any late frame, and past
+        ``run.max_lag_s`` the run ends (a fault) rather than measuring without frames."""
+        if self._source is None or self.lag_s or self.fault_line is not None:
+            return []
+        due = self._source.first_frame_due_s()
+        overdue = 0.0 if due is None else max(0.0, self._clock.now() - due)
+        self._lag_now_s = max(self._lag_now_s, overdue)
+        bound = self._config.run.max_lag_s
+        if overdue <= bound:
+            return []
+        now = self._clock.now()
+        line = (
+            f"falling behind: the camera's first frame, due at {now - overdue:.1f} s, had not "
+            f"come {overdue:.1f} s later (more than run.max_lag_s {bound:g} s); this machine "
+            f"does not sustain run.speed {self._clock.speed:g}: lower it"
+        )
+        detail = {"lag_s": overdue, "max_lag_s": bound, "first_frame": True}
+        return self._end_with_fault(now, line, "falling_behind", detail)
+
     def _on_tick(self, ev: Tick) -> list[Output]:
+        outputs = self._first_frame_lag()
+        if self.fault_line is not None:  # the run has ended
+            return outputs
         # Ticks only let timeouts fire when data stops: they lag the data by the merge hold
         # and never pass a held sample, so while data flows they change nothing (and an
         # offline replay, which has no ticks, agrees).

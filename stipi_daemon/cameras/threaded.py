@@ -258,6 +258,23 @@ class ThreadedCamera(ABC, Generic[H]):
         """``seq`` the very first frame would have (gaps before it count as dropped)."""
         return 0
 
+    def _first_capture_s(self) -> float | None:
+        """Capture time of the very first frame [s of session time], where the source knows
+        it before it is made (a file, the simulator: their frames' times are set at the
+        open); None: not known (a live camera)."""
+        return None
+
+    def first_frame_due_s(self) -> float | None:
+        """Session time [s] the first frame of a source that waits for its consumer is
+        captured at, known before it is made: until the consumer has that frame, the
+        source is behind by at least the time since (its lag, which is otherwise known only
+        once a frame arrives). After an injected stall (:meth:`stall`) that ends later, the
+        stall's end: the frames before it are lost, not late. None for a live camera, whose
+        frames are not captured before they come (its silence is a stall,
+        :meth:`source_silent_s`), and where not known."""
+        due = None if self._drop_oldest else self._first_capture_s()
+        return None if due is None else max(due, self._stall_until_s)
+
     def _metadata(self) -> dict[str, Any]:
         """Source-specific settings for :meth:`metadata`."""
         return {}

@@ -329,6 +329,9 @@ class VideoFileCamera(ThreadedCamera[_Handle]):
     def _first_seq(self) -> int:
         return self._k0
 
+    def _first_capture_s(self) -> float | None:
+        return self._t0_s  # frame k0 is captured at t0 (None before the first open)
+
     def _metadata(self) -> dict[str, Any]:
         return {
             "kind": "file",

@@ -93,6 +93,9 @@ class SimulatorCamera(ThreadedCamera[Iterator[SimFrame]]):
         """Session time of scene time 0 [s] (None until the first open)."""
         return self._t0_s
 
+    def _first_capture_s(self) -> float | None:
+        return self._t0_s  # frame 0 is captured at scene time 0
+
     def _metadata(self) -> dict[str, Any]:
         cam = self.scene.camera
         return {

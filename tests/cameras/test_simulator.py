@@ -42,6 +42,8 @@ async def test_frames_equal_pipeline_frames_and_times() -> None:
         assert f.t_capture_s == t0 + r.t_s
         np.testing.assert_array_equal(f.image, r.image)
         assert now >= f.t_capture_s - 1e-9  # paced: never early
+    # the first frame's capture time, known before it is made (its lag before it comes)
+    assert cam.first_frame_due_s() == got[0][0].t_capture_s
     duration_s = ref[-1].t_s
     assert wall > 0.9 * duration_s / speed  # paced at speed 10, not as fast as possible
     assert wall < duration_s / speed + 1.5

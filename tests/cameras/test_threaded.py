@@ -149,3 +149,22 @@ async def test_an_injected_stall_swallows_frames_before_the_hook() -> None:
     # after frame 10, and captured before the stall's end (delivered during it, or captured
     # while frozen)
     assert missing and all(10 < k < (t_stall + 0.2) * cam.fps for k in missing)
+
+
+def test_the_first_frame_is_due_from_its_known_capture_time_unless_live() -> None:
+    """A source that waits for its consumer knows its first frame's capture time before
+    it is made (the daemon's lag until that frame comes); a live camera's frames are not
+    captured before they come (its silence is a stall, not a lag)."""
+
+    class Known(_Counter):
+        def _first_capture_s(self) -> float | None:
+            return 2.5
+
+    clock = ScaledClock(speed=1.0)
+    cam = Known(clock, 3, live=False, paced=True)
+    assert cam.first_frame_due_s() == 2.5
+    assert Known(clock, 3, live=True, paced=False).first_frame_due_s() is None
+    assert _Counter(clock, 3, live=False, paced=True).first_frame_due_s() is None
+    cam.stall(10.0)  # the frames until its end are lost, not late: none is due before it
+    due = cam.first_frame_due_s()
+    assert due is not None and due >= 10.0

@@ -51,6 +51,8 @@ async def test_unpaced_color_delivers_every_frame(avi: Path) -> None:
     assert [f.seq for f in frames] == list(range(24))
     assert all(f.dropped_before == 0 for f in frames)
     np.testing.assert_allclose([f.t_capture_s for f in frames], 5.0 + np.arange(24) / FPS)
+    # the first frame's capture time, known before it is made (its lag before it comes)
+    assert cam.first_frame_due_s() == frames[0].t_capture_s == 5.0
     expected = [cv2.imdecode(p, cv2.IMREAD_COLOR) for p in raw_packets(avi)]
     for f, e in zip(frames, expected, strict=True):
         assert f.image.shape == (120, 160, 3) and f.image.dtype == np.uint8

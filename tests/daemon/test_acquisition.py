@@ -10,6 +10,7 @@ import numpy as np
 
 from stipi_daemon.app.acquisition import FrameMeasurer, FrameResult
 from stipi_daemon.cameras import CameraFrame, CameraStalled
+from stipi_daemon.cameras.threaded import ThreadedCamera
 from stipi_daemon.clock import ScaledClock
 from stipi_daemon.measurement.representative_frames import RepresentativeFrames
 from stipi_daemon.measurement.state_machine import Phase
@@ -166,6 +167,93 @@ def test_a_lag_beyond_the_bound_ends_the_run_with_one_line() -> None:
     assert "run.max_lag_s 5" in acq.fault_line and "run.speed 50" in acq.fault_line
     assert pipeline.closed_at == 50.0
     assert writer.events[-1][1] == "fault:falling_behind"
+
+
+class _FirstFrameNotYetMade(ThreadedCamera[None]):
+    """A source that waits for its consumer (as the simulator, a file) and knows its first
+    frame's capture time; never opened here: that frame has not come (the simulator's
+    first frame once took 2 s of wall time, rendered, measured and its video opened)."""
+
+    def __init__(self, clock: Any, t0_s: float) -> None:
+        super().__init__(clock, capacity=2, drop_oldest=False, paced=True)
+        self.t0_s = t0_s
+
+    @property
+    def name(self) -> str:
+        return "first frame not yet made"
+
+    @property
+    def nominal_fps(self) -> float:
+        return 60.0
+
+    def _open_source(self) -> None:
+        return None
+
+    def _read(self, handle: None) -> None:
+        return None
+
+    def _close_source(self, handle: None) -> None:
+        pass
+
+    def _first_capture_s(self) -> float | None:
+        return self.t0_s
+
+
+def test_an_overdue_first_frame_is_the_lag_and_past_the_bound_ends_the_run() -> None:
+    """Before any frame, the lag of a source that waits for its consumer is that of its
+    first frame, due since its capture time: samples and ticks run behind it, and past
+    run.max_lag_s the run ends with one line (it used to measure 110 s without a frame at
+    speed 60 when the simulator's first frame took 2 s of wall time, and say only "No
+    results: need at least 2 finite samples, got 0")."""
+    from stipi_daemon.app.acquisition import MERGE_HOLD_S, Acquisition
+    from stipi_daemon.measurement.state_machine import Tick
+
+    clock = _Clock(10.0)
+    camera = _FirstFrameNotYetMade(clock, t0_s=8.0)
+    config = SimpleNamespace(run=SimpleNamespace(speed=clock.speed, max_lag_s=5.0))
+    writer, pipeline = _Writer(), _Pipeline()
+    devices = SimpleNamespace(
+        clock=clock, writer=writer, camera=SimpleNamespace(camera=camera), probe=None
+    )
+    console = SimpleNamespace(line=lambda text: None, update=lambda *a, **k: None)
+    measurer = SimpleNamespace(on_capture=lambda raw: None)
+    acq = Acquisition(config, devices, pipeline, console, measurer)  # type: ignore[arg-type]
+    acq._on_tick(Tick(clock.now()))
+    assert acq._lag_now_s == 2.0 and acq.fault_line is None
+    assert all(e.t_s <= 10.0 - MERGE_HOLD_S - 2.0 for e in pipeline.fed if isinstance(e, Tick))
+    acq.merger.push("force", 9.0, (9.0, 1.0), clock.now())
+    clock.t = 11.0  # the sample waits for the camera's first frame
+    assert acq.merger.pop_ready(clock.now() - acq._lag_now_s) == []
+    clock.t = 13.5
+    acq._on_tick(Tick(clock.now()))
+    assert acq.fault_line == (
+        "falling behind: the camera's first frame, due at 8.0 s, had not come 5.5 s later "
+        "(more than run.max_lag_s 5 s); this machine does not sustain run.speed 50: lower it"
+    )
+    assert pipeline.closed_at == 13.5
+    assert writer.events[-1][1:] == (
+        "fault:falling_behind",
+        {"lag_s": 5.5, "max_lag_s": 5.0, "first_frame": True},
+    )
+    assert ("force", 9.0) in pipeline.fed  # what was held is fed before the end
+
+
+def test_once_a_frame_came_the_first_frame_no_longer_counts() -> None:
+    from stipi_daemon.app.acquisition import Acquisition
+    from stipi_daemon.measurement.state_machine import Tick
+
+    clock = _Clock(20.0)
+    camera = _FirstFrameNotYetMade(clock, t0_s=8.0)  # 12 s before now
+    config = SimpleNamespace(run=SimpleNamespace(speed=clock.speed, max_lag_s=5.0))
+    writer, pipeline = _Writer(), _Pipeline()
+    cam = SimpleNamespace(camera=camera, stats=SimpleNamespace(fps=lambda: 60.0))
+    devices = SimpleNamespace(clock=clock, writer=writer, camera=cam, probe=None)
+    console = SimpleNamespace(line=lambda text: None, update=lambda *a, **k: None)
+    measurer = SimpleNamespace(on_capture=lambda raw: None)
+    acq = Acquisition(config, devices, pipeline, console, measurer)  # type: ignore[arg-type]
+    acq._on_frame(FrameResult(1, 19.0, 19.0, 10, (), 0))
+    acq._on_tick(Tick(clock.now()))
+    assert acq._lag_now_s == 1.0 and acq.fault_line is None and pipeline.closed_at is None
 
 
 def test_the_queue_is_bounded() -> None:
