@@ -121,15 +121,11 @@ class ResizedFrame:
 
     Attributes
     ----------
-    seq : int
-        The camera's frame number.
-    t_capture_s : float
-        Capture time on the session clock [s].
+    seq, t_capture_s, dropped_before
+        As for a :class:`LateFrame`.
     shape, session_shape : tuple of int
         This frame's array shape and the session's (its first frame's): ``(H, W)`` gray or
         ``(H, W, C)`` [px].
-    dropped_before : int
-        Frames the camera dropped just before this one.
     """
 
     seq: int

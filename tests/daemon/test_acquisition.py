@@ -106,15 +106,20 @@ class _Pipeline:
         return []
 
 
-def _acquisition(clock: _Clock, max_lag_s: float = 5.0) -> tuple[Any, _Writer, _Pipeline]:
+def _acquisition(
+    clock: _Clock, max_lag_s: float = 5.0, source: ThreadedCamera[Any] | None = None
+) -> tuple[Any, _Writer, _Pipeline]:
+    """The loop's handlers on a recording writer and pipeline; ``source``: the camera's
+    capture source (its frame hook set, as the daemon's)."""
     from stipi_daemon.app.acquisition import Acquisition
 
     config = SimpleNamespace(run=SimpleNamespace(speed=clock.speed, max_lag_s=max_lag_s))
     writer, pipeline = _Writer(), _Pipeline()
-    camera = SimpleNamespace(stats=SimpleNamespace(fps=lambda: 60.0))
+    camera = SimpleNamespace(stats=SimpleNamespace(fps=lambda: 60.0), camera=source)
     devices = SimpleNamespace(clock=clock, writer=writer, camera=camera, probe=None)
     console = SimpleNamespace(line=lambda text: None, update=lambda *a, **k: None)
-    acq = Acquisition(config, devices, pipeline, console, None)  # type: ignore[arg-type]
+    measurer = None if source is None else SimpleNamespace(on_capture=lambda raw: None)
+    acq = Acquisition(config, devices, pipeline, console, measurer)  # type: ignore[arg-type]
     return acq, writer, pipeline
 
 
@@ -205,19 +210,11 @@ def test_an_overdue_first_frame_is_the_lag_and_past_the_bound_ends_the_run() -> 
     run.max_lag_s the run ends with one line (it used to measure 110 s without a frame at
     speed 60 when the simulator's first frame took 2 s of wall time, and say only "No
     results: need at least 2 finite samples, got 0")."""
-    from stipi_daemon.app.acquisition import MERGE_HOLD_S, Acquisition
+    from stipi_daemon.app.acquisition import MERGE_HOLD_S
     from stipi_daemon.measurement.state_machine import Tick
 
     clock = _Clock(10.0)
-    camera = _FirstFrameNotYetMade(clock, t0_s=8.0)
-    config = SimpleNamespace(run=SimpleNamespace(speed=clock.speed, max_lag_s=5.0))
-    writer, pipeline = _Writer(), _Pipeline()
-    devices = SimpleNamespace(
-        clock=clock, writer=writer, camera=SimpleNamespace(camera=camera), probe=None
-    )
-    console = SimpleNamespace(line=lambda text: None, update=lambda *a, **k: None)
-    measurer = SimpleNamespace(on_capture=lambda raw: None)
-    acq = Acquisition(config, devices, pipeline, console, measurer)  # type: ignore[arg-type]
+    acq, writer, pipeline = _acquisition(clock, source=_FirstFrameNotYetMade(clock, t0_s=8.0))
     acq._on_tick(Tick(clock.now()))
     assert acq._lag_now_s == 2.0 and acq.fault_line is None
     assert all(e.t_s <= 10.0 - MERGE_HOLD_S - 2.0 for e in pipeline.fed if isinstance(e, Tick))
@@ -239,18 +236,11 @@ def test_an_overdue_first_frame_is_the_lag_and_past_the_bound_ends_the_run() -> 
 
 
 def test_once_a_frame_came_the_first_frame_no_longer_counts() -> None:
-    from stipi_daemon.app.acquisition import Acquisition
     from stipi_daemon.measurement.state_machine import Tick
 
     clock = _Clock(20.0)
-    camera = _FirstFrameNotYetMade(clock, t0_s=8.0)  # 12 s before now
-    config = SimpleNamespace(run=SimpleNamespace(speed=clock.speed, max_lag_s=5.0))
-    writer, pipeline = _Writer(), _Pipeline()
-    cam = SimpleNamespace(camera=camera, stats=SimpleNamespace(fps=lambda: 60.0))
-    devices = SimpleNamespace(clock=clock, writer=writer, camera=cam, probe=None)
-    console = SimpleNamespace(line=lambda text: None, update=lambda *a, **k: None)
-    measurer = SimpleNamespace(on_capture=lambda raw: None)
-    acq = Acquisition(config, devices, pipeline, console, measurer)  # type: ignore[arg-type]
+    source = _FirstFrameNotYetMade(clock, t0_s=8.0)  # 12 s before now
+    acq, _, pipeline = _acquisition(clock, source=source)
     acq._on_frame(FrameResult(1, 19.0, 19.0, 10, (), 0))
     acq._on_tick(Tick(clock.now()))
     assert acq._lag_now_s == 1.0 and acq.fault_line is None and pipeline.closed_at is None
