@@ -218,6 +218,8 @@ class ThreadedCamera(ABC, Generic[H]):
         self._stall_from_s = self._stall_until_s = float("-inf")
         self._thread_state = threading.local()  # the capture thread's own stop event
         self._progress = _Progress(float("-inf"))  # that of the current capture thread
+        self._first_read_s: float | None = None  # capture time of the first frame made [s]
+        self._waited_for_s = float("-inf")  # the latest capture time waited for [s]
 
     # -- hooks ------------------------------------------------------------------------------
 
@@ -265,15 +267,24 @@ class ThreadedCamera(ABC, Generic[H]):
         return None
 
     def first_frame_due_s(self) -> float | None:
-        """Session time [s] the first frame of a source that waits for its consumer is
-        captured at, known before it is made: until the consumer has that frame, the
-        source is behind by at least the time since (its lag, which is otherwise known only
-        once a frame arrives). After an injected stall (:meth:`stall`) that ends later, the
-        stall's end: the frames before it are lost, not late. None for a live camera, whose
-        frames are not captured before they come (its silence is a stall,
-        :meth:`source_silent_s`), and where not known."""
-        due = None if self._drop_oldest else self._first_capture_s()
-        return None if due is None else max(due, self._stall_until_s)
+        """Capture time [s of session time] of the first frame of a source that waits for
+        its consumer: until the consumer has that frame, the source is behind by at least
+        the time since (its lag, otherwise known only once a frame arrives).
+
+        The capture time of the first frame the capture thread has made; before it has
+        made one, the earliest it can still make: not before the source's first capture
+        time (known at the open: the simulator's, a file's), the capture time it last waited
+        for (a paced file waits through the damaged frames it skips) or the end of an
+        injected stall (:meth:`stall`; the frames before it are lost, not late). None for a
+        live camera, whose frames are not captured before they come (its silence is a
+        stall, :meth:`source_silent_s`), and where the first capture time is not known."""
+        if self._drop_oldest:
+            return None
+        if self._first_read_s is not None:
+            return self._first_read_s
+        due = self._first_capture_s()
+        # frames it waited for (a paced source skipping damaged frames) were not late
+        return None if due is None else max(due, self._waited_for_s, self._stall_until_s)
 
     def _metadata(self) -> dict[str, Any]:
         """Source-specific settings for :meth:`metadata`."""
@@ -287,6 +298,7 @@ class ThreadedCamera(ABC, Generic[H]):
         camera is being closed meanwhile."""
         stop: threading.Event | None = getattr(self._thread_state, "stop", None)
         clock = self._clock
+        self._waited_for_s = max(self._waited_for_s, t_s)
         while True:
             wall_s = (t_s - clock.now()) / clock.speed
             if wall_s <= 0.0:
@@ -453,6 +465,8 @@ class ThreadedCamera(ABC, Generic[H]):
                 if self._stalled(raw.t_capture_s):
                     progress.frozen = True
                     continue  # injected stall: delivered nothing, or captured while frozen
+                if self._first_read_s is None:
+                    self._first_read_s = raw.t_capture_s
                 progress.last_s, progress.handing_over = self._clock.now(), True
                 progress.frozen = False
                 try:

@@ -181,6 +181,45 @@ async def test_damaged_frame_inside_file_is_skipped(avi: Path, tmp_path: Path) -
     assert any("frame 5 is damaged" in n for n in cam.notes)
 
 
+async def test_skipping_damaged_frames_at_the_start_is_waiting_not_lagging(
+    tmp_path: Path,
+) -> None:
+    """A paced file whose first 2 s of frames are damaged waits through them (each one's
+    capture time) before its first good frame: that frame is not late, so the first frame
+    is never due more than a frame or two before now (it was due from the file's t0, 2 s
+    early: the daemon's first-frame lag then passed run.max_lag_s on a file that kept up)."""
+    avi = tmp_path / "v.avi"
+    write_avi(avi, 90, fps=FPS)
+    data = bytearray(avi.read_bytes())
+    for packet in raw_packets(avi)[:60]:  # each JPEG's end marker zeroed: damaged
+        end = bytes(data).find(packet[-64:].tobytes()) + 64
+        data[end - 2 : end] = b"\x00\x00"
+    bad = tmp_path / "bad.avi"
+    bad.write_bytes(bytes(data))
+    clock = ScaledClock(speed=2.0)
+    cam = VideoFileCamera(bad, clock, pace=True, t0_s=clock.now())
+    await cam.open()
+    overdue: list[float] = []
+
+    async def watch() -> None:
+        while True:
+            due = cam.first_frame_due_s()
+            assert due is not None
+            overdue.append(clock.now() - due)
+            await asyncio.sleep(0.005)
+
+    watcher = asyncio.create_task(watch())
+    frames = cam.frames()
+    first = await anext(frames)
+    watcher.cancel()
+    await cam.close()
+    assert first.seq == 60 and first.dropped_before == 60
+    assert len(overdue) > 20  # watched through the 1 s of wall time
+    # a frame period is 33 ms; the thread's wake-ups on a loaded machine come on top
+    assert max(overdue) < 1.0, max(overdue)
+    assert cam.first_frame_due_s() == first.t_capture_s
+
+
 @pytest.mark.parametrize(
     ("make", "problem"),
     [
