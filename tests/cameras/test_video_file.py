@@ -164,14 +164,17 @@ async def test_file_missing_only_its_index_replays_every_frame(avi: Path, tmp_pa
     assert cam.notes == []
 
 
-async def test_damaged_frame_inside_file_is_skipped(avi: Path, tmp_path: Path) -> None:
-    # Overwrite the middle of frame 5's JPEG data (including its end marker) with zeros.
-    data = bytearray(avi.read_bytes())
-    packets = raw_packets(avi)
-    start = bytes(data).find(packets[5][-64:].tobytes()) - (packets[5].size - 64)
+def _zero_end_marker(data: bytearray, packet: np.ndarray) -> None:
+    """Damage the JPEG ``packet`` where it lies in the file ``data``: its end marker zeroed."""
+    start = bytes(data).find(packet[-64:].tobytes()) - (packet.size - 64)
     assert start > 0
-    end = start + packets[5].size
+    end = start + packet.size
     data[end - 2 : end] = b"\x00\x00"
+
+
+async def test_damaged_frame_inside_file_is_skipped(avi: Path, tmp_path: Path) -> None:
+    data = bytearray(avi.read_bytes())
+    _zero_end_marker(data, raw_packets(avi)[5])
     bad = tmp_path / "bad.avi"
     bad.write_bytes(bytes(data))
     cam = VideoFileCamera(bad, ScaledClock(), pace=False)
@@ -191,9 +194,8 @@ async def test_skipping_damaged_frames_at_the_start_is_waiting_not_lagging(
     avi = tmp_path / "v.avi"
     write_avi(avi, 90, fps=FPS)
     data = bytearray(avi.read_bytes())
-    for packet in raw_packets(avi)[:60]:  # each JPEG's end marker zeroed: damaged
-        end = bytes(data).find(packet[-64:].tobytes()) + 64
-        data[end - 2 : end] = b"\x00\x00"
+    for packet in raw_packets(avi)[:60]:
+        _zero_end_marker(data, packet)
     bad = tmp_path / "bad.avi"
     bad.write_bytes(bytes(data))
     clock = ScaledClock(speed=2.0)
