@@ -31,7 +31,10 @@ and ``seq`` are as for JPEG files: frame k of the file in presentation order.
 Truncated and damaged files. The replay ends cleanly after the last complete frame and
 records a note (:meth:`VideoFileCamera.notes`); a damaged frame inside the file (a JPEG
 without its end, a packet the decoder rejects or a frame it marks corrupt) is skipped (a
-``seq`` gap, counted as dropped) and noted. A missing or unreadable file raises
+``seq`` gap, counted as dropped) and noted. A complete JPEG is delivered at the size it
+decodes to, even when that is not the file's: a frame of another size than the session's
+first is the consumer's to refuse (the daemon ends the run on it, naming both sizes), not a
+damaged frame. A missing or unreadable file raises
 :class:`~stipi_daemon.errors.CameraError` naming it.
 
 Frames are never dropped by this source (the hand-off applies back-pressure); late delivery
@@ -504,7 +507,7 @@ class VideoFileCamera(ThreadedCamera[_Handle]):
         if packet.size > 0 and _complete_jpeg(packet):
             flag = cv2.IMREAD_GRAYSCALE if self.gray else cv2.IMREAD_COLOR
             decoded = cv2.imdecode(packet.reshape(-1), flag)
-        if decoded is not None and self._size is not None and decoded.shape[1::-1] == self._size:
+        if decoded is not None:  # of any size: a JPEG of another size is a frame of it
             return np.asarray(decoded, dtype=np.uint8), packet.tobytes()
         h.bad_frames.append(index)
         return index

@@ -7,17 +7,23 @@ size at the stream's size without an error). The real daemon replays, as its cam
 H.264 recording whose frames change from 160x120 to 320x240 during the hold: two MPEG-TS
 files written by libx264 and joined byte for byte, as a lab joins two recordings, and
 decoded by FFmpeg, which hands over frames of the new size after the second stream's
-sequence parameter set. The emulated Feather plays the same scene on a pty.
+sequence parameter set. And a Motion-JPEG recording whose JPEGs change size at the same
+frame (a camera switched to another resolution under a recorder that copies its packets,
+as ``ffmpeg -c copy`` does): Matroska muxed by FFmpeg, each frame a JPEG of OpenCV's
+encoder; the camera decodes every JPEG itself. The emulated Feather plays the same scene on
+a pty.
 """
 
 from __future__ import annotations
 
 import asyncio
 import io
+from fractions import Fraction
 from pathlib import Path
 
 import cv2
 import numpy as np
+import pytest
 
 from stipi_daemon.analysis.calibration import save_calibration
 from stipi_daemon.app.config import load_config
@@ -51,9 +57,28 @@ def _h264_ts(path: Path, images: list[np.ndarray], first_pts: int) -> None:
         out.mux(stream.encode(None))
 
 
-def _joined_recording(tmp_path: Path, scene: Path) -> Path:
-    """The scene rendered at 160x120 (the simulator), re-encoded as two H.264 TS files,
-    the second at 320x240 from frame CHANGE_AT on, joined byte for byte."""
+def _mjpg_mkv(path: Path, images: list[np.ndarray]) -> None:
+    """``images`` (gray, of any sizes) as OpenCV's JPEGs muxed into one Matroska stream
+    (FFmpeg), declared at the first image's size, each packet copied as it is."""
+    import av
+
+    h, w = images[0].shape
+    with av.open(str(path), "w", format="matroska") as out:
+        stream = out.add_stream("mjpeg", rate=FPS)
+        stream.width, stream.height, stream.pix_fmt = w, h, "yuvj420p"
+        stream.time_base = Fraction(1, FPS)
+        for k, image in enumerate(images):
+            ok, jpeg = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, 95])
+            assert ok
+            pkt = av.Packet(jpeg.tobytes())
+            pkt.stream, pkt.time_base = stream, Fraction(1, FPS)
+            pkt.pts, pkt.dts, pkt.is_keyframe = k, k, True
+            out.mux(pkt)
+
+
+def _rendered(tmp_path: Path, scene: Path) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """The scene rendered at 160x120 (the simulator), gray: the frames before CHANGE_AT and,
+    scaled to 320x240, those from CHANGE_AT to 8 s."""
     rendered = tmp_path / "render"
     assert main(["simulate", str(scene), "--out", str(rendered), "--fps", str(FPS), "--quiet"]) == 0
     video = next(p for p in rendered.iterdir() if p.name.startswith("video."))
@@ -62,7 +87,16 @@ def _joined_recording(tmp_path: Path, scene: Path) -> Path:
         for img in iter_video_images(video)
     ]
     first, rest = images[:CHANGE_AT], images[CHANGE_AT : 8 * FPS]
-    larger = [cv2.resize(img, (320, 240), interpolation=cv2.INTER_NEAREST) for img in rest]
+    return first, [cv2.resize(img, (320, 240), interpolation=cv2.INTER_NEAREST) for img in rest]
+
+
+def _joined_recording(tmp_path: Path, scene: Path, codec: str) -> Path:
+    """The rendered scene as a recording whose frames grow to 320x240 at CHANGE_AT:
+    ``h264``, two H.264 TS files joined byte for byte; ``mjpeg``, one MJPG Matroska file."""
+    first, larger = _rendered(tmp_path, scene)
+    if codec == "mjpeg":
+        _mjpg_mkv(tmp_path / "joined.mkv", first + larger)
+        return tmp_path / "joined.mkv"
     _h264_ts(tmp_path / "a.ts", first, 0)
     _h264_ts(tmp_path / "b.ts", larger, CHANGE_AT)
     joined = tmp_path / "joined.ts"
@@ -70,11 +104,12 @@ def _joined_recording(tmp_path: Path, scene: Path) -> Path:
     return joined
 
 
+@pytest.mark.parametrize("codec", ["h264", "mjpeg"])
 def test_frames_that_change_size_end_the_run_with_one_line_and_keep_what_came_before(
-    tmp_path: Path,
+    tmp_path: Path, codec: str
 ) -> None:
     scene = short_scene(tmp_path, width=160, height=120)
-    joined = _joined_recording(tmp_path, scene)
+    joined = _joined_recording(tmp_path, scene, codec)
     sc = load_scene(scene).with_camera(width=160, height=120, fps=FPS)
     cal = save_calibration(tmp_path / "cal.json", scaled_calibration(sc)[0])
     cfg = write_config(
@@ -114,3 +149,4 @@ def test_frames_that_change_size_end_the_run_with_one_line_and_keep_what_came_be
         assert reader.integrity_check().ok, reader.integrity_check().problems
         info = probe_video(outcome.session_dir / "video.mkv")
         assert (info.width, info.height, info.frames) == (160, 120, CHANGE_AT)
+        assert info.codec == ("mjpeg" if codec == "mjpeg" else "ffv1")
