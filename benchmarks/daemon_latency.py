@@ -136,6 +136,8 @@ def worker(config_path: Path, cpus: set[int], result_path: Path, nice: int) -> N
         while not done.wait(0.1):
             samples.append((time.monotonic(), time.process_time()))
             per_thread.append(thread_cpu_s() | {"recording": recording_s[0]})
+            # this thread's own CPU (reading /proc), the observer's, not the daemon's
+            per_thread[-1]["sampler"] = time.thread_time()
 
     sampler = threading.Thread(target=sample_cpu, daemon=True)
     sampler.start()
@@ -182,8 +184,9 @@ def worker(config_path: Path, cpus: set[int], result_path: Path, nice: int) -> N
             np.interp(t_b, st, [x.get(key, 0.0) for x in per_thread])
             - np.interp(t_a, st, [x.get(key, 0.0) for x in per_thread])
         )
-        for key in ("capture", "loop", "recording")
+        for key in ("capture", "loop", "recording", "sampler")
     }
+    cpu_window_s -= thread_ms.pop("sampler") / 1e3  # the daemon's CPU, not the benchmark's
     frames_window = int(np.count_nonzero((mono_end > t_a) & (mono_end <= t_b)))
     worst = np.argsort(to_disk)[-5:][::-1]
     run = outcome.summary["run"]
@@ -609,8 +612,10 @@ def markdown(
         "decoded, S_k measured, the frame muxed into the video and its row added. CPU per "
         "frame = process time of all the daemon process's threads (capture thread: read, "
         "decode, S_k, video, row and commit; event loop; live fit; commit thread; not the "
-        "probe's process) / frames, in the steady state (from 1 s after the first frame is "
-        "stored to 0.5 s before the last: not start-up, analysis, report); of it the capture "
+        "probe's process, nor the benchmark's thread reading these figures every 0.1 s, "
+        "whose own thread CPU time is subtracted) / frames, in the steady state (from 1 s "
+        "after the first frame is stored to 0.5 s before the last: not start-up, analysis, "
+        "report); of it the capture "
         "thread and the event loop (`/proc/self/task/*/stat`, 10 ms ticks) and the recording "
         "(`VideoRecorder.record`, thread CPU time). Floor = decode to gray + S_k of the same "
         "JPEGs in the same process, on the same CPU: *hot* back to back, *paced* one every "
