@@ -491,7 +491,8 @@ class Acquisition:
         # The frame's row is stored and committed already (FrameMeasurer, capture thread).
         now = self._clock.now()
         self.latencies_s.append(now - ev.t_capture_s)
-        self.counts["frames"] += 1  # stop() counts the rows stored after the last one seen
+        if ev.stored:  # (stop() counts the rows stored after the last one seen)
+            self.counts["frames"] += 1
         if ev.dropped_before:
             self._camera_gaps(ev.seq, ev.t_capture_s, ev.dropped_before)
         self.merger.push("frame", ev.t_capture_s, (ev.t_capture_s, float(ev.s_k)), now)

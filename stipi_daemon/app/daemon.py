@@ -228,6 +228,8 @@ async def run_daemon(
     # Which frames the report shows (their pictures are read from the session video).
     keeper = RepresentativeFrames(config.measurement.pitting_duration_s)
     measurer = _frame_measurer(config, devices, threshold, roi, keeper, pipeline)
+    # the session's frames are the measurement's: none captured after its end is stored
+    pipeline.on_end_known = measurer.store_until
     acquisition = Acquisition(config, devices, pipeline, console, measurer)
     status = "aborted"
     # Until the measurement ends: an interruption (Ctrl-C) or an unexpected error leaves

@@ -17,18 +17,23 @@ measured nor stored either: a :class:`ResizedFrame`, which ends the run with a f
 counts pixels, and the ROI, the threshold and the calibration are those of the first
 frame's size; a video stream cannot change its frame size either).
 Once the measurement has ended (:meth:`FrameMeasurer.stop_storing`) frames are no longer
-stored. When storing fails (a full disk: the writer's or the video's error), nothing more is
-stored and the error travels with the frame's result to the loop, which stops the run as
-for any storage failure. A video that fails (any FFmpeg error) stops the same way: the
-recorder hands its error to the writer (:meth:`~stipi_daemon.storage.video.VideoRecorder.record`),
-so the measurement never goes on without its video; a frame's row is stored once, whatever
-fails after it.
+stored, and once its end time is known (:meth:`FrameMeasurer.store_until`: the end of the
+recovery window, known at the release; the end the analysis starts at) a frame captured
+after it is not stored either, nor offered as a representative frame: the session's frames
+are those of the measurement, however long the final analysis keeps the loop busy and
+however far the capture thread runs ahead of the loop. When storing fails (a full disk: the
+writer's or the video's error), nothing more is stored and the error travels with the
+frame's result to the loop, which stops the run as for any storage failure. A video that
+fails (any FFmpeg error) stops the same way: the recorder hands its error to the writer
+(:meth:`~stipi_daemon.storage.video.VideoRecorder.record`), so the measurement never goes on
+without its video; a frame's row is stored once, whatever fails after it.
 
 All times are on the session clock [s] unless named ``_wall_``.
 """
 
 from __future__ import annotations
 
+import math
 import threading
 import time
 from dataclasses import dataclass
@@ -81,6 +86,8 @@ class FrameResult:
         Frames the camera dropped just before this one.
     error : SessionError or None
         Storing failed (its row or video frame is missing): the loop stops the run.
+    stored : bool
+        Its row and video frame were stored (False: captured after the measurement's end).
     """
 
     seq: int
@@ -90,6 +97,7 @@ class FrameResult:
     flags: tuple[str, ...]
     dropped_before: int
     error: SessionError | None = None
+    stored: bool = True
 
 
 @dataclass(frozen=True, slots=True)
@@ -145,8 +153,8 @@ def describe_shape(shape: tuple[int, ...]) -> str:
 class _Captured:
     """What :meth:`FrameMeasurer.on_capture` made of a frame: S_k [px] and its sorted flags
     (or, late, its lag [s] and no measurement; or, of another shape than the session's, the
-    session's shape and no measurement), the session time it was done [s], and why storing
-    it failed, if it did."""
+    session's shape and no measurement), the session time it was done [s], why storing
+    it failed, if it did, and whether it was stored (not after the measurement's end)."""
 
     s_k: int
     flags: tuple[str, ...]
@@ -154,6 +162,7 @@ class _Captured:
     t_done_s: float
     error: SessionError | None = None
     resized_from: tuple[int, ...] | None = None
+    stored: bool = False
 
 
 class FrameMeasurer:
@@ -209,6 +218,7 @@ class FrameMeasurer:
         self._processors: dict[bool, FrameProcessor] = {}
         self._lock = threading.Lock()  # storing, against stop_storing
         self._storing = True
+        self._store_until_s = math.inf  # frames captured after it are not stored [s]
         self._error: SessionError | None = None
         self._last_commit_wall_s = float("-inf")
         #: Shape of the session's frames: its first frame's (None before it).
@@ -221,6 +231,13 @@ class FrameMeasurer:
         now is stored before this returns."""
         with self._lock:
             self._storing = False
+
+    def store_until(self, t_end_s: float) -> None:
+        """Store no frame captured after session time ``t_end_s`` [s] (the measurement's
+        end, once known): such a frame is measured for the loop, but neither stored nor
+        offered as a representative frame."""
+        with self._lock:
+            self._store_until_s = t_end_s
 
     def on_capture(self, raw: RawFrame) -> _Captured:
         """The camera's ``frame_hook``, run in its capture thread as a frame is delivered:
@@ -247,9 +264,10 @@ class FrameMeasurer:
             return LateFrame(ev.seq, ev.t_capture_s, captured.late_lag_s, ev.dropped_before)
         s_k = captured.s_k
         st = self._pipeline.state
-        self._keeper.offer(
-            ev.seq, ev.t_capture_s, ev.image, s_k, st.phase, st.t_pit_start_s, st.t_release_s
-        )
+        if captured.stored:  # a representative frame is one of the session's
+            self._keeper.offer(
+                ev.seq, ev.t_capture_s, ev.image, s_k, st.phase, st.t_pit_start_s, st.t_release_s
+            )
         return FrameResult(
             ev.seq,
             ev.t_capture_s,
@@ -258,6 +276,7 @@ class FrameMeasurer:
             captured.flags,
             ev.dropped_before,
             captured.error,
+            captured.stored,
         )
 
     def _measure(
@@ -290,10 +309,11 @@ class FrameMeasurer:
         t_done = self._clock.now()
         error = None
         with self._lock:
-            if self._storing:
+            stored = self._storing and t_capture_s <= self._store_until_s
+            if stored:
                 row = (seq, t_capture_s, t_done, s_k, flags)
                 error = self._store(row, image, packet, in_thread)
-        return _Captured(s_k, flags, None, t_done, error)
+        return _Captured(s_k, flags, None, t_done, error, stored=stored)
 
     def _store(
         self,

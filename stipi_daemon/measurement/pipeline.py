@@ -22,6 +22,7 @@ sample before the force drop.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -194,6 +195,11 @@ class MeasurementPipeline:
         #: Frames whose S_k was not finite (fed as time only, see :meth:`frame`).
         self.unmeasurable_frames = 0
         self._live_t0: float | None = None
+        #: Called with the latest session time [s] the measurement can still end at, each
+        #: time that becomes known: the recovery window's end at the release
+        #: (``recovery_max_s`` after it), then the end the analysis starts at, before it
+        #: runs. The daemon stores no frame captured after it. None: nobody is told.
+        self.on_end_known: Callable[[float], None] | None = None
 
     # ------------------------------------------------------------------ feeding
 
@@ -226,7 +232,12 @@ class MeasurementPipeline:
         elif isinstance(event, FrameSample):
             if not self._frames.t or event.t_s > self._frames.t[-1]:
                 self._frames.append(event.t_s, event.s_k)
+        released_s = self.state.t_release_s
         self.state, outputs = transition(self.state, event, self.config)
+        t_rel = self.state.t_release_s
+        if t_rel is not None and t_rel != released_s and self.on_end_known is not None:
+            # the recovery window (RECOVERY's timer rule) ends recovery_max_s after it
+            self.on_end_known(t_rel + self.config.recovery_max_s)
         return self._run_requested_analysis(outputs)
 
     def arm(self, t_s: float) -> list[Output]:
@@ -275,6 +286,8 @@ class MeasurementPipeline:
         out = list(outputs)
         for o in outputs:
             if isinstance(o, StartAnalysis):
+                if self.on_end_known is not None:
+                    self.on_end_known(o.t_end_s)
                 out.extend(self._analyse(o))
         return out
 

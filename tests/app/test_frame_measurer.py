@@ -122,6 +122,42 @@ def test_after_the_measurement_ends_frames_are_no_longer_stored(tmp_path: Path) 
     writer.close()
 
 
+def test_frames_captured_after_the_measurements_end_are_not_stored(tmp_path: Path) -> None:
+    """Once the end is known (the pipeline tells it), a frame captured after it is measured
+    for the loop but neither stored nor offered as a representative frame, whenever it is
+    delivered; the end can move (the analysis starts before the window's end)."""
+    clock = ScaledClock(1.0)
+    measurer, writer = _measurer(tmp_path, clock)
+    measurer.store_until(3.5)
+    measurer.store_until(2.5)  # settled: the analysis starts before the window's end
+    # S_k falls frame after frame: the keeper's recovery_start would be the last offered
+    frames = [_frame(k) for k in (5, 4, 3, 1)]
+    raws = [RawFrame(k, 1.0 + k, gray, pk) for k, (gray, pk) in enumerate(frames)]
+    captured = _in_thread(measurer, raws)
+    results = [
+        measurer(CameraFrame(raw.seq, raw.t_capture_s, raw.image, 0, raw.packet, c))
+        for raw, c in zip(raws, captured, strict=True)
+    ]
+    assert [(r.seq, r.s_k, r.stored) for r in results] == [
+        (0, 5 * 64, True),
+        (1, 4 * 64, True),
+        (2, 3 * 64, False),  # captured at 3.0 s, after the end at 2.5 s: measured all the same
+        (3, 1 * 64, False),
+    ]
+    assert [(f.kind, f.seq) for f in measurer._keeper.selected()] == [
+        ("pitting", 0),
+        ("recovery_start", 1),
+    ]
+    assert measurer.stored == 2
+    assert measurer.recorder is not None
+    measurer.recorder.close()
+    writer.commit()
+    with SessionReader(writer.directory) as r:
+        assert r.frames()["seq"].tolist() == [0, 1]
+        assert r.video_frames()["seq"].tolist() == [0, 1]
+    writer.close()
+
+
 def test_a_late_frame_is_neither_measured_nor_stored(tmp_path: Path) -> None:
     clock = ScaledClock(1.0)
     measurer, writer = _measurer(tmp_path, clock)

@@ -91,10 +91,12 @@ def short_config(
     *,
     pixel_format: str | None = None,
     speed: float = 2.0,
+    measurement: dict[str, Any] | None = None,
 ) -> Path:
     """Write the config of one short measurement of the 160x120 short scene
     (:func:`short_scene`; camera ``pixel_format``, None: the scene's own) at clock
-    ``speed``, ``storage`` added to its storage section; returns the config's path."""
+    ``speed``, ``storage`` added to its storage section and ``measurement`` to
+    :data:`SHORT_MEASUREMENT`; returns the config's path."""
     scene = short_scene(directory, width=160, height=120)
     if pixel_format is not None:
         doc = yaml.safe_load(scene.read_text())
@@ -105,7 +107,7 @@ def short_config(
         {
             "probe": {"transport": {"kind": "emulated", "scene": str(scene)}},
             "camera": {"kind": "simulator", "scene": str(scene)},
-            "measurement": SHORT_MEASUREMENT,
+            "measurement": {**SHORT_MEASUREMENT, **(measurement or {})},
             "run": {"speed": speed},
         },
     )
@@ -121,13 +123,16 @@ def short_session(
     *,
     pixel_format: str | None = None,
     speed: float = 2.0,
+    measurement: dict[str, Any] | None = None,
 ) -> Path:
     """Record the measurement of :func:`short_config` (quietly); returns the session
     directory."""
     from stipi_daemon.app.config import load_config
     from stipi_daemon.app.daemon import run_measurement
 
-    path = short_config(directory, storage, pixel_format=pixel_format, speed=speed)
+    path = short_config(
+        directory, storage, pixel_format=pixel_format, speed=speed, measurement=measurement
+    )
     session = run_measurement(load_config(path), quiet=True).session_dir
     assert session is not None
     return Path(session)

@@ -23,8 +23,15 @@ from stipi_daemon.storage import SessionReader
 from tests.daemon._support import short_session
 
 
-def _run(directory: Path, pixel_format: str, storage: dict[str, Any]) -> Path:
-    return short_session(directory, storage, pixel_format=pixel_format, speed=2.0)
+def _run(
+    directory: Path,
+    pixel_format: str,
+    storage: dict[str, Any],
+    measurement: dict[str, Any] | None = None,
+) -> Path:
+    return short_session(
+        directory, storage, pixel_format=pixel_format, speed=2.0, measurement=measurement
+    )
 
 
 def _show(session: Path, capsys: pytest.CaptureFixture[str]) -> str:
@@ -37,7 +44,8 @@ def test_mjpg_scene_is_recorded_passthrough(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     session = _run(tmp_path, "mjpg", {})  # the default: passthrough
-    video = json.loads((session / "summary.json").read_text())["run"]["video"]
+    summary = json.loads((session / "summary.json").read_text())
+    video = summary["run"]["video"]
     assert (video["mode"], video["codec"], video["left_out"]) == ("passthrough", "mjpeg", 0)
     with SessionReader(session) as reader:
         assert reader.integrity_check().ok
@@ -45,6 +53,7 @@ def test_mjpg_scene_is_recorded_passthrough(
         stored = reader.video_frames()
         assert stored["seq"].tolist() == seqs and len(seqs) > 100  # every measured frame
         started = [e.detail for e in reader.events() if e.kind == "video_started"]
+    assert summary["run"]["frames"] == len(seqs)
     assert [(d["mode"], d["codec"]) for d in started] == [("passthrough", "mjpeg")]
     # The stored packets are the simulator's JPEGs of those frames, byte for byte.
     scene = load_scene(tmp_path / "grade1_daemon_e2e.yaml")
@@ -79,3 +88,26 @@ def test_raw_scene_is_recorded_losslessly(
         seqs = reader.frames()["seq"].tolist()
         assert reader.video_frames()["seq"].tolist() == seqs and len(seqs) > 100
     assert video["left_out"] == 0 and video["frames"] == len(seqs)
+
+
+def test_the_sessions_frames_end_with_the_recovery_window(tmp_path: Path) -> None:
+    """The paper's protocol (the whole recovery window): the session stores the frames up
+    to the window's end and none captured after it, whatever the final analysis costs
+    while the camera goes on; the run's frame count is the rows'; the report's frames are
+    among them."""
+    # a window that ends 3 s before the scene does: the camera goes on after it
+    window = {"stop_when_settled": False, "recovery_max_s": 15.0}
+    session = _run(tmp_path, "mjpg", {}, window)
+    summary = json.loads((session / "summary.json").read_text())
+    m = summary["measurement"]
+    assert m["t_end_s"] == summary["release"]["t_release_s"] + 15.0
+    fps = summary["run"]["camera"]["source"]["fps"]
+    with SessionReader(session) as reader:
+        assert reader.integrity_check().ok
+        rows = reader.frames()
+        assert reader.video_frames()["seq"].tolist() == rows["seq"].tolist()
+    t_last_s = float(rows["t_capture_host_s"][-1])
+    assert m["t_end_s"] - 1.5 / fps < t_last_s <= m["t_end_s"]
+    assert summary["run"]["frames"] == rows.size
+    index = json.loads((session / "frames" / "representative.json").read_text())
+    assert {e["seq"] for e in index.values()} <= set(rows["seq"].tolist())

@@ -21,7 +21,13 @@ from tests.conftest import REPO_ROOT
 SCENES = REPO_ROOT / "configs" / "scenes"
 
 
-def _run(scene_name: str) -> tuple[MeasurementPipeline, object, list[PhaseChanged]]:
+def _run(
+    scene_name: str,
+    measurement: MeasurementConfig | None = None,
+    ends: list[tuple[float, bool]] | None = None,
+) -> tuple[MeasurementPipeline, object, list[PhaseChanged]]:
+    """The scene's force and frames fed in time order until the pipeline finishes; ``ends``
+    receives each end time the pipeline tells [s], and whether the analysis had yet to run."""
     scene = load_scene(SCENES / f"{scene_name}.yaml")
     truth = ground_truth(scene)
     cal, _ = scaled_calibration(scene)
@@ -33,11 +39,13 @@ def _run(scene_name: str) -> tuple[MeasurementPipeline, object, list[PhaseChange
         CircleROI(kind="circle", **truth.roi),
     )
     mp = MeasurementPipeline(
-        measurement=MeasurementConfig(),
+        measurement=measurement or MeasurementConfig(),
         analysis=AnalysisSettings(indenter_radius_mm=scene.indenter.diameter_mm / 2),
         calibration=cal,
         reference=load_reference(),
     )
+    if ends is not None:
+        mp.on_end_known = lambda t_s: ends.append((t_s, mp.start is None))
     batch = sim.force_batch()
     changes: list[PhaseChanged] = []
     changes += [o for o in mp.arm(0.0) if isinstance(o, PhaseChanged)]
@@ -118,3 +126,23 @@ def test_no_live_parameters_before_release() -> None:
     mp.close(5.0)
     assert mp.finished and mp.phase == Phase.ABORTED
     assert mp.result is None
+
+
+@pytest.mark.parametrize("stop_when_settled", [False, True])
+def test_the_end_is_told_at_the_release_and_again_before_the_analysis_runs(
+    stop_when_settled: bool,
+) -> None:
+    """The daemon stores no frame captured after the measurement's end: the pipeline tells
+    the latest end once the release is known (the recovery window's end), then the end
+    the analysis starts at, before it runs (the window's end, or, settled, earlier)."""
+    config = MeasurementConfig(stop_when_settled=stop_when_settled)
+    ends: list[tuple[float, bool]] = []
+    mp, _, _ = _run("grade3", config, ends)
+    assert mp.start is not None and mp.result is not None
+    t_rel = mp.state.t_release_s
+    assert t_rel is not None and mp.start.t0_s == t_rel
+    assert ends == [(t_rel + config.recovery_max_s, True), (mp.start.t_end_s, True)]
+    if stop_when_settled:
+        assert mp.start.settled and mp.start.t_end_s < t_rel + config.recovery_max_s
+    else:
+        assert mp.start.t_end_s == t_rel + config.recovery_max_s
