@@ -216,8 +216,7 @@ class FrameMeasurer:
         self._writer = writer
         # the capture thread and the loop each have a processor (they keep scratch buffers)
         self._processors: dict[bool, FrameProcessor] = {}
-        self._lock = threading.Lock()  # storing, against stop_storing
-        self._storing = True
+        self._lock = threading.Lock()  # storing, against store_until
         self._store_until_s = math.inf  # frames captured after it are not stored [s]
         self._error: SessionError | None = None
         self._last_commit_wall_s = float("-inf")
@@ -229,15 +228,15 @@ class FrameMeasurer:
     def stop_storing(self) -> None:
         """Store no more frames (the measurement has ended); a frame being stored right
         now is stored before this returns."""
-        with self._lock:
-            self._storing = False
+        self.store_until(-math.inf)
 
     def store_until(self, t_end_s: float) -> None:
         """Store no frame captured after session time ``t_end_s`` [s] (the measurement's
-        end, once known): such a frame is measured for the loop, but neither stored nor
-        offered as a representative frame."""
+        end, once known; a later call can only bring it earlier): such a frame is measured
+        for the loop, but neither stored nor offered as a representative frame. A frame
+        being stored right now is stored before this returns."""
         with self._lock:
-            self._store_until_s = t_end_s
+            self._store_until_s = min(self._store_until_s, t_end_s)
 
     def on_capture(self, raw: RawFrame) -> _Captured:
         """The camera's ``frame_hook``, run in its capture thread as a frame is delivered:
@@ -309,7 +308,7 @@ class FrameMeasurer:
         t_done = self._clock.now()
         error = None
         with self._lock:
-            stored = self._storing and t_capture_s <= self._store_until_s
+            stored = t_capture_s <= self._store_until_s
             if stored:
                 row = (seq, t_capture_s, t_done, s_k, flags)
                 error = self._store(row, image, packet, in_thread)
