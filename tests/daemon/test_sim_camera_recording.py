@@ -111,3 +111,8 @@ def test_the_sessions_frames_end_with_the_recovery_window(tmp_path: Path) -> Non
     assert summary["run"]["frames"] == rows.size
     index = json.loads((session / "frames" / "representative.json").read_text())
     assert {e["seq"] for e in index.values()} <= set(rows["seq"].tolist())
+    # the stored data alone (no frame after the end) give the live results again
+    out = tmp_path / "replay.json"
+    assert main(["analyze", str(session), "--out", str(out), "--quiet"]) == 0
+    replay = json.loads(out.read_text())
+    assert replay["comparison"]["stored_summary"] == {"identical": True, "differences": []}
