@@ -551,12 +551,12 @@ def _release_overrun(state: MachineState, config: MeasurementConfig) -> Result:
 def _recovery_window(state: MachineState, config: MeasurementConfig) -> Result:
     """RECOVERY: the window ends ``recovery_max_s`` after T_0 (ANALYSIS), else a countdown."""
     assert state.t_release_s is not None
-    elapsed_s = state.now_s - state.t_release_s
-    if elapsed_s >= config.recovery_max_s:
-        return _start_analysis(
-            state, state.t_release_s + config.recovery_max_s, config, settled=False
-        )
-    return _prompt(state, _recovery_prompt(elapsed_s, config))
+    # compared with the end time itself, not the elapsed time: (t + w) - t can round below
+    # w, and a tick at the end time (MeasurementPipeline.close) must end the window
+    t_end_s = state.t_release_s + config.recovery_max_s
+    if state.now_s >= t_end_s:
+        return _start_analysis(state, t_end_s, config, settled=False)
+    return _prompt(state, _recovery_prompt(state.now_s - state.t_release_s, config))
 
 
 _WATCHDOGS: Final[tuple[TimerRule, ...]] = (LINK_WATCHDOG, CAMERA_WATCHDOG)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 
@@ -146,3 +148,54 @@ def test_the_end_is_told_at_the_release_and_again_before_the_analysis_runs(
         assert mp.start.settled and mp.start.t_end_s < t_rel + config.recovery_max_s
     else:
         assert mp.start.t_end_s == t_rel + config.recovery_max_s
+
+
+def _released_at_a_rounding_time(window_s: float) -> tuple[MeasurementPipeline, float]:
+    """A pipeline fed a hold at 16 N and the force's drop, released (RECOVERY) at a time
+    t_rel whose (t_rel + window_s) - t_rel < window_s in floating point; the drop time."""
+    cal = Calibration(
+        alpha1_mm_per_px2=1e-7, alpha2_mm_per_px=2.5e-3, c1_px=1500.0, c2_px_per_n=2500.0
+    )
+    config = MeasurementConfig(
+        pitting_duration_s=22.0, recovery_max_s=window_s, stop_when_settled=False
+    )
+    for t_drop in np.arange(23.5, 24.5, 1e-3).tolist():
+        mp = MeasurementPipeline(
+            measurement=config,
+            analysis=AnalysisSettings(),
+            calibration=cal,
+            reference=load_reference(),
+        )
+        mp.arm(0.0)
+        for t in [*np.arange(0.0, t_drop, 0.01).tolist(), *(t_drop + np.arange(0.0, 0.3, 0.01))]:
+            held = t < t_drop
+            mp.force(float(t), 16.0 * min(1.0, float(t)) if held else 0.0)
+            mp.frame(float(t), 1000.0)
+        t_rel = mp.state.t_release_s
+        assert t_rel is not None and mp.phase == Phase.RECOVERY
+        if (t_rel + window_s) - t_rel < window_s:
+            return mp, float(t_drop)
+    raise AssertionError("no release time that rounds")
+
+
+def test_a_recording_that_ends_within_the_slack_completes_the_window_whatever_the_rounding() -> (
+    None
+):
+    """A recording that ends just before the recovery window's end (within
+    ``recovery_end_slack_s``) completes the window, as its note says, also for a release
+    time whose window end minus the release rounds below ``recovery_max_s`` in floating
+    point (about 1 release time in 12 for a 105 s window): the daemon closed such sessions
+    ABORTED, "session closed in recovery", next to "window taken as complete"."""
+    window_s = 105.0
+    mp, t_drop = _released_at_a_rounding_time(window_s)
+    t_rel = mp.state.t_release_s
+    assert t_rel is not None
+    # the recovery recorded up to 4 ms before the window's end
+    for t in (t_drop + np.arange(0.3, window_s - 0.004, 0.01)).tolist():
+        mp.force(t, 0.0)
+        mp.frame(t, 1000.0 + 2000.0 * (1.0 - math.exp(-(t - t_drop) / 8.0)))
+    assert mp.phase == Phase.RECOVERY
+    mp.close(mp.state.now_s)
+    assert any("window taken as complete" in n for n in mp.notes), mp.notes
+    assert mp.phase == Phase.DONE, mp.state.end_reason
+    assert mp.start is not None and mp.start.t_end_s == t_rel + window_s
