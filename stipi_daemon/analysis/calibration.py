@@ -30,7 +30,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import Any, Final
+from typing import Annotated, Any, Final
 
 import numpy as np
 import numpy.typing as npt
@@ -214,13 +214,19 @@ class Calibration:
         Identifier of the probe (e.g. its BLE name).
     created_utc : datetime or None
         When the calibration was made (timezone-aware).
+    frame_size_px : tuple of int or None
+        ``(width, height)`` of the camera frames its S values were counted in [px]. S is a
+        pixel count: at another resolution the same occlusion covers another number of
+        pixels, and Eqs. (4)-(5) give a wrong depth and force with nothing to show it, so
+        the daemon and ``analyze`` refuse a camera or video of another size. None: not
+        recorded (a calibration fitted from pairs without ``--frame-size``).
 
     Raises
     ------
     CalibrationError
         On construction, for a non-finite coefficient, alpha2 <= 0, C2 <= 0, a non-positive
-        indenter length, p outside 0..255, a malformed range, or an S0 range that reaches the
-        vertex of Eq. (4).
+        indenter length, p outside 0..255, a malformed range, an S0 range that reaches the
+        vertex of Eq. (4), or a frame size that is not two positive integers.
     """
 
     alpha1_mm_per_px2: float
@@ -235,6 +241,7 @@ class Calibration:
     force_fit: ForceFit | None = None
     probe_id: str | None = None
     created_utc: datetime | None = None
+    frame_size_px: tuple[int, int] | None = None
 
     def __post_init__(self) -> None:
         _finite("alpha1_mm_per_px2", self.alpha1_mm_per_px2)
@@ -271,6 +278,31 @@ class Calibration:
                 )
         if self.created_utc is not None and self.created_utc.utcoffset() is None:
             raise CalibrationError("field 'created_utc': must be timezone-aware")
+        size = self.frame_size_px
+        if size is not None and not (
+            len(size) == 2
+            and all(not isinstance(v, bool) and isinstance(v, int | np.integer) for v in size)
+            and min(size) > 0
+        ):
+            raise CalibrationError(
+                f"field 'frame_size_px': must be [width, height], two integers > 0 [px], "
+                f"got {size!r}"
+            )
+
+    def frame_size_problem(self, width_px: int, height_px: int, where: str) -> str | None:
+        """Why S counted in ``width_px`` x ``height_px`` frames cannot use this calibration,
+        or None when they can (the same size, or a calibration that records none).
+
+        ``where`` names what has those frames (the camera, a session, a video file).
+        """
+        if self.frame_size_px is None or tuple(self.frame_size_px) == (width_px, height_px):
+            return None
+        w, h = self.frame_size_px
+        return (
+            f"{where} has {width_px}x{height_px} px frames, but the calibration was made at "
+            f"{w}x{h} px (its field 'frame_size_px'): S is a pixel count, so D_p and F_r "
+            "(Eqs. 4-5) would be wrong"
+        )
 
     @property
     def vertex_px(self) -> float:
@@ -656,6 +688,7 @@ def calibration_from_fits(
     *,
     probe_id: str | None = None,
     created_utc: datetime | None = None,
+    frame_size_px: tuple[int, int] | None = None,
 ) -> Calibration:
     """Build a :class:`Calibration` from a depth fit (Eq. (4)) and a force fit (Eq. (5)).
 
@@ -676,6 +709,8 @@ def calibration_from_fits(
         Probe identifier.
     created_utc : datetime or None
         Creation time (timezone-aware); None leaves it to :func:`save_calibration`.
+    frame_size_px : tuple of int or None
+        ``(width, height)`` of the frames the S values were counted in [px].
     """
     return Calibration(
         alpha1_mm_per_px2=depth.alpha1_mm_per_px2,
@@ -690,6 +725,7 @@ def calibration_from_fits(
         force_fit=force,
         probe_id=probe_id,
         created_utc=created_utc,
+        frame_size_px=frame_size_px,
     )
 
 
@@ -743,6 +779,7 @@ class _CalibrationFileV1(_Model):
     force_valid_range_n: tuple[float, float] | None = None
     depth_fit: _DepthFitV1 | None = None
     force_fit: _ForceFitV1 | None = None
+    frame_size_px: tuple[Annotated[int, Field(gt=0)], Annotated[int, Field(gt=0)]] | None = None
 
 
 def _fit_dict(fit: DepthFit | ForceFit) -> dict[str, Any]:
@@ -758,8 +795,9 @@ def save_calibration(path: str | os.PathLike[str], cal: Calibration) -> Path:
 
     The file is JSON with ``"format": "stipi-calibration"``, ``"version": 1``, the
     coefficients under unit-suffixed keys, the valid ranges, the fit reports (if any),
-    ``probe_id`` and ``created_utc`` (the calibration's, or the current UTC time when it
-    has none). An existing file at ``path`` is replaced only once the new one is complete.
+    ``frame_size_px``, ``probe_id`` and ``created_utc`` (the calibration's, or the current
+    UTC time when it has none). An existing file at ``path`` is replaced only once the new
+    one is complete.
 
     Parameters
     ----------
@@ -797,6 +835,7 @@ def save_calibration(path: str | os.PathLike[str], cal: Calibration) -> Path:
         ),
         "depth_fit": None if cal.depth_fit is None else _fit_dict(cal.depth_fit),
         "force_fit": None if cal.force_fit is None else _fit_dict(cal.force_fit),
+        "frame_size_px": None if cal.frame_size_px is None else [int(v) for v in cal.frame_size_px],
     }
     text = json.dumps(doc, indent=2, allow_nan=False) + "\n"
     fd, tmp_name = tempfile.mkstemp(prefix=f".{dest.name}.", suffix=".tmp", dir=dest.parent)
@@ -924,6 +963,7 @@ def load_calibration(path: str | os.PathLike[str]) -> Calibration:
             force_fit=force_fit,
             probe_id=model.probe_id,
             created_utc=model.created_utc,
+            frame_size_px=model.frame_size_px,
         )
     except CalibrationError as exc:
         raise CalibrationError(f"{src}: {exc}") from exc

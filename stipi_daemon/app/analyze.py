@@ -305,6 +305,7 @@ def _cal_dict(cal: Calibration, source: str) -> dict[str, Any]:
         "threshold_p": cal.threshold_p,
         "s0_valid_range_px": pair(cal.s0_valid_range_px),
         "force_valid_range_n": pair(cal.force_valid_range_n),
+        "frame_size_px": None if cal.frame_size_px is None else list(cal.frame_size_px),
         "source": source,
     }
 
@@ -340,6 +341,21 @@ def _status_notes(data: SessionData) -> list[str]:
     if data.summary is None:
         return [f"session status {status} but no summary.json"]
     return []
+
+
+def _check_calibration_size(
+    calibration: Choice[Calibration], size: tuple[int, int] | None, where: str
+) -> None:
+    """:class:`ConfigError` when the calibration was made at another frame size than
+    ``size`` [px] (None: not known), naming where the calibration came from."""
+    if size is None:
+        return
+    problem = calibration.value.frame_size_problem(size[0], size[1], where)
+    if problem is not None:
+        raise ConfigError(
+            f"calibration ({calibration.source}): {problem}; give one made at "
+            f"{size[0]}x{size[1]} px"
+        )
 
 
 def _roi_field(source: str) -> str:
@@ -730,6 +746,7 @@ def replay_session(
         scene=None if truth is None else truth_source(truth, "ground truth", "ground truth"),
     )
     calibration = imaging.need_calibration("no calibration: give --calibration CAL.json")
+    _check_calibration_size(calibration, data.frame_size_px(), f"session {data.session_id}")
     notes = _status_notes(data)
     s_k = None
     imaging_out: dict[str, Any] = {"s_k_source": "session"}
@@ -847,6 +864,7 @@ def analyze_files(request: AnalyzeRequest) -> AnalysisRun:
         roi,
         saturation_limit_fraction=settings.saturation_limit_fraction,
         roi_field=None if imaging.roi is None else _roi_field(imaging.roi.source),
+        check_size=lambda w, h: _check_calibration_size(calibration, (w, h), f"video {video_path}"),
     )
     t, s_k, more = match_frame_times(video, frame_times, str(times_path))
     notes.extend(more)

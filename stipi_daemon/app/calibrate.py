@@ -88,6 +88,9 @@ class CalibrateRequest:
         ROI to count S on a video [px] (None: the whole frame).
     probe_id : str or None
         Probe identifier recorded in the file.
+    frame_size_px : tuple of int or None
+        ``(width, height)`` of the camera frames the S values were counted in [px]
+        (recorded in the file; a recording's own must agree).
     plateau_tolerance_n, plateau_min_s, min_force_n, trim_s : float
         Plateau search: force band [N], shortest plateau [s], lowest mean force [N],
         time cut from each end [s].
@@ -103,6 +106,7 @@ class CalibrateRequest:
     threshold_p: int | None = None
     roi: CircleROI | RectROI | None = None
     probe_id: str | None = None
+    frame_size_px: tuple[int, int] | None = None
     plateau_tolerance_n: float = DEFAULT_PLATEAU_TOLERANCE_N
     plateau_min_s: float = DEFAULT_MIN_PLATEAU_S
     min_force_n: float = DEFAULT_MIN_FORCE_N
@@ -117,6 +121,21 @@ class _Series:
     force_n: FloatArray
     threshold_p: int | None
     what: str
+    frame_size_px: tuple[int, int] | None = None
+
+
+@dataclass
+class _Seen:
+    """What the recordings say about how their S values were counted."""
+
+    thresholds: list[int]
+    sizes: list[tuple[tuple[int, int], str]]
+
+    def add(self, rec: _Series) -> None:
+        if rec.threshold_p is not None:
+            self.thresholds.append(rec.threshold_p)
+        if rec.frame_size_px is not None:
+            self.sizes.append((rec.frame_size_px, rec.what))
 
 
 def _load_recording(
@@ -135,6 +154,7 @@ def _load_recording(
             data.force_n,
             None if p is None else int(p),
             f"session {data.session_id}",
+            data.frame_size_px(),
         )
     video = path / "video.mkv"
     if not path.is_dir() or not video.is_file():
@@ -153,7 +173,9 @@ def _load_recording(
         ft, fn, _ = read_force_csv(path / "force.csv")
     else:
         ft, fn = np.empty(0), np.empty(0)
-    return _Series(t, s, ft, fn, threshold, f"video {video}")
+    h, w = counted.frame_shape[:2]
+    size = (int(w), int(h)) if counted.crop is None else None  # a crop's frame is unknown
+    return _Series(t, s, ft, fn, threshold, f"video {video}", size)
 
 
 def _check_domain(table: CsvTable, problem: tuple[int, str] | None, option: str | None) -> None:
@@ -166,7 +188,7 @@ def _check_domain(table: CsvTable, problem: tuple[int, str] | None, option: str 
 
 
 def _depth_points(
-    request: CalibrateRequest, thresholds: list[int], emit: Emit
+    request: CalibrateRequest, seen: _Seen, emit: Emit
 ) -> tuple[FloatArray, FloatArray]:
     """Eq. (4) points: S_0 [px] and depth change d_s [mm]."""
     if request.depth_pairs is not None:
@@ -180,8 +202,7 @@ def _depth_points(
         return table.columns["s0_px"], table.columns["depth_change_mm"]
     assert request.depth_recording is not None and request.displacements is not None
     rec = _load_recording(request.depth_recording, request.threshold_p, request.roi, False)
-    if rec.threshold_p is not None:
-        thresholds.append(rec.threshold_p)
+    seen.add(rec)
     table = read_csv_table(request.displacements, ["t_start_s", "t_end_s", "depth_change_mm"])
     _check_domain(
         table,
@@ -216,7 +237,7 @@ def _depth_points(
 
 
 def _force_points(
-    request: CalibrateRequest, thresholds: list[int], emit: Emit
+    request: CalibrateRequest, seen: _Seen, emit: Emit
 ) -> tuple[FloatArray, FloatArray]:
     """Eq. (5) points: S [px] and force F [N]."""
     if request.force_pairs is not None:
@@ -226,8 +247,7 @@ def _force_points(
         return table.columns["s_px"], table.columns["force_n"]
     assert request.force_recording is not None
     rec = _load_recording(request.force_recording, request.threshold_p, request.roi, True)
-    if rec.threshold_p is not None:
-        thresholds.append(rec.threshold_p)
+    seen.add(rec)
     plateaus = find_force_plateaus(
         rec.force_t,
         rec.force_n,
@@ -264,6 +284,21 @@ def _threshold(given: int | None, thresholds: list[int]) -> int | None:
     return given
 
 
+def _frame_size(
+    given: tuple[int, int] | None, sizes: list[tuple[tuple[int, int], str]]
+) -> tuple[int, int] | None:
+    """The frame size to record [px]: the given one, else the recordings' (which must
+    agree with each other and with the given one)."""
+    text = "; ".join(f"{w}x{h} px in {what}" for (w, h), what in sizes)
+    if len({size for size, _ in sizes}) > 1:
+        raise CalibrationError(
+            f"the recordings' frames differ in size ({text}): S values are not comparable"
+        )
+    if given is not None and any(size != given for size, _ in sizes):
+        raise CalibrationError(f"--frame-size {given[0]}x{given[1]} differs from {text}")
+    return given if given is not None else (sizes[0][0] if sizes else None)
+
+
 def calibrate(request: CalibrateRequest, emit: Emit) -> tuple[Calibration, Path]:
     """Fit Eqs. (4)-(5) as ``request`` says, write the calibration file and read it back.
 
@@ -275,14 +310,16 @@ def calibrate(request: CalibrateRequest, emit: Emit) -> tuple[Calibration, Path]
     Raises
     ------
     CalibrationError
-        A fit is refused, the recordings' thresholds disagree, or intervals are unusable.
+        A fit is refused, the recordings' thresholds or frame sizes disagree (with each
+        other or with the request's), or intervals are unusable.
     DataFileError, ConfigError
         An input cannot be read or lacks what it needs.
     """
-    thresholds: list[int] = []
-    s0, d_s = _depth_points(request, thresholds, emit)
-    s_px, f_n = _force_points(request, thresholds, emit)
-    threshold = _threshold(request.threshold_p, thresholds)
+    seen = _Seen([], [])
+    s0, d_s = _depth_points(request, seen, emit)
+    s_px, f_n = _force_points(request, seen, emit)
+    threshold = _threshold(request.threshold_p, seen.thresholds)
+    frame_size = _frame_size(request.frame_size_px, seen.sizes)
     try:
         depth_fit = fit_depth_calibration(s0, d_s)
     except CalibrationError as exc:
@@ -297,6 +334,7 @@ def calibrate(request: CalibrateRequest, emit: Emit) -> tuple[Calibration, Path]
         indenter_length_mm=request.indenter_length_mm,
         threshold_p=threshold,
         probe_id=request.probe_id,
+        frame_size_px=frame_size,
     )
     emit("")
     for line in fit_report(cal):
@@ -307,6 +345,11 @@ def calibrate(request: CalibrateRequest, emit: Emit) -> tuple[Calibration, Path]
         emit(
             "warning: no threshold p recorded (--threshold): the daemon will need "
             "imaging.threshold_p, and S values counted with another p are not comparable"
+        )
+    if frame_size is None:
+        emit(
+            "warning: no frame size recorded (--frame-size WxH): the daemon cannot tell a "
+            "camera at another resolution, whose S values are not comparable"
         )
     path = save_calibration(request.out, cal)
     load_calibration(path)  # what was written reads back

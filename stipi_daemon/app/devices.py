@@ -4,10 +4,11 @@ This module owns the daemon's set-up and tear-down of its I/O: :func:`open_devic
 the probe (a :class:`~stipi_daemon.probe.link.ProbeLink` over the configured transport) and
 the camera (a :class:`~stipi_daemon.cameras.stream.CameraStream` over the configured
 source), connects and opens them, checks that the ROI lies within the camera's frame
-(:func:`~stipi_daemon.app.imaging.check_roi_fits`), and only then creates the session
-(:class:`~stipi_daemon.storage.writer.SessionWriter`), so a missing port or camera, or an
-ROI outside the frame, is one clear line and no empty session; :func:`close_devices`
-stops and closes them.
+(:func:`~stipi_daemon.app.imaging.check_roi_fits`) and that the calibration was made at
+the camera's frame size (:meth:`Calibration.frame_size_problem`), and only then creates
+the session (:class:`~stipi_daemon.storage.writer.SessionWriter`), so a missing port or
+camera, an ROI outside the frame or a calibration of another frame size is one clear line
+and no empty session; :func:`close_devices` stops and closes them.
 
 Simulated and replayed devices (emulated probe, simulator camera, paced video file) play
 one scene: they share its time origin on the session clock (:func:`scene_origin`), set
@@ -38,6 +39,7 @@ from stipi_daemon.app.imaging import calibration_record, check_roi_fits
 from stipi_daemon.app.session_metadata import session_metadata
 from stipi_daemon.cameras import CameraStream, open_camera
 from stipi_daemon.clock import ScaledClock
+from stipi_daemon.errors import ConfigError
 from stipi_daemon.measurement.pipeline import MeasurementPipeline
 from stipi_daemon.probe.link import ProbeLink
 from stipi_daemon.probe.transports import TransportConfig, open_transport
@@ -241,9 +243,10 @@ def _create_session(
     threshold_p: int,
     roi: CircleROI | RectROI | None,
     probe: ProbeLink,
+    size: tuple[int, int] | None,
 ) -> SessionWriter:
-    """Create the session: config, calibration record, probe info, software versions,
-    metadata (subject, site, operator, note)."""
+    """Create the session: config, calibration record (with the camera's frame ``size``
+    [px]), probe info, software versions, metadata (subject, site, operator, note)."""
     storage = config.storage
     return SessionWriter.create(
         storage.root,
@@ -253,6 +256,7 @@ def _create_session(
             threshold_p,
             roi,
             str(config.calibration) if config.calibration else "simulated scene",
+            size,
         ),
         probe.info_dict(),
         options=StorageOptions(
@@ -360,13 +364,48 @@ def frame_size(metadata: dict[str, Any]) -> tuple[int, int] | None:
     return None
 
 
-def _check_roi(config: DaemonConfig, camera: CameraStream, roi: CircleROI | RectROI | None) -> None:
-    """:class:`ConfigError` naming the field when the ROI does not fit the camera's frame."""
+def _check_frame(
+    config: DaemonConfig,
+    camera: CameraStream,
+    roi: CircleROI | RectROI | None,
+    calibration: Calibration,
+) -> tuple[int, int] | None:
+    """The camera's frame size [px] (None: it does not say), once the ROI fits it and the
+    calibration was made at it; :class:`ConfigError` naming the field otherwise."""
     size = frame_size(camera.camera.metadata())
-    if size is None or roi is None:
+    if size is None:
+        return None
+    if roi is not None:
+        field = "field 'imaging.roi'" if config.imaging.roi is not None else "the scene's ROI"
+        check_roi_fits(roi, size[0], size[1], field)
+    where = f"field 'calibration' ({config.calibration})" if config.calibration else "the scene"
+    problem = calibration.frame_size_problem(size[0], size[1], "the camera")
+    if problem is not None:
+        w, h = calibration.frame_size_px or size
+        raise ConfigError(
+            f"{where}: {problem}; set the camera to {w}x{h} or calibrate at {size[0]}x{size[1]}"
+        )
+    return size
+
+
+def _warn_unknown_calibration_size(
+    config: DaemonConfig,
+    writer: SessionWriter,
+    calibration: Calibration,
+    size: tuple[int, int],
+    t_s: float,
+) -> None:
+    """Record (event ``calibration_frame_size_unknown`` at session time ``t_s`` [s]) and
+    print that the calibration does not say which frame size it was made at."""
+    if calibration.frame_size_px is not None:
         return
-    field = "field 'imaging.roi'" if config.imaging.roi is not None else "the scene's ROI"
-    check_roi_fits(roi, size[0], size[1], field)
+    reason = (
+        f"the calibration {config.calibration} does not record the frame size it was made "
+        f"at (field 'frame_size_px'): D_p and F_r are right only if that was "
+        f"{size[0]}x{size[1]} px, the camera's (`stipi-daemon calibrate --frame-size`)"
+    )
+    writer.add_event(t_s, "calibration_frame_size_unknown", {"reason": reason, "camera": size})
+    print(f"stipi-daemon: warning: {reason}", file=sys.stderr)
 
 
 async def open_devices(
@@ -398,7 +437,8 @@ async def open_devices(
     Raises
     ------
     StipiError
-        A device cannot be opened, the ROI does not lie within the camera's frame
+        A device cannot be opened, the ROI does not lie within the camera's frame or the
+        calibration was made at another frame size than the camera's
         (:class:`~stipi_daemon.errors.ConfigError` naming the field), or the session
         cannot be created (one line; what was opened is closed again and nothing is
         recorded).
@@ -416,7 +456,7 @@ async def open_devices(
             origin_s = _follow_probe_link(clock, probe)
             camera = _camera_stream(config, clock, origin_s)
         await camera.open()
-        _check_roi(config, camera, roi)
+        size = _check_frame(config, camera, roi, calibration)
     except BaseException:
         if camera is not None:
             with contextlib.suppress(Exception):
@@ -424,11 +464,13 @@ async def open_devices(
         await probe.close()
         raise
     try:
-        writer = _create_session(config, calibration, threshold_p, roi, probe)
+        writer = _create_session(config, calibration, threshold_p, roi, probe, size)
     except BaseException:
         await camera.close()
         await probe.close()
         raise
+    if size is not None:
+        _warn_unknown_calibration_size(config, writer, calibration, size, clock.now())
     if isinstance(probe, SceneStartProbeLink):
         _record_stream_start(writer, probe, origin_s)
     recorder = _video_recorder(

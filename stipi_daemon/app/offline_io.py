@@ -19,7 +19,7 @@ from __future__ import annotations
 import csv
 import json
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -429,6 +429,7 @@ def count_video(
     saturation_limit_fraction: float = 0.01,
     max_frames: int | None = None,
     roi_field: str | None = None,
+    check_size: Callable[[int, int], None] | None = None,
 ) -> VideoCount:
     """Decode a video with OpenCV and count S_k on every frame (Eqs. 1-2).
 
@@ -439,6 +440,8 @@ def count_video(
     exported from a session that stored only the ROI's bounding box (its ``STIPI_CROP``
     tag, :func:`video_crop`) is counted with ``roi``, in camera-frame coordinates, moved
     into that box (:func:`roi_in_video`; an ROI not inside the box, or none, is refused).
+    ``check_size`` is called with the first frame's width and height [px] before anything
+    is counted, when the video stores whole camera frames (it raises to refuse them).
 
     Raises
     ------
@@ -477,6 +480,8 @@ def count_video(
                 break
             if processor is None:
                 size = (int(frame.shape[1]), int(frame.shape[0]))
+                if check_size is not None and crop is None:
+                    check_size(*size)
                 local_roi = roi
                 if crop is not None or roi_field is not None:
                     local_roi = roi_in_video(roi, size, crop, roi_field or "the ROI", p)
@@ -700,6 +705,32 @@ class SessionData:
             t_arm_s=self.t_arm_s,
             link_events=self.link_events,
         )
+
+    def frame_size_px(self) -> tuple[int, int] | None:
+        """``(width, height)`` [px] of the frames the session counted its S_k in: its
+        manifest's calibration record, else (sessions recorded before it was kept there)
+        its summary's camera; None when neither says.
+
+        Raises
+        ------
+        DataFileError
+            The recorded size is not ``[width, height]``, two integers > 0.
+        """
+        size = (self.manifest.get("calibration") or {}).get("frame_size_px")
+        where = f"{self.directory / 'manifest.json'}: field 'calibration.frame_size_px'"
+        if size is None and self.summary is not None:
+            camera = ((self.summary.get("run") or {}).get("camera") or {}).get("source") or {}
+            size = camera.get("size")
+            where = f"{self.directory / 'summary.json'}: field 'run.camera.source.size'"
+        if size is None:
+            return None
+        if not (
+            isinstance(size, list)
+            and len(size) == 2
+            and all(type(v) is int and v > 0 for v in size)
+        ):
+            raise DataFileError(f"{where}: expected [width, height] in px, got {size!r}")
+        return (size[0], size[1])
 
 
 def read_session(directory: str | Path) -> SessionData:

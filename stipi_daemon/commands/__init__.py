@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import re
 from typing import Protocol
 
 
@@ -27,6 +28,16 @@ COMMAND_MODULES: tuple[str, ...] = (
     "simulate",
     "study",
 )
+
+
+def frame_size_arg(text: str) -> tuple[int, int]:
+    """An argparse ``type``: a frame size ``WIDTHxHEIGHT`` [px], both > 0."""
+    m = re.fullmatch(r"\s*(\d+)\s*[xX]\s*(\d+)\s*", text)
+    if m is None or min(int(m.group(1)), int(m.group(2))) == 0:
+        raise argparse.ArgumentTypeError(
+            f"expected WIDTHxHEIGHT in px, both > 0 (e.g. 1280x720), got {text!r}"
+        )
+    return int(m.group(1)), int(m.group(2))
 
 
 def register_all(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:

@@ -31,6 +31,7 @@ from stipi_daemon.analysis.calibration_procedure import (
 )
 from stipi_daemon.app.calibrate import CalibrateRequest, calibrate
 from stipi_daemon.app.offline_io import parse_roi
+from stipi_daemon.commands import frame_size_arg
 from stipi_daemon.errors import ConfigError
 
 
@@ -97,6 +98,13 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         "--roi", metavar="ROI", help="ROI to count S on a video: circle:CX,CY,R, rect:X,Y,W,H, full"
     )
     parser.add_argument("--probe-id", metavar="ID", help="probe identifier recorded in the file")
+    parser.add_argument(
+        "--frame-size",
+        type=frame_size_arg,
+        metavar="WxH",
+        help="camera frame size the S values were counted at [px] (recorded in the file; the "
+        "daemon refuses a camera of another size; a recording's own must agree)",
+    )
     parser.add_argument(
         "--plateau-tolerance",
         type=float,
@@ -167,6 +175,7 @@ def run(args: argparse.Namespace) -> int:
         threshold_p=args.threshold,
         roi=parse_roi(args.roi) if args.roi is not None else None,
         probe_id=args.probe_id,
+        frame_size_px=args.frame_size,
         plateau_tolerance_n=args.plateau_tolerance,
         plateau_min_s=args.plateau_min,
         min_force_n=args.min_force,

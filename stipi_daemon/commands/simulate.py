@@ -8,18 +8,11 @@ stdout is not a TTY or with ``--quiet``) and prints where the files went.
 from __future__ import annotations
 
 import argparse
-import re
 import sys
 from pathlib import Path
 
+from stipi_daemon.commands import frame_size_arg
 from stipi_daemon.errors import ConfigError
-
-
-def _resolution(text: str) -> tuple[int, int]:
-    m = re.fullmatch(r"\s*(\d+)\s*[xX]\s*(\d+)\s*", text)
-    if m is None:
-        raise argparse.ArgumentTypeError(f"expected WIDTHxHEIGHT (e.g. 1280x720), got {text!r}")
-    return int(m.group(1)), int(m.group(2))
 
 
 def _coding(codec: str, jpeg_quality: int | None) -> str:
@@ -42,7 +35,7 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     parser.add_argument("--out", type=Path, required=True, metavar="DIR", help="output directory")
     parser.add_argument("--seed", type=int, default=None, help="random seed (default: scene's)")
     parser.add_argument(
-        "--resolution", type=_resolution, default=None, metavar="WxH", help="frame size override"
+        "--resolution", type=frame_size_arg, default=None, metavar="WxH", help="frame size override"
     )
     parser.add_argument("--fps", type=float, default=None, help="frame rate override [1/s]")
     parser.add_argument("--quiet", action="store_true", help="no progress bar, no summary")

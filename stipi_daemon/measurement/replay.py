@@ -180,8 +180,8 @@ def calibration_from_mapping(data: Mapping[str, Any], where: str) -> Calibration
 
     Reads the coefficient keys of the calibration file (``alpha1_mm_per_px2``,
     ``alpha2_mm_per_px``, ``c1_px``, ``c2_px_per_n``, optional ``indenter_length_mm``,
-    ``threshold_p``, ``s0_valid_range_px``, ``force_valid_range_n``, ``probe_id``); other
-    keys (``source``, ``area_scale``...) are ignored.
+    ``threshold_p``, ``s0_valid_range_px``, ``force_valid_range_n``, ``probe_id``,
+    ``frame_size_px``); other keys (``source``, ``area_scale``...) are ignored.
 
     Raises
     ------
@@ -212,9 +212,19 @@ def calibration_from_mapping(data: Mapping[str, Any], where: str) -> Calibration
             s0_valid_range_px=rng("s0_valid_range_px"),
             force_valid_range_n=rng("force_valid_range_n"),
             probe_id=data.get("probe_id"),
+            frame_size_px=_size(data.get("frame_size_px")),
         )
     except CalibrationError as exc:
         raise CalibrationError(f"{where}: {exc}") from None
+
+
+def _size(value: Any) -> tuple[int, int] | None:
+    """A recorded ``[width, height]`` as a tuple (the calibration checks its values)."""
+    if value is None:
+        return None
+    if not isinstance(value, Sequence) or isinstance(value, str) or len(value) != 2:
+        raise CalibrationError(f"field 'frame_size_px' must be [width, height], got {value!r}")
+    return (value[0], value[1])
 
 
 # --------------------------------------------------------------------------------------------

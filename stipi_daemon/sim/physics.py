@@ -52,7 +52,8 @@ def scaled_calibration(scene: Scene) -> tuple[Calibration, float]:
     """The scene's calibration in the rendered resolution's pixel units.
 
     The waveguide image scales with the frame height; areas scale with r = (H / H_ref)^2:
-    alpha1' = alpha1 / r^2, alpha2' = alpha2 / r, C1' = r C1, C2' = r C2.
+    alpha1' = alpha1 / r^2, alpha2' = alpha2 / r, C1' = r C1, C2' = r C2. Its
+    ``frame_size_px`` is the scene camera's frame size.
 
     Returns
     -------
@@ -69,6 +70,7 @@ def scaled_calibration(scene: Scene) -> tuple[Calibration, float]:
             c2_px_per_n=cal.c2_px_per_n * r,
             indenter_length_mm=scene.indenter.length_mm,
             threshold_p=scene.probe.threshold,
+            frame_size_px=(scene.camera.width, scene.camera.height),
         ),
         r,
     )

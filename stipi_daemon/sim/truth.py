@@ -234,6 +234,7 @@ def ground_truth(
             "threshold_p": scene.probe.threshold,
             "area_scale": m.area_scale,
             "reference_resolution": list(scene.probe.calibration.reference_resolution),
+            "frame_size_px": [cam.width, cam.height],
         },
         roi=dict(roi),
         frame={

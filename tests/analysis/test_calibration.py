@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import os
@@ -169,6 +170,10 @@ def test_eq5_inverse_round_trip(c1: float, c2: float, force: float) -> None:
         ({"s0_valid_range_px": (0.0, 1e6)}, "reaches the vertex"),
         ({"force_valid_range_n": (0.0, math.nan)}, "field 'force_valid_range_n'"),
         ({"created_utc": datetime(2024, 1, 1)}, "timezone-aware"),
+        ({"frame_size_px": (640, 0)}, "field 'frame_size_px': must be .width, height., two"),
+        ({"frame_size_px": (640.0, 480)}, "field 'frame_size_px'"),
+        ({"frame_size_px": (True, 480)}, "field 'frame_size_px'"),
+        ({"frame_size_px": (640,)}, "field 'frame_size_px'"),
     ],
 )
 def test_calibration_rejects_bad_coefficients(changes: dict[str, Any], words: str) -> None:
@@ -347,6 +352,24 @@ def test_save_load_round_trip(tmp_path: Path) -> None:
     assert [p.name for p in tmp_path.iterdir()] == ["calib.json"]  # no temp file left
 
 
+def test_the_frame_size_round_trips_and_is_checked_against_a_frames_size(
+    tmp_path: Path,
+) -> None:
+    """``frame_size_px`` is written, read back and compared: the same size or a
+    calibration that records none passes; another size gives a line naming both."""
+    cal = dataclasses.replace(fitted_calibration(), frame_size_px=(640, 480))
+    path = save_calibration(tmp_path / "calib.json", cal)
+    assert json.loads(path.read_text())["frame_size_px"] == [640, 480]
+    assert load_calibration(path) == cal
+    assert cal.frame_size_problem(640, 480, "the camera") is None
+    assert dataclasses.replace(cal, frame_size_px=None).frame_size_problem(9, 9, "x") is None
+    for w, h in ((1280, 720), (480, 640), (640, 481)):
+        problem = cal.frame_size_problem(w, h, "the camera")
+        assert problem is not None
+        assert problem.startswith(f"the camera has {w}x{h} px frames, but the calibration")
+        assert "made at 640x480 px" in problem
+
+
 def test_save_fills_created_timestamp_and_minimal_file_loads(tmp_path: Path) -> None:
     cal = example_calibration()
     path = save_calibration(tmp_path / "c.json", cal)
@@ -418,6 +441,9 @@ def _set_fit(key: str, value: Any) -> Any:
         (_set("s0_valid_range_px", [0.0, 1e9]), "reaches the vertex"),
         (_set_fit("n_points", 11), "field 'depth_fit.residuals': 10 residuals but n_points = 11"),
         (_set_fit("correlation", 1.5), "field 'depth_fit.correlation': must be <= 1"),
+        (_set("frame_size_px", [640, 0]), "field 'frame_size_px.1': must be > 0 (got 0)"),
+        (_set("frame_size_px", [640, 480.5]), "field 'frame_size_px.1'"),
+        (_set("frame_size_px", [640]), "field 'frame_size_px.1': missing"),
     ],
 )
 def test_load_rejects_bad_files(tmp_path: Path, mutate: Any, words: str) -> None:

@@ -8,15 +8,17 @@ the device: no V4L2 device exists here), as the driver's granted size is read at
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import cv2
 import pytest
 import yaml
 
+from stipi_daemon.analysis.calibration import Calibration, load_calibration, save_calibration
 from stipi_daemon.analysis.imaging import CircleROI, RectROI
 from stipi_daemon.app.config import load_config
-from stipi_daemon.app.devices import _check_roi, delivers_jpeg_packets, frame_size
+from stipi_daemon.app.devices import _check_frame, delivers_jpeg_packets, frame_size
 from stipi_daemon.cameras import (
     CameraStream,
     SimulatorCameraConfig,
@@ -31,6 +33,10 @@ from tests.cameras._video import frame_image, write_avi
 from tests.conftest import REPO_ROOT
 
 SCENES = REPO_ROOT / "configs" / "scenes"
+#: A calibration that records no frame size (the paper's coefficients at 640x480).
+_CAL = Calibration(
+    alpha1_mm_per_px2=1.42e-7, alpha2_mm_per_px=2.556e-3, c1_px=1500.0, c2_px_per_n=2500.0
+)
 
 
 def _v4l2_camera(avi: Path) -> V4L2Camera:
@@ -86,11 +92,34 @@ def test_roi_off_a_v4l2_cameras_frame_is_a_config_error(
     stream = CameraStream(_v4l2_camera(avi), ScaledClock())
     config = load_config(_config(tmp_path, imaging={"roi": roi.model_dump(mode="json")}))
     with pytest.raises(ConfigError) as info:
-        _check_roi(config, stream, roi)
+        _check_frame(config, stream, roi, _CAL)
     line = str(info.value)
     assert line.startswith("field 'imaging.roi': ") and "\n" not in line
     assert f"lies {where} the 320x240 frame" in line
-    _check_roi(config, stream, RectROI(x_px=0, y_px=0, width_px=320, height_px=240))  # fits
+    fits = RectROI(x_px=0, y_px=0, width_px=320, height_px=240)
+    assert _check_frame(config, stream, fits, _CAL) == (320, 240)
+
+
+def test_a_calibration_made_at_another_size_than_the_driver_granted_is_a_config_error(
+    tmp_path: Path,
+) -> None:
+    """The camera was asked for 640x480 and the driver granted 320x240: a calibration
+    made at 640x480 would turn the smaller frames' S into a wrong D_p and F_r. One line
+    naming the calibration file and both sizes; at the granted size it passes."""
+    avi = tmp_path / "granted.avi"
+    write_avi(avi, 3, width=320, height=240)
+    stream = CameraStream(_v4l2_camera(avi), ScaledClock())
+    path = save_calibration(tmp_path / "cal.json", replace(_CAL, frame_size_px=(640, 480)))
+    config = load_config(_config(tmp_path, calibration=str(path)))
+    with pytest.raises(ConfigError) as info:
+        _check_frame(config, stream, None, load_calibration(path))
+    line = str(info.value)
+    assert "\n" not in line
+    assert line.startswith(f"field 'calibration' ({path}): the camera has 320x240 px frames")
+    assert "made at 640x480 px" in line and "set the camera to 640x480" in line
+    granted = replace(_CAL, frame_size_px=(320, 240))
+    assert _check_frame(config, stream, None, granted) == (320, 240)
+    assert _check_frame(config, stream, None, _CAL) == (320, 240)  # no size recorded: passes
 
 
 async def test_which_cameras_deliver_jpeg_packets(tmp_path: Path) -> None:

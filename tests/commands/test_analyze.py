@@ -318,6 +318,44 @@ def test_refusals_are_one_line(
     assert "no calibration: give --calibration CAL.json" in err
 
 
+def test_a_calibration_made_at_another_frame_size_is_refused(
+    session_dir: Path, sim_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A session records the size its S_k were counted at (the manifest's calibration
+    record); a video has its own. ``--calibration`` made at another size is refused in one
+    line naming the calibration and both sizes, before anything is written."""
+    manifest = json.loads((session_dir / "manifest.json").read_text())
+    assert manifest["calibration"]["frame_size_px"] == [640, 480]
+    cal, _ = scaled_calibration(load_scene(short_scene(tmp_path)))
+    cal_path = save_calibration(
+        tmp_path / "cal.json", dataclasses.replace(cal, frame_size_px=(1280, 720))
+    )
+    out = tmp_path / "never.json"
+    err = _error(
+        capsys,
+        ["analyze", str(session_dir), "--calibration", str(cal_path), "--out", str(out)],
+    )
+    session_id = manifest["session_id"]
+    assert (
+        f"calibration ({cal_path}): session {session_id} has 640x480 px frames, but the "
+        "calibration was made at 1280x720 px"
+    ) in err
+    assert err.endswith("give one made at 640x480 px")
+    video = sim_dir / "video.mkv"
+    argv = ["analyze", "--video", str(video), "--force", str(sim_dir / "force.csv")]
+    err = _error(capsys, [*argv, "--calibration", str(cal_path), "--out", str(out)])
+    assert f"calibration ({cal_path}): video {video} has 640x480 px frames" in err
+    assert not out.exists()
+    # Made at the session's size, or recording none: analysed.
+    for size in ((640, 480), None):
+        save_calibration(cal_path, dataclasses.replace(cal, frame_size_px=size))
+        argv = ["analyze", str(session_dir), "--calibration", str(cal_path)]
+        assert main([*argv, "--out", str(out), "--overwrite"]) == 0
+        recorded = json.loads(out.read_text())["settings"]["calibration"]["frame_size_px"]
+        assert recorded == (None if size is None else [640, 480])
+    capsys.readouterr()
+
+
 def test_session_keeps_the_calibration_extrapolated_flag_the_live_run_set(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

@@ -128,24 +128,37 @@ def test_example_files_agree_with_the_scene_calibration(
 
 
 def _recording_session(root: Path, name: str, frames: list[tuple[float, float]],
-                       force: list[tuple[float, float]]) -> Path:  # fmt: skip
+                       force: list[tuple[float, float]],
+                       size: list[int] | None = None,
+                       summary_size: list[int] | None = None) -> Path:  # fmt: skip
+    """A session as the daemon records one; ``size``: the manifest's calibration record's
+    ``frame_size_px`` (None: a session recorded before it was kept), ``summary_size``: its
+    summary's camera size (``run.camera.source.size``)."""
+    record: dict[str, object] = {"threshold_p": 128}
+    if size is not None:
+        record["frame_size_px"] = size
     with SessionWriter.create(
         root,
         {"imaging": {"threshold_p": 128}},
-        {"threshold_p": 128},
+        record,
         None,
         session_id=name,
         options=StorageOptions(min_free_bytes=0),
     ) as w:
         w.add_force_samples([(i, 0, i, i, t, f) for i, (t, f) in enumerate(force)])
         w.add_frames([(i, t, t, round(s), "") for i, (t, s) in enumerate(frames)])
-        w.finish("complete", {})
+        camera = {"source": {"size": summary_size}} if summary_size is not None else {}
+        w.finish("complete", {"run": {"camera": camera}})
     return root / name
 
 
-def test_calibration_from_recorded_sessions(
-    tmp_path: Path, capsys: pytest.CaptureFixture[str]
-) -> None:
+def _recordings(
+    tmp_path: Path,
+    depth_size: list[int] | None,
+    force_size: list[int] | None,
+    force_summary_size: list[int] | None = None,
+) -> list[str]:
+    """A depth run and a force run recorded as sessions; the calibrate arguments for them."""
     rng = np.random.default_rng(4)
     # Force run: plateaus at 4..20 N; S follows Eq. (5) with 60 px of noise per frame.
     t, f = staircase([4.0, 8.0, 12.0, 16.0, 20.0])
@@ -153,7 +166,12 @@ def test_calibration_from_recorded_sessions(
     ft = np.arange(0.0, t[-1], 1 / 30)
     s = SCENE.c1_px + SCENE.c2_px_per_n * np.interp(ft, t, f) + rng.normal(0, 60.0, ft.size)
     force_dir = _recording_session(
-        tmp_path, "force-run", list(zip(ft, s, strict=True)), list(zip(t, fn, strict=True))
+        tmp_path,
+        "force-run",
+        list(zip(ft, s, strict=True)),
+        list(zip(t, fn, strict=True)),
+        force_size,
+        force_summary_size,
     )
     # Depth run: the indenter held at 8 known displacements, 2 s each, 1 s moves between.
     d = np.linspace(3.0, 10.0, 8)
@@ -163,23 +181,69 @@ def test_calibration_from_recorded_sessions(
         marks.append(f"{a + 0.2},{a + 1.8},{dk}")
         for tt in np.arange(a, a + 2.0, 1 / 30):
             rows.append((tt, SCENE.s0_for_depth_change(dk) + rng.normal(0.0, 20.0)))
-    depth_dir = _recording_session(tmp_path, "depth-run", rows, [(0.0, 0.0)])
+    depth_dir = _recording_session(tmp_path, "depth-run", rows, [(0.0, 0.0)], depth_size)
     marks_csv = tmp_path / "displacements.csv"
     marks_csv.write_text("\n".join(marks) + "\n")
-    out = tmp_path / "rec.json"
     argv = ["calibrate", "--depth-recording", str(depth_dir), "--displacements", str(marks_csv)]
-    argv += ["--force-recording", str(force_dir), "--out", str(out)]
+    return [*argv, "--force-recording", str(force_dir)]
+
+
+def test_calibration_from_recorded_sessions(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = tmp_path / "rec.json"
+    argv = [*_recordings(tmp_path, [640, 480], [640, 480]), "--out", str(out)]
     assert main(argv) == 0
     text = capsys.readouterr().out
     assert "Eq. (4): 8 displacement(s) from session depth-run" in text
     assert "Eq. (5): 5 force plateau(s) found in session force-run" in text
     cal = load_calibration(out)
     assert cal.threshold_p == 128  # taken from the sessions
+    assert cal.frame_size_px == (640, 480)  # likewise
     assert cal.alpha2_mm_per_px == pytest.approx(SCENE.alpha2_mm_per_px, rel=0.01)
     assert cal.c1_px == pytest.approx(SCENE.c1_px, abs=150.0)
     assert cal.c2_px_per_n == pytest.approx(SCENE.c2_px_per_n, rel=0.01)
     assert cal.force_valid_range_n is not None
     assert cal.force_valid_range_n == pytest.approx((4.0, 20.0), abs=0.05)
+
+
+def test_the_frame_size_comes_from_the_option_or_the_recordings_and_must_agree(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """S is a pixel count, so a calibration belongs to one frame size: ``--frame-size`` or
+    the recordings' (manifest, else the summary's camera) is written into the file, and
+    sizes that disagree are refused in one line, nothing written."""
+    depth, force = _pairs(tmp_path, SCENE)
+    pairs = ["calibrate", "--depth-pairs", str(depth), "--force-pairs", str(force)]
+    out = tmp_path / "c.json"
+    assert main([*pairs, "--frame-size", "640x480", "--out", str(out)]) == 0
+    assert "no frame size recorded" not in capsys.readouterr().out
+    assert load_calibration(out).frame_size_px == (640, 480)
+    assert main([*pairs, "--out", str(out), "--overwrite"]) == 0
+    assert "warning: no frame size recorded (--frame-size WxH)" in capsys.readouterr().out
+    assert load_calibration(out).frame_size_px is None
+    with pytest.raises(SystemExit) as info:
+        main([*pairs, "--frame-size", "640x0", "--out", str(tmp_path / "z.json")])
+    assert info.value.code == 2
+    assert "expected WIDTHxHEIGHT in px, both > 0" in capsys.readouterr().err
+
+    out = tmp_path / "rec.json"
+    mixed = _recordings(tmp_path / "mixed", [1280, 720], [640, 480])
+    err = _err(capsys, [*mixed, "--out", str(out)])
+    assert (
+        "the recordings' frames differ in size (1280x720 px in session depth-run; 640x480 px "
+        "in session force-run): S values are not comparable"
+    ) in err
+    same = _recordings(tmp_path / "same", [640, 480], None)  # force run: not recorded
+    err = _err(capsys, [*same, "--frame-size", "320x240", "--out", str(out)])
+    assert "--frame-size 320x240 differs from 640x480 px in session depth-run" in err
+    assert not out.exists()
+    assert main([*same, "--out", str(out)]) == 0
+    assert load_calibration(out).frame_size_px == (640, 480)
+    # A session recorded before the manifest kept it: its summary's camera says.
+    older = _recordings(tmp_path / "older", None, None, [320, 240])
+    err = _err(capsys, [*older, "--frame-size", "640x480", "--out", str(tmp_path / "o.json")])
+    assert "--frame-size 640x480 differs from 320x240 px in session force-run" in err
 
 
 def _err(capsys: pytest.CaptureFixture[str], argv: list[str]) -> str:

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import subprocess
 import sys
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -102,6 +103,29 @@ def test_unreadable_camera(
         },
     )
     assert_one_line_error(proc, needle)
+    assert not (tmp_path / "sessions").exists()
+
+
+def test_a_calibration_made_at_another_frame_size_is_a_config_error_before_recording(
+    tmp_path: Path,
+) -> None:
+    """S is a pixel count: the scene's calibration, exact at 640x480, read at 1280x720
+    gave D_p and F_r from areas four times as large, with nothing to show it. A
+    calibration that records its frame size is checked against the camera's once it is
+    open: one line naming the field and both sizes, exit 2, nothing recorded."""
+    cal, _ = scaled_calibration(load_scene(SCENE))
+    assert cal.frame_size_px == (640, 480)  # the scene's camera
+    path = save_calibration(tmp_path / "cal_720p.json", replace(cal, frame_size_px=(1280, 720)))
+    proc = run_cli(
+        tmp_path,
+        {"probe": {"transport": EMULATED}, "camera": SIMULATOR, "calibration": str(path)},
+    )
+    assert_one_line_error(
+        proc,
+        f"field 'calibration' ({path}): the camera has 640x480 px frames, but the "
+        "calibration was made at 1280x720 px",
+        "set the camera to 1280x720 or calibrate at 640x480",
+    )
     assert not (tmp_path / "sessions").exists()
 
 
