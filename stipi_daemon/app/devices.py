@@ -141,14 +141,15 @@ class SceneStartProbeLink(ProbeLink):
 
     stream_start_at_s: float | None = None
     """Session time to send the first STREAM_START at [s] (None: at once)."""
-    on_stream_start: Callable[[float, float], None] | None = None
-    """Called with the scheduled and the actual session time of that STREAM_START [s]."""
+    on_stream_start: Callable[[float, float, bool], None] | None = None
+    """Called with the scheduled and the actual session time of that STREAM_START [s] and
+    whether the probe acknowledged it (False: the link was down or went down before the
+    ACK; the probe may then have started its scene only with the reconnection's)."""
 
-    async def start_stream(self) -> None:
+    async def start_stream(self) -> bool:
         at, self.stream_start_at_s = self.stream_start_at_s, None
         if at is None:
-            await super().start_stream()
-            return
+            return await super().start_stream()
         # A timer wakes the loop late on a busy host (milliseconds of wall time, times the
         # clock's speed): sleep to just before the instant, then yield until it comes.
         clock = self.clock
@@ -156,9 +157,10 @@ class SceneStartProbeLink(ProbeLink):
         while clock.now() < at:
             await asyncio.sleep(0)
         sent_s = clock.now()
-        await super().start_stream()
+        acknowledged = await super().start_stream()
         if self.on_stream_start is not None:
-            self.on_stream_start(at, sent_s)
+            self.on_stream_start(at, sent_s, acknowledged)
+        return acknowledged
 
 
 def plays_scene_from_stream_start(config: DaemonConfig) -> bool:
@@ -493,20 +495,27 @@ def _record_stream_start(
     Event ``stream_start``: the camera's scene origin, the scheduled and the actual session
     time of STREAM_START [s]; ``late_s`` > 0 shifts the probe's scene after the camera's by
     that much (the release's image/force check flags more than a few frame periods).
+    ``acknowledged`` false: the link was down or went down before the probe's ACK, so the
+    probe may have started its scene only with the STREAM_START of the reconnection, later
+    than ``sent_s`` by an amount not known here (``note`` says so).
     """
 
-    def record(at_s: float, sent_s: float) -> None:
-        writer.add_event(
-            sent_s,
-            "stream_start",
-            {
-                "scene_origin_s": origin_s,
-                "scheduled_s": at_s,
-                "sent_s": sent_s,
-                "late_s": sent_s - at_s,
-                "rule": "the probe plays its scene from STREAM_START (docs/bench.md)",
-            },
-        )
+    def record(at_s: float, sent_s: float, acknowledged: bool) -> None:
+        detail: dict[str, object] = {
+            "scene_origin_s": origin_s,
+            "scheduled_s": at_s,
+            "sent_s": sent_s,
+            "late_s": sent_s - at_s,
+            "acknowledged": acknowledged,
+            "rule": "the probe plays its scene from STREAM_START (docs/bench.md)",
+        }
+        if not acknowledged:
+            detail["note"] = (
+                "the link went down before the probe acknowledged STREAM_START: its scene "
+                "started with this STREAM_START or the reconnection's, so late_s is a lower "
+                "bound (the release's image/force check flags a larger shift)"
+            )
+        writer.add_event(sent_s, "stream_start", detail)
 
     probe.on_stream_start = record
 

@@ -428,8 +428,9 @@ class ProbeLink:
         )
         return info
 
-    async def start_stream(self) -> None:
-        """Ask the probe to stream, now and after every reconnect.
+    async def start_stream(self) -> bool:
+        """Ask the probe to stream, now and after every reconnect; whether the probe
+        acknowledged this STREAM_START (False: only the wish is recorded).
 
         While the link is down this only records the wish; the reconnection starts the stream.
         So does a link that goes down while STREAM_START waits for its ACK (a BLE drop at that
@@ -445,7 +446,7 @@ class ProbeLink:
         """
         self._want_stream = True
         if not self._up:
-            return
+            return False
         lost = self._lost
         try:
             await self._command_ok(StreamStart())
@@ -457,6 +458,8 @@ class ProbeLink:
             if not lost.done():  # the link is up and the probe did not answer
                 raise
             # the link went down meanwhile (LinkDown is queued): its return starts the stream
+            return False
+        return True
 
     async def stop_stream(self) -> None:
         """Ask the probe to stop streaming (and not to stream after a reconnect)."""

@@ -5,6 +5,7 @@ from __future__ import annotations
 import asyncio
 import statistics
 
+from stipi_daemon.app.devices import SceneStartProbeLink
 from stipi_daemon.clock import ScaledClock
 from stipi_daemon.probe.link import ProbeLink
 from stipi_daemon.probe.transports import open_transport
@@ -16,7 +17,11 @@ from .conftest import SCENES, ProbeRecorder, check_accounting_against_ledger
 
 
 async def _start(
-    radio: VirtualRadio, speed: float, *, stream: bool = True
+    radio: VirtualRadio,
+    speed: float,
+    *,
+    stream: bool = True,
+    link_type: type[ProbeLink] = ProbeLink,
 ) -> tuple[ProbeRecorder, BleTransport, ScaledClock]:
     clock = ScaledClock(speed)
     cfg = BleTransportConfig(
@@ -27,7 +32,7 @@ async def _start(
     )
     transport = open_transport(cfg, clock)
     assert isinstance(transport, BleTransport)
-    probe = ProbeLink(
+    probe = link_type(
         transport,
         clock=clock,
         heartbeat_timeout_s=2.0,
@@ -128,3 +133,44 @@ async def test_a_drop_while_stream_start_waits_for_its_ack_starts_the_stream_on_
         await rec.stop()
     assert len(drops) == 1 and await drops[0]
     assert len(rec.downs) == 1 and not rec.gaps  # nothing was streamed before the drop
+
+
+async def _scheduled_start(radio: VirtualRadio, drop: bool) -> tuple[float, float, bool]:
+    """A scheduled STREAM_START (the radio drops the link as it is written, if ``drop``),
+    then 20 rows streamed; what ``on_stream_start`` was told."""
+    rec, transport, clock = await _start(radio, 4.0, stream=False, link_type=SceneStartProbeLink)
+    probe = rec.probe
+    assert isinstance(probe, SceneStartProbeLink)
+    seen: list[tuple[float, float, bool]] = []
+    probe.on_stream_start = lambda at, sent, ack: seen.append((at, sent, ack))
+    probe.stream_start_at_s = clock.now() + 0.2
+    peripheral = transport.emulator.peripheral
+    deliver = peripheral.on_receive
+    drops: list[asyncio.Task[bool]] = []
+
+    def drop_instead(data: bytes) -> None:
+        peripheral.on_receive = deliver
+        drops.append(asyncio.get_running_loop().create_task(peripheral.drop_link()))
+
+    if drop:
+        peripheral.on_receive = drop_instead
+    try:
+        assert await probe.start_stream() is not drop
+        await rec.until(lambda: rec.rows_since_up >= 20)
+    finally:
+        await rec.stop()
+    assert len(drops) == int(drop) and all([await d for d in drops])
+    (call,) = seen
+    return call
+
+
+async def test_a_scheduled_stream_start_says_whether_the_probe_acknowledged_it(
+    radio: VirtualRadio,
+) -> None:
+    """The daemon's scheduled STREAM_START (a probe that plays its scene from it) reports
+    whether the probe's ACK came: the session's ``stream_start`` event must not present the
+    time of a STREAM_START the radio dropped as the probe's scene start."""
+    at, sent, ack = await _scheduled_start(radio, drop=False)
+    assert ack and sent >= at
+    at, sent, ack = await _scheduled_start(radio, drop=True)
+    assert not ack and sent >= at

@@ -276,6 +276,7 @@ def test_a_whole_measurement_over_the_loopback_radio_matches_the_in_process_prob
     origin_s = bench.camera_origin_s
     assert start["scene_origin_s"] == origin_s
     assert start["scheduled_s"] < start["sent_s"] and start["scheduled_s"] < origin_s
+    assert start["acknowledged"] is True
     assert not [kind for _, kind, _ in reference.events if kind == "stream_start"]
     assert bench.force[0, 0] == 0  # the mock's first sample is its scene time 0
     offset_s = _first_sample_on_converged_map_s(bench) - origin_s

@@ -140,6 +140,7 @@ def _check_stream_start(run: Run, inbound_s: float = 0.0) -> float:
     assert start["scene_origin_s"] == origin_s
     assert start["scheduled_s"] == pytest.approx(origin_s - 1.0 / RATE_HZ)
     assert start["late_s"] == pytest.approx(start["sent_s"] - start["scheduled_s"])
+    assert start["acknowledged"] is True and "note" not in start
     after_sent_s = run.first_s - (start["sent_s"] + inbound_s + 1.0 / RATE_HZ)
     assert -1e-3 < after_sent_s < TRANSIT_S, (run.first_s, start)
     return run.first_s - float(origin_s)
