@@ -11,6 +11,7 @@ from stipi_daemon.probe.link import ProbeLink
 from stipi_daemon.probe.transports import open_transport
 from stipi_daemon.probe.transports.ble import BleEmulationConfig, BleTransport, BleTransportConfig
 from stipi_daemon.sim.ble.module import NotificationFaults
+from stipi_daemon.sim.ble.peripheral import NusPeripheral
 from stipi_daemon.sim.ble.radio import VirtualRadio
 
 from .conftest import SCENES, ProbeRecorder, check_accounting_against_ledger
@@ -110,14 +111,9 @@ async def test_probe_disappears_and_comes_back(radio: VirtualRadio) -> None:
     assert len(rec.gaps) == 1
 
 
-async def test_a_drop_while_stream_start_waits_for_its_ack_starts_the_stream_on_return(
-    radio: VirtualRadio,
-) -> None:
-    # the radio drops the connection as STREAM_START is written (the probe never sees it):
-    # start_stream() returns, as while the link is down, and the reconnection starts the
-    # stream; before, the daemon's start failed with "disconnected by the peripheral"
-    rec, transport, _clock = await _start(radio, 4.0, stream=False)
-    peripheral = transport.emulator.peripheral
+def _drop_on_next_write(peripheral: NusPeripheral) -> list[asyncio.Task[bool]]:
+    """Make the radio drop the connection as the host's next write arrives (the probe never
+    sees it); the drop's task, once it is started."""
     deliver = peripheral.on_receive
     drops: list[asyncio.Task[bool]] = []
 
@@ -126,6 +122,17 @@ async def test_a_drop_while_stream_start_waits_for_its_ack_starts_the_stream_on_
         drops.append(asyncio.get_running_loop().create_task(peripheral.drop_link()))
 
     peripheral.on_receive = drop_instead
+    return drops
+
+
+async def test_a_drop_while_stream_start_waits_for_its_ack_starts_the_stream_on_return(
+    radio: VirtualRadio,
+) -> None:
+    # the radio drops the connection as STREAM_START is written (the probe never sees it):
+    # start_stream() returns, as while the link is down, and the reconnection starts the
+    # stream; before, the daemon's start failed with "disconnected by the peripheral"
+    rec, transport, _clock = await _start(radio, 4.0, stream=False)
+    drops = _drop_on_next_write(transport.emulator.peripheral)
     try:
         await rec.probe.start_stream()
         await rec.until(lambda: len(rec.ups) >= 2 and rec.rows_since_up >= 20)
@@ -144,16 +151,7 @@ async def _scheduled_start(radio: VirtualRadio, drop: bool) -> tuple[float, floa
     seen: list[tuple[float, float, bool]] = []
     probe.on_stream_start = lambda at, sent, ack: seen.append((at, sent, ack))
     probe.stream_start_at_s = clock.now() + 0.2
-    peripheral = transport.emulator.peripheral
-    deliver = peripheral.on_receive
-    drops: list[asyncio.Task[bool]] = []
-
-    def drop_instead(data: bytes) -> None:
-        peripheral.on_receive = deliver
-        drops.append(asyncio.get_running_loop().create_task(peripheral.drop_link()))
-
-    if drop:
-        peripheral.on_receive = drop_instead
+    drops = _drop_on_next_write(transport.emulator.peripheral) if drop else []
     try:
         assert await probe.start_stream() is not drop
         await rec.until(lambda: rec.rows_since_up >= 20)
