@@ -109,8 +109,8 @@ def test_unreadable_camera(
 def test_a_calibration_made_at_another_frame_size_is_a_config_error_before_recording(
     tmp_path: Path,
 ) -> None:
-    """S is a pixel count: the scene's calibration, exact at 640x480, read at 1280x720
-    gave D_p and F_r from areas four times as large, with nothing to show it. A
+    """S is a pixel count: frames of 1280x720 read with the scene's calibration, exact at
+    640x480, would give D_p and F_r from areas 2.25 times as large, unflagged. A
     calibration that records its frame size is checked against the camera's once it is
     open: one line naming the field and both sizes, exit 2, nothing recorded."""
     cal, _ = scaled_calibration(load_scene(SCENE))
