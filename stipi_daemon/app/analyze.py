@@ -84,6 +84,7 @@ __all__ = [
     "OUTPUT_FORMAT",
     "OUTPUT_VERSION",
     "S_K_NOT_REPRODUCED",
+    "THRESHOLD_NOT_CALIBRATED",
     "AnalysisRun",
     "AnalyzeRequest",
     "analyze",
@@ -103,6 +104,14 @@ EXIT_S_K_NOT_REPRODUCED = 3
 #: Validity flag of the quantities computed from S_k when the recount does not reproduce
 #: or cover the stored S_k (``settings.imaging.s_k_vs_stored.problem`` says how).
 S_K_NOT_REPRODUCED = "s_k_not_reproduced"
+#: Validity flag of the calibrated quantities (D_p, F_r by Eqs. 4-5, and E, eta and the
+#: severity from them) when S_k were counted with another threshold p than the one the
+#: calibration was made with (``analyze --threshold`` exploring another p, or a
+#: ``--calibration`` made with another p than the session counted with): the S values of
+#: Eqs. 4-5 and these S_k do not compare.
+THRESHOLD_NOT_CALIBRATED = "threshold_not_calibrated"
+#: The quantities that go through the calibration.
+_CALIBRATED = ("depth_mm", "rebound_force_n", "elasticity_kpa", "viscosity_n_s_per_mm2", "severity")
 
 _NO_THRESHOLD = "no threshold p for Eq. (1): give --threshold P (or a calibration with threshold_p)"
 
@@ -608,15 +617,21 @@ def _recount_line(check: Mapping[str, Any]) -> str:
     return f"{line}: the results are flagged"
 
 
-def _flag_recount(summary: dict[str, Any], problem: str) -> None:
-    """Flag the quantities computed from S_k and the verdict of ``summary`` (in place)
-    with ``problem``: a recount that did not reproduce or cover the stored S_k."""
+def _flag_recount(
+    summary: dict[str, Any],
+    problem: str,
+    flag: str = S_K_NOT_REPRODUCED,
+    quantities: tuple[str, ...] = (*PRIMARY_QUANTITIES, "tau_s"),
+) -> None:
+    """Flag ``quantities`` and the verdict of ``summary`` (in place) with ``flag`` and
+    ``problem``: by default the quantities computed from S_k, for a recount that did not
+    reproduce or cover the stored S_k."""
     validity = summary.get("validity")
-    for q in (*PRIMARY_QUANTITIES, "tau_s"):
+    for q in quantities:
         v = validity.get(q) if isinstance(validity, dict) else None
         if not isinstance(v, dict):
             continue
-        v["flags"] = sorted({*v.get("flags", []), S_K_NOT_REPRODUCED})
+        v["flags"] = sorted({*v.get("flags", []), flag})
         if v.get("status") == "valid":
             v["status"], v["reason"] = "flagged", problem
         elif v.get("status") == "flagged":
@@ -627,6 +642,26 @@ def _flag_recount(summary: dict[str, Any], problem: str) -> None:
         summary["verdict"] = {"status": "flagged", "line": f"Complete with caveats: {problem}."}
     else:
         summary["verdict"] = {**verdict, "line": f"{verdict.get('line', '')} {problem}.".strip()}
+
+
+def _threshold_problem(counted_p: Any, calibration: Choice[Calibration]) -> str | None:
+    """Why the calibrated quantities do not hold for S_k counted with ``counted_p`` (None:
+    not known), or None when the calibration was made with that p or records none."""
+    own = calibration.value.threshold_p
+    if own is None or counted_p is None or int(counted_p) == own:
+        return None
+    return (
+        f"S_k counted with threshold p {int(counted_p)}, the calibration ({calibration.source}) "
+        f"made with p {own}: D_p, F_r and what follows from them are not calibrated"
+    )
+
+
+def _flag_uncalibrated(summary: dict[str, Any], problem: str | None, notes: list[str]) -> None:
+    """Flag the calibrated quantities of ``summary`` with ``problem`` (None: nothing)."""
+    if problem is None:
+        return
+    notes.append(problem)
+    _flag_recount(summary, problem, THRESHOLD_NOT_CALIBRATED, _CALIBRATED)
 
 
 def _json_roundtrip(value: Any) -> Any:
@@ -787,6 +822,10 @@ def replay_session(
     problem = imaging_out.get("s_k_vs_stored", {}).get("problem")
     if problem:
         _flag_recount(recomputed, problem)
+    counted_p = imaging_out.get(
+        "threshold_p", (data.manifest.get("calibration") or {}).get("threshold_p")
+    )
+    _flag_uncalibrated(recomputed, _threshold_problem(counted_p, calibration), notes)
     truth_rows = compare_ground_truth(recomputed, truth) if truth is not None else None
     inputs = {
         "kind": "session",
@@ -899,6 +938,9 @@ def analyze_files(request: AnalyzeRequest) -> AnalysisRun:
     }
     settings_out = (measurement, analysis, _cal_dict(calibration.value, calibration.source))
     doc = _document(inputs, (*settings_out, imaging_out), outcome, notes, None, truth_rows)
+    _flag_uncalibrated(
+        doc["summary"], _threshold_problem(threshold.value, calibration), doc["notes"]
+    )
     out = request.out if request.out is not None else _default_out(vdir)
     protected = [p for p in (video_path, force_path, times_path, truth_path) if p is not None]
     _check_out(out, protected, explicit=request.out is not None)

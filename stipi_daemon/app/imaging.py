@@ -414,7 +414,8 @@ def resolve_imaging(
     Raises
     ------
     ConfigError
-        No calibration (a real camera needs a calibration file) or no threshold.
+        No calibration (a real camera needs a calibration file), no threshold, or a
+        threshold other than the one the calibration was made with.
     """
     scene_path = getattr(config.camera, "scene", None)
     imaging = choose_imaging(
@@ -430,4 +431,12 @@ def resolve_imaging(
     p = imaging.need_threshold(
         "field 'imaging.threshold_p': no threshold given and the calibration has none"
     )
+    own = calibration.value.threshold_p
+    if own is not None and p.value != own:
+        raise ConfigError(
+            f"field 'imaging.threshold_p': {p.value} differs from the threshold p {own} the "
+            f"calibration ({calibration.source}) was made with: S_k counted with another p "
+            "does not compare with its S values, so D_p and F_r (Eqs. 4-5) would be wrong; "
+            f"leave imaging.threshold_p out to count with {own}, or calibrate with p {p.value}"
+        )
     return calibration.value, p.value, imaging.roi_value, imaging.truth

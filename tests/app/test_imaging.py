@@ -167,10 +167,21 @@ def test_daemon_simulated_scene_then_config_overrides(tmp_path: Path) -> None:
     assert cal.c1_px == 5.0 and p == 90 and isinstance(roi, CircleROI) and truth is not None
     rect = {"kind": "rect", "x_px": 0, "y_px": 0, "width_px": 8, "height_px": 8}
     cfg = load_config(
-        _config(tmp_path, calibration=str(cal_path), imaging={"threshold_p": 60, "roi": rect})
+        _config(tmp_path, calibration=str(cal_path), imaging={"threshold_p": 90, "roi": rect})
     )
     cal, p, roi, _ = resolve_imaging(cfg)
-    assert p == 60 and isinstance(roi, RectROI)
+    assert p == 90 and isinstance(roi, RectROI)
+    # Another p than the calibration's: its S values and these S_k would not compare.
+    imaging = {"threshold_p": 60, "roi": rect}
+    cfg = load_config(_config(tmp_path, calibration=str(cal_path), imaging=imaging))
+    with pytest.raises(ConfigError, match=r"field 'imaging\.threshold_p': 60 differs from the"):
+        resolve_imaging(cfg)
+    # A calibration that records no p takes the config's.
+    save_calibration(cal_path, _cal(5.0))
+    cal, p, roi, _ = resolve_imaging(
+        load_config(_config(tmp_path, calibration=str(cal_path), imaging=imaging))
+    )
+    assert p == 60 and cal.threshold_p is None
 
 
 def test_daemon_real_camera_needs_a_calibration(tmp_path: Path) -> None:

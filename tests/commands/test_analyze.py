@@ -7,6 +7,7 @@ import dataclasses
 import json
 import shutil
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -353,6 +354,59 @@ def test_a_calibration_made_at_another_frame_size_is_refused(
         assert main([*argv, "--out", str(out), "--overwrite"]) == 0
         recorded = json.loads(out.read_text())["settings"]["calibration"]["frame_size_px"]
         assert recorded == (None if size is None else [640, 480])
+    capsys.readouterr()
+
+
+def _uncalibrated(doc: dict[str, Any]) -> list[str]:
+    """The quantities an analysis flags ``threshold_not_calibrated``."""
+    validity = doc["summary"]["validity"]
+    return sorted(q for q, v in validity.items() if "threshold_not_calibrated" in v["flags"])
+
+
+def test_s_k_counted_with_another_threshold_than_the_calibrations_flags_what_it_calibrates(
+    session_dir: Path, sim_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """S_k depends on p (Eq. 1) and Eqs. 4-5 were fitted on S counted with the
+    calibration's p. Exploring another p (``--threshold``) or bringing a calibration made
+    with another p is allowed offline, but D_p, F_r and what follows from them (E, eta,
+    the severity) are flagged, with the reason, and the verdict is not ``complete``; T_r
+    and tau (times only) are not."""
+    calibrated = [
+        "depth_mm",
+        "elasticity_kpa",
+        "rebound_force_n",
+        "severity",
+        "viscosity_n_s_per_mm2",
+    ]
+    video = [
+        "analyze",
+        "--video",
+        str(sim_dir / "video.mkv"),
+        "--force",
+        str(sim_dir / "force.csv"),
+    ]
+    out = tmp_path / "a.json"
+    assert main([*video, "--out", str(out)]) == 0  # the scene's calibration and p
+    assert _uncalibrated(json.loads(out.read_text())) == []
+    assert main([*video, "--threshold", "110", "--out", str(out), "--overwrite"]) == 0
+    doc = json.loads(out.read_text())
+    assert _uncalibrated(doc) == calibrated
+    reason = doc["summary"]["validity"]["depth_mm"]["reason"]
+    assert "S_k counted with threshold p 110, the calibration (" in reason
+    assert "made with p 128: D_p, F_r and what follows from them are not calibrated" in reason
+    assert doc["summary"]["verdict"]["status"] != "complete"
+    assert any("threshold p 110" in n for n in doc["notes"])
+    # A session's stored S_k (p 128) against a calibration made with p 100.
+    cal, _ = scaled_calibration(load_scene(short_scene(tmp_path)))
+    cal_path = save_calibration(tmp_path / "p100.json", dataclasses.replace(cal, threshold_p=100))
+    argv = ["analyze", str(session_dir), "--calibration", str(cal_path)]
+    assert main([*argv, "--out", str(out), "--overwrite"]) == 0
+    doc = json.loads(out.read_text())
+    assert _uncalibrated(doc) == calibrated
+    assert (
+        f"S_k counted with threshold p 128, the calibration ({cal_path}) made with p 100"
+        in (doc["summary"]["validity"]["rebound_force_n"]["reason"])
+    )
     capsys.readouterr()
 
 

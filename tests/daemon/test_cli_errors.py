@@ -106,6 +106,35 @@ def test_unreadable_camera(
     assert not (tmp_path / "sessions").exists()
 
 
+@pytest.mark.parametrize("with_file", [False, True], ids=["scene", "calibration-file"])
+def test_a_threshold_other_than_the_calibrations_is_a_config_error_before_recording(
+    tmp_path: Path, with_file: bool
+) -> None:
+    """S_k depends on p (Eq. 1): ``imaging.threshold_p`` other than the p the calibration
+    (a file's, or the scene's) was made with counted S values that its Eqs. 4-5 do not
+    describe, and D_p and F_r came out wrong with no flag. One line naming the field, both
+    thresholds and the calibration; exit 2, nothing recorded."""
+    cal, _ = scaled_calibration(load_scene(SCENE))
+    assert cal.threshold_p == 128
+    doc: dict[str, Any] = {
+        "probe": {"transport": EMULATED},
+        "camera": SIMULATOR,
+        "imaging": {"threshold_p": 100},
+    }
+    source = "simulated scene"
+    if with_file:
+        source = str(save_calibration(tmp_path / "cal.json", cal))
+        doc["calibration"] = source
+    proc = run_cli(tmp_path, doc)
+    assert_one_line_error(
+        proc,
+        "field 'imaging.threshold_p': 100 differs from the threshold p 128 the calibration "
+        f"({source}) was made with",
+        "leave imaging.threshold_p out to count with 128, or calibrate with p 100",
+    )
+    assert not (tmp_path / "sessions").exists()
+
+
 def test_a_calibration_made_at_another_frame_size_is_a_config_error_before_recording(
     tmp_path: Path,
 ) -> None:
