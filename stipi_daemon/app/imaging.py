@@ -276,9 +276,9 @@ def calibration_record(
     It holds every field :func:`recorded_source` reads back, the valid ranges included:
     the analysis flags results outside them ``calibration_extrapolated``, and
     ``analyze SESSION`` must flag what the live run flagged. Its ``frame_size_px`` is the
-    size of the frames the session's S_k were counted in (the camera's; the
-    calibration's own where the camera does not say), so that ``analyze SESSION
-    --calibration`` and ``calibrate`` from the session check it.
+    size of the frames the session's S_k were counted in, as the camera reports it (None
+    when it does not: never the calibration's own, which nothing then checked), so that
+    ``analyze SESSION --calibration`` and ``calibrate`` from the session check it.
 
     Parameters
     ----------
@@ -293,7 +293,6 @@ def calibration_record(
     frame_size_px : tuple of int, optional
         ``(width, height)`` of the camera's frames [px], when it says.
     """
-    size = frame_size_px if frame_size_px is not None else calibration.frame_size_px
     return {
         "alpha1_mm_per_px2": calibration.alpha1_mm_per_px2,
         "alpha2_mm_per_px": calibration.alpha2_mm_per_px,
@@ -304,7 +303,7 @@ def calibration_record(
         "s0_valid_range_px": _pair(calibration.s0_valid_range_px),
         "force_valid_range_n": _pair(calibration.force_valid_range_n),
         "roi": None if roi is None else roi.model_dump(),
-        "frame_size_px": None if size is None else [int(size[0]), int(size[1])],
+        "frame_size_px": None if frame_size_px is None else [int(v) for v in frame_size_px],
         "source": source,
     }
 

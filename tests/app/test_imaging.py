@@ -6,6 +6,7 @@ chosen calibration's own threshold, simulated scene (or its ground truth).
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 from typing import Any
 
@@ -121,6 +122,14 @@ def test_manifest_record_round_trips_every_field_the_analysis_reads() -> None:
     assert back.s0_valid_range_px == cal.s0_valid_range_px
     assert back.force_valid_range_n == cal.force_valid_range_n
     assert (back.c1_px, back.c2_px_per_n, back.alpha2_mm_per_px) == (7.0, 100.0, 0.001)
+    # The frame size is the camera's, as it reports it; a calibration's own size is never
+    # recorded in its place (nothing would have checked it).
+    sized = dataclasses.replace(cal, frame_size_px=(640, 480))
+    assert calibration_record(sized, 101, None, "cal.json")["frame_size_px"] is None
+    record = calibration_record(sized, 101, None, "cal.json", (320, 240))
+    assert record["frame_size_px"] == [320, 240]
+    back = recorded_source(record, "manifest.json").calibration
+    assert back is not None and back.value.frame_size_px == (320, 240)
 
 
 def test_truth_source_offers_the_scenes_calibration_threshold_and_disc() -> None:
