@@ -617,7 +617,7 @@ def _recount_line(check: Mapping[str, Any]) -> str:
     return f"{line}: the results are flagged"
 
 
-def _flag_recount(
+def _flag_quantities(
     summary: dict[str, Any],
     problem: str,
     flag: str = S_K_NOT_REPRODUCED,
@@ -661,7 +661,7 @@ def _flag_uncalibrated(summary: dict[str, Any], problem: str | None, notes: list
     if problem is None:
         return
     notes.append(problem)
-    _flag_recount(summary, problem, THRESHOLD_NOT_CALIBRATED, _CALIBRATED)
+    _flag_quantities(summary, problem, THRESHOLD_NOT_CALIBRATED, _CALIBRATED)
 
 
 def _json_roundtrip(value: Any) -> Any:
@@ -821,7 +821,7 @@ def replay_session(
         recomputed["verdict"] = _incomplete_verdict(data, outcome, cut_at_s)
     problem = imaging_out.get("s_k_vs_stored", {}).get("problem")
     if problem:
-        _flag_recount(recomputed, problem)
+        _flag_quantities(recomputed, problem)
     counted_p = imaging_out.get(
         "threshold_p", (data.manifest.get("calibration") or {}).get("threshold_p")
     )

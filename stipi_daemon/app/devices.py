@@ -338,11 +338,13 @@ def _note_roi_only_ignored(writer: SessionWriter, t_s: float, metadata: dict[str
         "JPEG packets as received, whole (a packet cannot be cropped without re-encoding); "
         "set storage.video: lossless to store the ROI's gray box"
     )
-    writer.add_event(
-        t_s,
-        "video_roi_only_ignored",
-        {"reason": reason, "camera": metadata.get("kind"), "crop": None},
-    )
+    _warn(writer, t_s, "video_roi_only_ignored", reason, camera=metadata.get("kind"), crop=None)
+
+
+def _warn(writer: SessionWriter, t_s: float, kind: str, reason: str, **detail: Any) -> None:
+    """A warning at start: event ``kind`` at session time ``t_s`` [s] (``reason`` and
+    ``detail``) in the session, and one line on stderr."""
+    writer.add_event(t_s, kind, {"reason": reason, **detail})
     print(f"stipi-daemon: warning: {reason}", file=sys.stderr)
 
 
@@ -406,8 +408,7 @@ def _warn_unknown_calibration_size(
         f"at (field 'frame_size_px'): D_p and F_r are right only if that was "
         f"{size[0]}x{size[1]} px, the camera's (`stipi-daemon calibrate --frame-size`)"
     )
-    writer.add_event(t_s, "calibration_frame_size_unknown", {"reason": reason, "camera": size})
-    print(f"stipi-daemon: warning: {reason}", file=sys.stderr)
+    _warn(writer, t_s, "calibration_frame_size_unknown", reason, camera=size)
 
 
 async def open_devices(
