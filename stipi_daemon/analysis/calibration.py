@@ -36,6 +36,7 @@ import numpy as np
 import numpy.typing as npt
 from pydantic import AwareDatetime, BaseModel, ConfigDict, Field, ValidationError
 
+from stipi_daemon.analysis.imaging import ROI, CircleROI, RectROI, describe_roi
 from stipi_daemon.errors import AnalysisError, CalibrationError
 
 __all__ = [
@@ -220,13 +221,21 @@ class Calibration:
         pixels, and Eqs. (4)-(5) give a wrong depth and force with nothing to show it, so
         the daemon and ``analyze`` refuse a camera or video of another size. None: not
         recorded (a calibration fitted from pairs without ``--frame-size``).
+    roi : CircleROI or RectROI or None
+        The region of interest its S values were counted in [px, camera-frame
+        coordinates]. S counts the occluded pixels within it: a smaller ROI that cuts into
+        the occluded area lowers S, a larger one that reaches past the lit disc adds its
+        dark pixels, so the daemon refuses another ROI and ``analyze`` flags results counted
+        in one (``roi_not_calibrated``). None: not recorded (older files; pairs fitted
+        without ``--roi``).
 
     Raises
     ------
     CalibrationError
         On construction, for a non-finite coefficient, alpha2 <= 0, C2 <= 0, a non-positive
         indenter length, p outside 0..255, a malformed range, an S0 range that reaches the
-        vertex of Eq. (4), or a frame size that is not two positive integers.
+        vertex of Eq. (4), a frame size that is not two positive integers, or an ROI that
+        is not a CircleROI or RectROI.
     """
 
     alpha1_mm_per_px2: float
@@ -242,6 +251,7 @@ class Calibration:
     probe_id: str | None = None
     created_utc: datetime | None = None
     frame_size_px: tuple[int, int] | None = None
+    roi: CircleROI | RectROI | None = None
 
     def __post_init__(self) -> None:
         _finite("alpha1_mm_per_px2", self.alpha1_mm_per_px2)
@@ -288,6 +298,8 @@ class Calibration:
                 f"field 'frame_size_px': must be [width, height], two integers > 0 [px], "
                 f"got {size!r}"
             )
+        if self.roi is not None and not isinstance(self.roi, CircleROI | RectROI):
+            raise CalibrationError(f"field 'roi': must be a circle or rect ROI, got {self.roi!r}")
 
     def frame_size_problem(self, width_px: int, height_px: int, where: str) -> str | None:
         """Why S counted in ``width_px`` x ``height_px`` frames cannot use this calibration,
@@ -302,6 +314,21 @@ class Calibration:
             f"{where} has {width_px}x{height_px} px frames, but the calibration was made at "
             f"{w}x{h} px (its field 'frame_size_px'): S is a pixel count, so D_p and F_r "
             "(Eqs. 4-5) would be wrong"
+        )
+
+    def roi_problem(self, roi: CircleROI | RectROI | None, where: str) -> str | None:
+        """Why S counted in ``roi`` [px] (None: the whole frame) cannot use this
+        calibration, or None when they can (the same ROI, or a calibration that records
+        none).
+
+        ``where`` names what counts in that ROI (a config field, ``--roi``, a session).
+        """
+        if self.roi is None or roi == self.roi:
+            return None
+        return (
+            f"{where} counts S in {describe_roi(roi)}, but the calibration was made in "
+            f"{describe_roi(self.roi)} (its field 'roi'): S is the occluded pixel count "
+            "within the ROI, so D_p and F_r (Eqs. 4-5) would be wrong"
         )
 
     @property
@@ -689,6 +716,7 @@ def calibration_from_fits(
     probe_id: str | None = None,
     created_utc: datetime | None = None,
     frame_size_px: tuple[int, int] | None = None,
+    roi: CircleROI | RectROI | None = None,
 ) -> Calibration:
     """Build a :class:`Calibration` from a depth fit (Eq. (4)) and a force fit (Eq. (5)).
 
@@ -711,6 +739,8 @@ def calibration_from_fits(
         Creation time (timezone-aware); None leaves it to :func:`save_calibration`.
     frame_size_px : tuple of int or None
         ``(width, height)`` of the frames the S values were counted in [px].
+    roi : CircleROI or RectROI or None
+        The ROI the S values were counted in [px].
     """
     return Calibration(
         alpha1_mm_per_px2=depth.alpha1_mm_per_px2,
@@ -726,6 +756,7 @@ def calibration_from_fits(
         probe_id=probe_id,
         created_utc=created_utc,
         frame_size_px=frame_size_px,
+        roi=roi,
     )
 
 
@@ -780,6 +811,7 @@ class _CalibrationFileV1(_Model):
     depth_fit: _DepthFitV1 | None = None
     force_fit: _ForceFitV1 | None = None
     frame_size_px: tuple[Annotated[int, Field(gt=0)], Annotated[int, Field(gt=0)]] | None = None
+    roi: ROI | None = None
 
 
 def _fit_dict(fit: DepthFit | ForceFit) -> dict[str, Any]:
@@ -795,9 +827,9 @@ def save_calibration(path: str | os.PathLike[str], cal: Calibration) -> Path:
 
     The file is JSON with ``"format": "stipi-calibration"``, ``"version": 1``, the
     coefficients under unit-suffixed keys, the valid ranges, the fit reports (if any),
-    ``frame_size_px``, ``probe_id`` and ``created_utc`` (the calibration's, or the current
-    UTC time when it has none). An existing file at ``path`` is replaced only once the new
-    one is complete.
+    ``frame_size_px``, ``roi`` (written as the config's ``imaging.roi``), ``probe_id`` and
+    ``created_utc`` (the calibration's, or the current UTC time when it has none). An
+    existing file at ``path`` is replaced only once the new one is complete.
 
     Parameters
     ----------
@@ -836,6 +868,7 @@ def save_calibration(path: str | os.PathLike[str], cal: Calibration) -> Path:
         "depth_fit": None if cal.depth_fit is None else _fit_dict(cal.depth_fit),
         "force_fit": None if cal.force_fit is None else _fit_dict(cal.force_fit),
         "frame_size_px": None if cal.frame_size_px is None else [int(v) for v in cal.frame_size_px],
+        "roi": None if cal.roi is None else cal.roi.model_dump(mode="json"),
     }
     text = json.dumps(doc, indent=2, allow_nan=False) + "\n"
     fd, tmp_name = tempfile.mkstemp(prefix=f".{dest.name}.", suffix=".tmp", dir=dest.parent)
@@ -964,6 +997,7 @@ def load_calibration(path: str | os.PathLike[str]) -> Calibration:
             probe_id=model.probe_id,
             created_utc=model.created_utc,
             frame_size_px=model.frame_size_px,
+            roi=model.roi,
         )
     except CalibrationError as exc:
         raise CalibrationError(f"{src}: {exc}") from exc

@@ -43,7 +43,7 @@ from typing import Annotated, Any, Final, Literal
 import cv2
 import numpy as np
 import numpy.typing as npt
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError
 
 from stipi_daemon.analysis.flags import Flag
 from stipi_daemon.errors import AnalysisError
@@ -69,9 +69,11 @@ __all__ = [
     "FrameProcessor",
     "RectROI",
     "bgr_gray_formula",
+    "describe_roi",
     "occluded_area_subpixel",
     "occluded_pixel_count",
     "otsu_threshold",
+    "roi_from_record",
     "roi_mask",
     "sk_kernel",
     "subpixel_membership_lut",
@@ -257,6 +259,36 @@ class CircleROI(BaseModel):
 
 ROI = Annotated[RectROI | CircleROI, Field(discriminator="kind")]
 """Either ROI shape; the ``kind`` field selects it when loading from a config file."""
+
+_ROI_ADAPTER: Final = TypeAdapter[RectROI | CircleROI](ROI)
+
+
+def roi_from_record(value: Any) -> RectROI | CircleROI | None:
+    """The ROI a file records as the config's ``imaging.roi`` does (``{"kind": "circle",
+    "cx_px": ..., ...}``; None: none).
+
+    Raises
+    ------
+    ValueError
+        The value is not a valid ROI (pydantic's first complaint).
+    """
+    if value is None:
+        return None
+    try:
+        roi: RectROI | CircleROI = _ROI_ADAPTER.validate_python(value)
+    except ValidationError as exc:
+        raise ValueError(f"not a valid ROI: {exc.errors()[0]['msg']}") from None
+    return roi
+
+
+def describe_roi(roi: RectROI | CircleROI | None) -> str:
+    """The ROI in words for messages: ``circle centre (x, y) r R px``, ``rect at (x, y)
+    size WxH px`` or, for None, ``the whole frame``."""
+    if roi is None:
+        return "the whole frame"
+    if isinstance(roi, CircleROI):
+        return f"circle centre ({roi.cx_px:g}, {roi.cy_px:g}) r {roi.radius_px:g} px"
+    return f"rect at ({roi.x_px}, {roi.y_px}) size {roi.width_px}x{roi.height_px} px"
 
 
 # --------------------------------------------------------------------------------------------

@@ -63,7 +63,6 @@ from stipi_daemon.app.frame_measurer import (
     FrameResult,
     LateFrame,
     ResizedFrame,
-    describe_shape,
 )
 from stipi_daemon.cameras import CameraRecovered as CamRecovered
 from stipi_daemon.cameras import CameraStalled as CamStalled
@@ -464,12 +463,13 @@ class Acquisition:
         if self.fault_line is not None:
             return []
         now = self._clock.now()
-        line = (
-            f"camera: frame {ev.seq} is {describe_shape(ev.shape)}, the session's frames are "
-            f"{describe_shape(ev.session_shape)} (S_k, the ROI and the calibration are for "
-            "that size); the measurement stopped there"
-        )
-        detail = {"seq": ev.seq, "shape": list(ev.shape), "session_shape": list(ev.session_shape)}
+        line = ev.fault_line()
+        detail = {
+            "seq": ev.seq,
+            "shape": list(ev.shape),
+            "session_shape": list(ev.session_shape),
+            "reported": ev.reported,
+        }
         return self._end_with_fault(now, line, "frame_size_changed", detail)
 
     def _on_late_frame(self, ev: LateFrame) -> list[Output]:

@@ -44,7 +44,7 @@ from pydantic import BaseModel, ValidationError
 
 from stipi_daemon import __version__
 from stipi_daemon.analysis.calibration import Calibration, load_calibration
-from stipi_daemon.analysis.imaging import CircleROI, RectROI
+from stipi_daemon.analysis.imaging import CircleROI, RectROI, describe_roi
 from stipi_daemon.analysis.results import AnalysisSettings
 from stipi_daemon.analysis.severity import load_reference
 from stipi_daemon.analysis.summary_diff import diff_results
@@ -83,6 +83,7 @@ __all__ = [
     "EXIT_S_K_NOT_REPRODUCED",
     "OUTPUT_FORMAT",
     "OUTPUT_VERSION",
+    "ROI_NOT_CALIBRATED",
     "S_K_NOT_REPRODUCED",
     "THRESHOLD_NOT_CALIBRATED",
     "AnalysisRun",
@@ -110,6 +111,11 @@ S_K_NOT_REPRODUCED = "s_k_not_reproduced"
 #: ``--calibration`` made with another p than the session counted with): the S values of
 #: Eqs. 4-5 and these S_k do not compare.
 THRESHOLD_NOT_CALIBRATED = "threshold_not_calibrated"
+#: Validity flag of the calibrated quantities when S_k were counted in another ROI than
+#: the one the calibration was made in (``analyze --roi``, a study's ``imaging.roi``, or a
+#: ``--calibration`` made in another ROI than the session counted in): S counts the occluded
+#: pixels within the ROI, so the S values of Eqs. 4-5 and these S_k do not compare.
+ROI_NOT_CALIBRATED = "roi_not_calibrated"
 #: The quantities that go through the calibration.
 _CALIBRATED = ("depth_mm", "rebound_force_n", "elasticity_kpa", "viscosity_n_s_per_mm2", "severity")
 
@@ -656,12 +662,29 @@ def _threshold_problem(counted_p: Any, calibration: Choice[Calibration]) -> str 
     )
 
 
-def _flag_uncalibrated(summary: dict[str, Any], problem: str | None, notes: list[str]) -> None:
-    """Flag the calibrated quantities of ``summary`` with ``problem`` (None: nothing)."""
-    if problem is None:
-        return
-    notes.append(problem)
-    _flag_quantities(summary, problem, THRESHOLD_NOT_CALIBRATED, _CALIBRATED)
+def _roi_problem(
+    counted: CircleROI | RectROI | None, calibration: Choice[Calibration]
+) -> str | None:
+    """Why the calibrated quantities do not hold for S_k counted in ``counted`` [px] (None:
+    the whole frame), or None when the calibration was made in that ROI or records none."""
+    own = calibration.value.roi
+    if own is None or counted == own:
+        return None
+    return (
+        f"S_k counted in {describe_roi(counted)}, the calibration ({calibration.source}) made "
+        f"in {describe_roi(own)}: D_p, F_r and what follows from them are not calibrated"
+    )
+
+
+def _flag_uncalibrated(
+    summary: dict[str, Any], problems: Mapping[str, str | None], notes: list[str]
+) -> None:
+    """Flag the calibrated quantities of ``summary`` with each flag of ``problems`` whose
+    problem is not None, and note the problem."""
+    for flag, problem in problems.items():
+        if problem is not None:
+            notes.append(problem)
+            _flag_quantities(summary, problem, flag, _CALIBRATED)
 
 
 def _json_roundtrip(value: Any) -> Any:
@@ -770,14 +793,15 @@ def replay_session(
     data = read_session(request.session_dir)
     measurement, analysis, settings = _session_settings(data, request.config, request.sections)
     truth = _session_truth(request, data)
+    recorded = recorded_source(
+        data.manifest.get("calibration") or {}, f"{data.directory / layout.MANIFEST_NAME}"
+    )
     imaging = choose_imaging(
         override=request.override(),
         config=settings_source(
             settings, request.config.calibration if request.config is not None else None
         ),
-        recorded=recorded_source(
-            data.manifest.get("calibration") or {}, f"{data.directory / layout.MANIFEST_NAME}"
-        ),
+        recorded=recorded,
         scene=None if truth is None else truth_source(truth, "ground truth", "ground truth"),
     )
     calibration = imaging.need_calibration("no calibration: give --calibration CAL.json")
@@ -825,7 +849,18 @@ def replay_session(
     counted_p = imaging_out.get(
         "threshold_p", (data.manifest.get("calibration") or {}).get("threshold_p")
     )
-    _flag_uncalibrated(recomputed, _threshold_problem(counted_p, calibration), notes)
+    # the ROI S_k were counted in: the recount's, else the live run's (None: not recorded)
+    counted_roi = Choice(imaging.roi_value, "recount") if request.recompute_sk else recorded.roi
+    _flag_uncalibrated(
+        recomputed,
+        {
+            THRESHOLD_NOT_CALIBRATED: _threshold_problem(counted_p, calibration),
+            ROI_NOT_CALIBRATED: None
+            if counted_roi is None
+            else _roi_problem(counted_roi.value, calibration),
+        },
+        notes,
+    )
     truth_rows = compare_ground_truth(recomputed, truth) if truth is not None else None
     inputs = {
         "kind": "session",
@@ -939,7 +974,12 @@ def analyze_files(request: AnalyzeRequest) -> AnalysisRun:
     settings_out = (measurement, analysis, _cal_dict(calibration.value, calibration.source))
     doc = _document(inputs, (*settings_out, imaging_out), outcome, notes, None, truth_rows)
     _flag_uncalibrated(
-        doc["summary"], _threshold_problem(threshold.value, calibration), doc["notes"]
+        doc["summary"],
+        {
+            THRESHOLD_NOT_CALIBRATED: _threshold_problem(threshold.value, calibration),
+            ROI_NOT_CALIBRATED: _roi_problem(roi, calibration),
+        },
+        doc["notes"],
     )
     out = request.out if request.out is not None else _default_out(vdir)
     protected = [p for p in (video_path, force_path, times_path, truth_path) if p is not None]

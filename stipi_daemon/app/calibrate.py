@@ -16,8 +16,9 @@ threshold and ROI, :mod:`stipi_daemon.app.offline_io`). The fits and the file fo
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TypeVar
 
 import numpy as np
 import numpy.typing as npt
@@ -45,7 +46,7 @@ from stipi_daemon.analysis.calibration_procedure import (
     force_domain_problem,
     force_points,
 )
-from stipi_daemon.analysis.imaging import CircleROI, RectROI
+from stipi_daemon.analysis.imaging import CircleROI, RectROI, describe_roi, roi_from_record
 from stipi_daemon.app.offline_io import (
     CsvTable,
     count_video,
@@ -60,6 +61,7 @@ from stipi_daemon.errors import CalibrationError, ConfigError, DataFileError
 __all__ = ["CalibrateRequest", "calibrate"]
 
 FloatArray = npt.NDArray[np.float64]
+_T = TypeVar("_T")
 Emit = Callable[[str], None]
 
 
@@ -85,7 +87,9 @@ class CalibrateRequest:
     threshold_p : int or None
         Threshold p of Eq. (1) the S values were counted with [8-bit intensity].
     roi : CircleROI or RectROI or None
-        ROI to count S on a video [px] (None: the whole frame).
+        ROI to count S on a video [px] (None: the whole frame), and the ROI recorded in the
+        file as the one the S values were counted in (a recording's own must agree; the
+        whole frame records none).
     probe_id : str or None
         Probe identifier recorded in the file.
     frame_size_px : tuple of int or None
@@ -122,20 +126,24 @@ class _Series:
     threshold_p: int | None
     what: str
     frame_size_px: tuple[int, int] | None = None
+    roi: CircleROI | RectROI | None = None
 
 
 @dataclass
 class _Seen:
     """What the recordings say about how their S values were counted."""
 
-    thresholds: list[int]
-    sizes: list[tuple[tuple[int, int], str]]
+    thresholds: list[int] = field(default_factory=list)
+    sizes: list[tuple[tuple[int, int], str]] = field(default_factory=list)
+    rois: list[tuple[CircleROI | RectROI, str]] = field(default_factory=list)
 
     def add(self, rec: _Series) -> None:
         if rec.threshold_p is not None:
             self.thresholds.append(rec.threshold_p)
         if rec.frame_size_px is not None:
             self.sizes.append((rec.frame_size_px, rec.what))
+        if rec.roi is not None:
+            self.rois.append((rec.roi, rec.what))
 
 
 def _load_recording(
@@ -147,6 +155,12 @@ def _load_recording(
         cal = data.manifest.get("calibration") or {}
         imaging = (data.manifest.get("config") or {}).get("imaging") or {}
         p = imaging.get("threshold_p", cal.get("threshold_p"))
+        try:
+            counted_in = roi_from_record(cal.get("roi"))
+        except ValueError as exc:
+            raise DataFileError(
+                f"{path / 'manifest.json'}: field 'calibration.roi': {exc}"
+            ) from None
         return _Series(
             data.frame_times_s,
             data.s_k_px,
@@ -155,6 +169,7 @@ def _load_recording(
             None if p is None else int(p),
             f"session {data.session_id}",
             data.frame_size_px(),
+            counted_in,
         )
     video = path / "video.mkv"
     if not path.is_dir() or not video.is_file():
@@ -175,7 +190,7 @@ def _load_recording(
         ft, fn = np.empty(0), np.empty(0)
     h, w = counted.frame_shape[:2]
     size = (int(w), int(h)) if counted.crop is None else None  # a crop's frame is unknown
-    return _Series(t, s, ft, fn, threshold, f"video {video}", size)
+    return _Series(t, s, ft, fn, threshold, f"video {video}", size, roi)
 
 
 def _check_domain(table: CsvTable, problem: tuple[int, str] | None, option: str | None) -> None:
@@ -284,19 +299,26 @@ def _threshold(given: int | None, thresholds: list[int]) -> int | None:
     return given
 
 
-def _frame_size(
-    given: tuple[int, int] | None, sizes: list[tuple[tuple[int, int], str]]
-) -> tuple[int, int] | None:
-    """The frame size to record [px]: the given one, else the recordings' (which must
-    agree with each other and with the given one)."""
-    text = "; ".join(f"{w}x{h} px in {what}" for (w, h), what in sizes)
-    if len({size for size, _ in sizes}) > 1:
-        raise CalibrationError(
-            f"the recordings' frames differ in size ({text}): S values are not comparable"
-        )
-    if given is not None and any(size != given for size, _ in sizes):
-        raise CalibrationError(f"--frame-size {given[0]}x{given[1]} differs from {text}")
-    return given if given is not None else (sizes[0][0] if sizes else None)
+def _agreed(
+    option: str,
+    given: _T | None,
+    seen: list[tuple[_T, str]],
+    describe: Callable[[_T], str],
+    differ: str,
+) -> _T | None:
+    """The value to record: ``given`` (the ``option``'s), else the recordings' ``seen``
+    (value, which recording), which must agree with each other (``differ`` ends "the
+    recordings' ..." when they do not) and with the given one."""
+    text = "; ".join(f"{describe(v)} in {what}" for v, what in seen)
+    if len({v for v, _ in seen}) > 1:
+        raise CalibrationError(f"the recordings' {differ} ({text}): S values are not comparable")
+    if given is not None and any(v != given for v, _ in seen):
+        raise CalibrationError(f"{option} {describe(given)} differs from {text}")
+    return given if given is not None else (seen[0][0] if seen else None)
+
+
+def _size_text(size: tuple[int, int]) -> str:
+    return f"{size[0]}x{size[1]} px"
 
 
 def calibrate(request: CalibrateRequest, emit: Emit) -> tuple[Calibration, Path]:
@@ -310,16 +332,19 @@ def calibrate(request: CalibrateRequest, emit: Emit) -> tuple[Calibration, Path]
     Raises
     ------
     CalibrationError
-        A fit is refused, the recordings' thresholds or frame sizes disagree (with each
-        other or with the request's), or intervals are unusable.
+        A fit is refused, the recordings' thresholds, frame sizes or ROIs disagree (with
+        each other or with the request's), or intervals are unusable.
     DataFileError, ConfigError
         An input cannot be read or lacks what it needs.
     """
-    seen = _Seen([], [])
+    seen = _Seen()
     s0, d_s = _depth_points(request, seen, emit)
     s_px, f_n = _force_points(request, seen, emit)
     threshold = _threshold(request.threshold_p, seen.thresholds)
-    frame_size = _frame_size(request.frame_size_px, seen.sizes)
+    frame_size = _agreed(
+        "--frame-size", request.frame_size_px, seen.sizes, _size_text, "frames differ in size"
+    )
+    roi = _agreed("--roi", request.roi, seen.rois, describe_roi, "ROIs differ")
     try:
         depth_fit = fit_depth_calibration(s0, d_s)
     except CalibrationError as exc:
@@ -335,6 +360,7 @@ def calibrate(request: CalibrateRequest, emit: Emit) -> tuple[Calibration, Path]
         threshold_p=threshold,
         probe_id=request.probe_id,
         frame_size_px=frame_size,
+        roi=roi,
     )
     emit("")
     for line in fit_report(cal):
@@ -350,6 +376,11 @@ def calibrate(request: CalibrateRequest, emit: Emit) -> tuple[Calibration, Path]
         emit(
             "warning: no frame size recorded (--frame-size WxH): the daemon cannot tell a "
             "camera at another resolution, whose S values are not comparable"
+        )
+    if roi is None:
+        emit(
+            "warning: no ROI recorded (--roi): the daemon cannot tell S counted in another "
+            "ROI, whose S values are not comparable"
         )
     path = save_calibration(request.out, cal)
     load_calibration(path)  # what was written reads back

@@ -130,6 +130,7 @@ def _frame_measurer(
         # frames later than half the lag bound are not measured (gaps): the run catches up
         skip_late_s=config.run.max_lag_s / 2.0,
         writer=devices.writer,
+        frame_size_px=devices.frame_size_px,
     )
     measurer.recorder = devices.recorder  # the session video (storage.video)
     return measurer

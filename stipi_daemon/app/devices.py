@@ -33,7 +33,14 @@ from dataclasses import dataclass
 from typing import Any
 
 from stipi_daemon.analysis.calibration import Calibration
-from stipi_daemon.analysis.imaging import CircleROI, FrameProcessor, RectROI, sk_kernel, to_gray
+from stipi_daemon.analysis.imaging import (
+    CircleROI,
+    FrameProcessor,
+    RectROI,
+    describe_roi,
+    sk_kernel,
+    to_gray,
+)
 from stipi_daemon.app.config import DaemonConfig
 from stipi_daemon.app.imaging import calibration_record, check_roi_fits
 from stipi_daemon.app.session_metadata import session_metadata
@@ -82,6 +89,9 @@ class Devices:
     recorder : VideoRecorder or None
         Stores the measured frames in the session's ``video.mkv`` (None: ``storage.video``
         is ``off``).
+    frame_size_px : tuple of int or None
+        ``(width, height)`` the camera reported on opening [px], which the ROI and the
+        calibration were checked against (None: it reported none).
     """
 
     clock: ScaledClock
@@ -89,6 +99,7 @@ class Devices:
     camera: CameraStream
     writer: SessionWriter
     recorder: VideoRecorder | None = None
+    frame_size_px: tuple[int, int] | None = None
 
 
 @dataclass(frozen=True)
@@ -392,23 +403,35 @@ def _check_frame(
     return size
 
 
-def _warn_unknown_calibration_size(
+def _warn_unrecorded(
     config: DaemonConfig,
     writer: SessionWriter,
     calibration: Calibration,
-    size: tuple[int, int],
+    size: tuple[int, int] | None,
+    roi: CircleROI | RectROI | None,
     t_s: float,
 ) -> None:
-    """Record (event ``calibration_frame_size_unknown`` at session time ``t_s`` [s]) and
-    print that the calibration does not say which frame size it was made at."""
-    if calibration.frame_size_px is not None:
+    """Record (events ``calibration_frame_size_unknown``, ``calibration_roi_unknown`` at
+    session time ``t_s`` [s]) and print what the calibration does not say it was made at,
+    so that nothing checked it against the camera's frame ``size`` [px] or the ``roi`` (a
+    scene's calibration records both)."""
+    if config.calibration is None:
         return
-    reason = (
-        f"the calibration {config.calibration} does not record the frame size it was made "
-        f"at (field 'frame_size_px'): D_p and F_r are right only if that was "
-        f"{size[0]}x{size[1]} px, the camera's (`stipi-daemon calibrate --frame-size`)"
-    )
-    _warn(writer, t_s, "calibration_frame_size_unknown", reason, camera=size)
+    cal = f"the calibration {config.calibration} does not record"
+    if calibration.frame_size_px is None and size is not None:
+        reason = (
+            f"{cal} the frame size it was made at (field 'frame_size_px'): D_p and F_r are "
+            f"right only if that was {size[0]}x{size[1]} px, the camera's "
+            "(`stipi-daemon calibrate --frame-size`)"
+        )
+        _warn(writer, t_s, "calibration_frame_size_unknown", reason, camera=size)
+    if calibration.roi is None:
+        reason = (
+            f"{cal} the ROI it was made in (field 'roi'): D_p and F_r are right only if that "
+            f"was {describe_roi(roi)}, the one counted in (`stipi-daemon calibrate --roi`)"
+        )
+        detail = None if roi is None else roi.model_dump(mode="json")
+        _warn(writer, t_s, "calibration_roi_unknown", reason, roi=detail)
 
 
 async def open_devices(
@@ -472,8 +495,7 @@ async def open_devices(
         await camera.close()
         await probe.close()
         raise
-    if size is not None:
-        _warn_unknown_calibration_size(config, writer, calibration, size, clock.now())
+    _warn_unrecorded(config, writer, calibration, size, roi, clock.now())
     if isinstance(probe, SceneStartProbeLink):
         _record_stream_start(writer, probe, origin_s)
     recorder = _video_recorder(
@@ -485,7 +507,7 @@ async def open_devices(
         camera.camera.metadata(),
         camera.camera.nominal_fps,
     )
-    return Devices(clock, probe, camera, writer, recorder)
+    return Devices(clock, probe, camera, writer, recorder, size)
 
 
 def _record_stream_start(

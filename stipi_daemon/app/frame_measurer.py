@@ -15,7 +15,10 @@ stored: a :class:`LateFrame`, which the loop stores as a gap (reason ``processin
 A frame whose shape (size, gray or colour) is not the session's first frame's is neither
 measured nor stored either: a :class:`ResizedFrame`, which ends the run with a fault (S_k
 counts pixels, and the ROI, the threshold and the calibration are those of the first
-frame's size; a video stream cannot change its frame size either).
+frame's size; a video stream cannot change its frame size either). The first frame itself
+must have the size the camera reported on opening (``frame_size_px``), which the ROI and
+the calibration were checked against (:mod:`stipi_daemon.app.devices`): a driver or a file
+header that states one size and delivers frames of another is a :class:`ResizedFrame` too.
 Once the measurement has ended (:meth:`FrameMeasurer.stop_storing`) frames are no longer
 stored, and once its end time is known (:meth:`FrameMeasurer.store_until`: the end of the
 recovery window, known at the release; the end the analysis starts at) a frame captured
@@ -134,6 +137,9 @@ class ResizedFrame:
     shape, session_shape : tuple of int
         This frame's array shape and the session's (its first frame's): ``(H, W)`` gray or
         ``(H, W, C)`` [px].
+    reported : bool
+        The session has no frame yet and ``session_shape`` is ``(H, W)`` of the size the
+        camera reported on opening, which this (first) frame does not have.
     """
 
     seq: int
@@ -141,6 +147,22 @@ class ResizedFrame:
     shape: tuple[int, ...]
     session_shape: tuple[int, ...]
     dropped_before: int
+    reported: bool = False
+
+    def fault_line(self) -> str:
+        """The run's fault line: which frame, both sizes, and why the run stopped."""
+        if self.reported:
+            h, w = self.session_shape[:2]
+            return (
+                f"camera: frame {self.seq} is {describe_shape(self.shape)}, but the camera "
+                f"reported {w}x{h} px frames on opening, the size the ROI and the calibration "
+                "were checked against; the measurement stopped there"
+            )
+        return (
+            f"camera: frame {self.seq} is {describe_shape(self.shape)}, the session's frames "
+            f"are {describe_shape(self.session_shape)} (S_k, the ROI and the calibration are "
+            "for that size); the measurement stopped there"
+        )
 
 
 def describe_shape(shape: tuple[int, ...]) -> str:
@@ -163,6 +185,7 @@ class _Captured:
     error: SessionError | None = None
     resized_from: tuple[int, ...] | None = None
     stored: bool = False
+    resized_reported: bool = False
 
 
 class FrameMeasurer:
@@ -187,6 +210,9 @@ class FrameMeasurer:
         measured: a :class:`LateFrame` instead (None: every frame is measured).
     writer : SessionWriter or None
         Receives each measured frame's ``frames`` row (None: rows are not stored).
+    frame_size_px : tuple of int or None
+        ``(width, height)`` the camera reported on opening [px], which the first frame
+        must have (None: it reported none; the first frame sets the session's size).
     """
 
     #: Stores each measured frame in the session video (set by the daemon; None: no video).
@@ -205,8 +231,10 @@ class FrameMeasurer:
         pipeline: MeasurementPipeline,
         skip_late_s: float | None = None,
         writer: SessionWriter | None = None,
+        frame_size_px: tuple[int, int] | None = None,
     ) -> None:
         self._clock = clock
+        self._reported_hw = None if frame_size_px is None else (frame_size_px[1], frame_size_px[0])
         self._threshold_p = threshold_p
         self._roi = roi
         self._saturation_limit_fraction = saturation_limit_fraction
@@ -257,7 +285,12 @@ class FrameMeasurer:
         if captured.resized_from is not None:
             shape = tuple(ev.image.shape)
             return ResizedFrame(
-                ev.seq, ev.t_capture_s, shape, captured.resized_from, ev.dropped_before
+                ev.seq,
+                ev.t_capture_s,
+                shape,
+                captured.resized_from,
+                ev.dropped_before,
+                captured.resized_reported,
             )
         if captured.late_lag_s is not None:
             return LateFrame(ev.seq, ev.t_capture_s, captured.late_lag_s, ev.dropped_before)
@@ -289,6 +322,9 @@ class FrameMeasurer:
     ) -> _Captured:
         now = self._clock.now()
         if self.shape is None:
+            hw = self._reported_hw
+            if hw is not None and image.shape[:2] != hw:  # not the size the checks were for
+                return _Captured(0, (), None, now, resized_from=hw, resized_reported=True)
             self.shape = image.shape
         elif image.shape != self.shape:  # S_k of another size: not the session's quantity
             return _Captured(0, (), None, now, resized_from=self.shape)

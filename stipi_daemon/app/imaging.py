@@ -10,7 +10,12 @@ it knows as an :class:`ImagingSource`; the most specific source that sets a quan
   stored manifest (the threshold the live run counted with), the chosen calibration's own
   ``threshold_p``, simulated scene;
 * ROI: command-line override (``full`` is a choice too: the whole frame), config
-  (``imaging.roi``), simulated scene (its waveguide disc); none: the whole frame.
+  (``imaging.roi``), stored manifest (the ROI the live run counted in), the chosen
+  calibration's own ``roi``, simulated scene (its waveguide disc); none: the whole frame.
+
+S is counted with a threshold and in an ROI, and a calibration holds only for S counted
+as it was made: the daemon refuses a threshold or an ROI other than the calibration's
+(:func:`resolve_imaging`); ``analyze`` flags results counted otherwise.
 
 A simulated scene is read through the lazy registry (``"scene:imaging"``,
 :mod:`stipi_daemon.registry`), so a run on real devices never loads the simulator; a
@@ -41,7 +46,7 @@ from pydantic import ValidationError
 from stipi_daemon import registry
 from stipi_daemon.analysis.calibration import Calibration, load_calibration
 from stipi_daemon.analysis.flags import Flag
-from stipi_daemon.analysis.imaging import CircleROI, FrameProcessor, RectROI
+from stipi_daemon.analysis.imaging import CircleROI, FrameProcessor, RectROI, describe_roi
 from stipi_daemon.app.config import DaemonConfig, ImagingSettings
 from stipi_daemon.errors import ConfigError
 from stipi_daemon.measurement.replay import calibration_from_mapping
@@ -170,13 +175,19 @@ def choose_imaging(
     none = ImagingSource()
     o, c, r, s = (x if x is not None else none for x in (override, config, recorded, scene))
     calibration = _first(o.calibration, c.calibration, r.calibration, s.calibration)
-    own: Choice[int] | None = None
-    if calibration is not None and calibration.value.threshold_p is not None:
-        own = Choice(int(calibration.value.threshold_p), f"calibration ({calibration.source})")
+    own = ImagingSource()
+    if calibration is not None:
+        cal, name = calibration.value, f"calibration ({calibration.source})"
+        own = ImagingSource(
+            threshold_p=None if cal.threshold_p is None else Choice(int(cal.threshold_p), name),
+            roi=None if cal.roi is None else Choice(cal.roi, name),
+        )
     return Imaging(
         calibration=calibration,
-        threshold_p=_first(o.threshold_p, c.threshold_p, r.threshold_p, own, s.threshold_p),
-        roi=_first(o.roi, c.roi, r.roi, s.roi),
+        threshold_p=_first(
+            o.threshold_p, c.threshold_p, r.threshold_p, own.threshold_p, s.threshold_p
+        ),
+        roi=_first(o.roi, c.roi, r.roi, own.roi, s.roi),
         truth=next((x.truth for x in (o, c, r, s) if x.truth is not None), None),
     )
 
@@ -254,13 +265,16 @@ def recorded_source(calibration: Mapping[str, Any], where: str) -> ImagingSource
     """A stored session's source: the manifest's calibration record.
 
     The calibration is rebuilt with every field the analysis reads (valid ranges
-    included, :func:`calibration_record`); its ``threshold_p`` is the threshold the live
-    run counted S_k with.
+    included, :func:`calibration_record`); its ``threshold_p`` and ``roi`` are the
+    threshold and ROI the live run counted S_k with (a record without ``roi``, from
+    before it was kept, says nothing about the ROI).
     """
     p = calibration.get("threshold_p")
+    cal = calibration_from_mapping(calibration, where)
     return ImagingSource(
-        calibration=Choice(calibration_from_mapping(calibration, where), SESSION_MANIFEST),
+        calibration=Choice(cal, SESSION_MANIFEST),
         threshold_p=None if p is None else Choice(int(p), "session manifest calibration"),
+        roi=Choice(cal.roi, "session manifest calibration") if "roi" in calibration else None,
     )
 
 
@@ -318,13 +332,6 @@ def _pair(rng: tuple[float, float] | None) -> list[float] | None:
 
 #: Largest ROI bounding box measured pixel by pixel [px]; larger ones are judged by geometry.
 _MAX_EXACT_ROI_PX = 16_000_000
-
-
-def describe_roi(roi: CircleROI | RectROI) -> str:
-    """The ROI in words for messages: ``circle centre (x, y) r R px`` or ``rect at ...``."""
-    if isinstance(roi, CircleROI):
-        return f"circle centre ({roi.cx_px:g}, {roi.cy_px:g}) r {roi.radius_px:g} px"
-    return f"rect at ({roi.x_px}, {roi.y_px}) size {roi.width_px}x{roi.height_px} px"
 
 
 def roi_placement(roi: CircleROI | RectROI, width_px: int, height_px: int) -> str:
@@ -414,7 +421,7 @@ def resolve_imaging(
     ------
     ConfigError
         No calibration (a real camera needs a calibration file), no threshold, or a
-        threshold other than the one the calibration was made with.
+        threshold or ROI other than the one the calibration was made with.
     """
     scene_path = getattr(config.camera, "scene", None)
     imaging = choose_imaging(
@@ -438,4 +445,12 @@ def resolve_imaging(
             "does not compare with its S values, so D_p and F_r (Eqs. 4-5) would be wrong; "
             f"leave imaging.threshold_p out to count with {own}, or calibrate with p {p.value}"
         )
-    return calibration.value, p.value, imaging.roi_value, imaging.truth
+    roi = imaging.roi_value
+    field = "field 'imaging.roi'" if config.imaging.roi is not None else "the scene's ROI"
+    problem = calibration.value.roi_problem(roi, field)
+    if problem is not None:
+        raise ConfigError(
+            f"{problem} ({calibration.source}); leave imaging.roi out to count in the "
+            "calibration's ROI, or calibrate in this one"
+        )
+    return calibration.value, p.value, roi, imaging.truth

@@ -29,8 +29,8 @@ import numpy.typing as npt
 from pydantic import ValidationError
 
 from stipi_daemon.analysis.flags import Flag
-from stipi_daemon.analysis.imaging import CircleROI, FrameProcessor, RectROI
-from stipi_daemon.app.imaging import check_roi_fits, describe_roi, roi_placement
+from stipi_daemon.analysis.imaging import CircleROI, FrameProcessor, RectROI, describe_roi
+from stipi_daemon.app.imaging import check_roi_fits, roi_placement
 from stipi_daemon.errors import ConfigError, DataFileError
 from stipi_daemon.measurement.replay import Recording
 from stipi_daemon.measurement.state_machine import (

@@ -95,7 +95,11 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         "required to count S on a video)",
     )
     parser.add_argument(
-        "--roi", metavar="ROI", help="ROI to count S on a video: circle:CX,CY,R, rect:X,Y,W,H, full"
+        "--roi",
+        metavar="ROI",
+        help="ROI the S values were counted in, and to count S on a video in: circle:CX,CY,R, "
+        "rect:X,Y,W,H, full (recorded in the file, full records none; the daemon refuses "
+        "another ROI; a recording's own must agree)",
     )
     parser.add_argument("--probe-id", metavar="ID", help="probe identifier recorded in the file")
     parser.add_argument(

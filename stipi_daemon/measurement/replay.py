@@ -28,6 +28,7 @@ import numpy.typing as npt
 
 from stipi_daemon.analysis.calibration import Calibration
 from stipi_daemon.analysis.flags import Flag
+from stipi_daemon.analysis.imaging import CircleROI, RectROI, roi_from_record
 from stipi_daemon.analysis.results import AnalysisSettings, MeasurementResult
 from stipi_daemon.analysis.severity import SeverityReference
 from stipi_daemon.analysis.validity import assess_validity
@@ -181,7 +182,10 @@ def calibration_from_mapping(data: Mapping[str, Any], where: str) -> Calibration
     Reads the coefficient keys of the calibration file (``alpha1_mm_per_px2``,
     ``alpha2_mm_per_px``, ``c1_px``, ``c2_px_per_n``, optional ``indenter_length_mm``,
     ``threshold_p``, ``s0_valid_range_px``, ``force_valid_range_n``, ``probe_id``,
-    ``frame_size_px``); other keys (``source``, ``area_scale``...) are ignored.
+    ``frame_size_px``, ``roi``); other keys (``source``, ``area_scale``...) are ignored. A
+    manifest's ``roi`` is the ROI the live run counted S_k in, which the daemon refuses to
+    differ from its calibration's (:meth:`Calibration.roi_problem`): read back as the
+    calibration's ROI, S_k counted again in another ROI is flagged.
 
     Raises
     ------
@@ -213,6 +217,7 @@ def calibration_from_mapping(data: Mapping[str, Any], where: str) -> Calibration
             force_valid_range_n=rng("force_valid_range_n"),
             probe_id=data.get("probe_id"),
             frame_size_px=_size(data.get("frame_size_px")),
+            roi=_roi(data.get("roi")),
         )
     except CalibrationError as exc:
         raise CalibrationError(f"{where}: {exc}") from None
@@ -225,6 +230,14 @@ def _size(value: Any) -> tuple[int, int] | None:
     if not isinstance(value, Sequence) or isinstance(value, str) or len(value) != 2:
         raise CalibrationError(f"field 'frame_size_px' must be [width, height], got {value!r}")
     return (value[0], value[1])
+
+
+def _roi(value: Any) -> CircleROI | RectROI | None:
+    """A recorded ROI (``{"kind": "circle", ...}``, as the config's ``imaging.roi``)."""
+    try:
+        return roi_from_record(value)
+    except ValueError as exc:
+        raise CalibrationError(f"field 'roi': {exc}") from None
 
 
 # --------------------------------------------------------------------------------------------

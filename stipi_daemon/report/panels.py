@@ -13,13 +13,12 @@ from typing import Any
 
 import numpy as np
 import numpy.typing as npt
-from pydantic import TypeAdapter, ValidationError
 
 from stipi_daemon.analysis.imaging import (
-    ROI,
     CircleROI,
     RectROI,
     occluded_pixel_count,
+    roi_from_record,
     roi_mask,
     threshold_binary_inverted,
     to_gray,
@@ -86,13 +85,10 @@ def roi_from_mapping(value: Any, where: str) -> RectROI | CircleROI | None:
     SessionError
         The value is not a valid ROI (``where`` names the place).
     """
-    if value is None:
-        return None
     try:
-        roi: RectROI | CircleROI = TypeAdapter(ROI).validate_python(value)
-    except ValidationError as exc:
-        raise SessionError(f"{where}: not a valid ROI: {exc.errors()[0]['msg']}") from None
-    return roi
+        return roi_from_record(value)
+    except ValueError as exc:
+        raise SessionError(f"{where}: {exc}") from None
 
 
 def frame_panels(inp: ReportInput) -> tuple[FramePanel, ...]:

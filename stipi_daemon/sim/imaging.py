@@ -8,6 +8,7 @@ of the sources it weighs. The application reaches this module through the lazy r
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 from typing import Any
 
@@ -36,12 +37,13 @@ def scene_imaging(
     -------
     (Calibration, int, CircleROI, dict)
         The scene's calibration in the rendered resolution's pixel units
-        (:func:`~stipi_daemon.sim.physics.scaled_calibration`), its threshold p of
+        (:func:`~stipi_daemon.sim.physics.scaled_calibration`, made in the waveguide
+        disc: its true occluded area is the area within the disc), its threshold p of
         Eq. (1) [8-bit intensity], the waveguide disc as the ROI [px] and the ground truth
         (``ground_truth.json``'s document).
     """
     scene = load_scene(scene_path)
     gt = ground_truth(scene, seed)
-    calibration, _ = scaled_calibration(scene)
     roi = CircleROI(kind="circle", **gt.roi)
+    calibration = dataclasses.replace(scaled_calibration(scene)[0], roi=roi)
     return calibration, int(gt.frame["threshold_p"]), roi, gt.to_json_dict()

@@ -86,7 +86,8 @@ class GroundTruth:
     indenter_radius_mm : float
         R [mm].
     calibration : dict
-        Eqs. (4)-(5) coefficients in the rendered resolution's pixel units.
+        Eqs. (4)-(5) coefficients in the rendered resolution's pixel units, the frame size
+        and the ROI (the waveguide disc, with ``kind``) they hold for.
     roi : dict
         Circle ROI (cx_px, cy_px, radius_px) covering the lit waveguide.
     frame : dict
@@ -235,6 +236,7 @@ def ground_truth(
             "area_scale": m.area_scale,
             "reference_resolution": list(scene.probe.calibration.reference_resolution),
             "frame_size_px": [cam.width, cam.height],
+            "roi": {"kind": "circle", **roi},
         },
         roi=dict(roi),
         frame={

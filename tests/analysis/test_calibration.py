@@ -25,6 +25,7 @@ from stipi_daemon.analysis.calibration import (
     load_calibration,
     save_calibration,
 )
+from stipi_daemon.analysis.imaging import CircleROI, RectROI, describe_roi
 from stipi_daemon.errors import AnalysisError, CalibrationError
 
 # A plausible probe: S0 up to ~60 000 px for d_s up to ~12 mm, C1 ~ 2000 px, C2 ~ 900 px/N.
@@ -174,6 +175,7 @@ def test_eq5_inverse_round_trip(c1: float, c2: float, force: float) -> None:
         ({"frame_size_px": (640.0, 480)}, "field 'frame_size_px'"),
         ({"frame_size_px": (True, 480)}, "field 'frame_size_px'"),
         ({"frame_size_px": (640,)}, "field 'frame_size_px'"),
+        ({"roi": {"kind": "circle", "cx_px": 1, "cy_px": 2, "radius_px": 3}}, "field 'roi'"),
     ],
 )
 def test_calibration_rejects_bad_coefficients(changes: dict[str, Any], words: str) -> None:
@@ -370,6 +372,40 @@ def test_the_frame_size_round_trips_and_is_checked_against_a_frames_size(
         assert "made at 640x480 px" in problem
 
 
+_CIRCLE = {"kind": "circle", "cx_px": 320, "cy_px": 240, "radius_px": 180}
+
+
+def test_the_roi_round_trips_and_is_checked_against_the_roi_counted_in(
+    tmp_path: Path,
+) -> None:
+    """``roi`` is written as the config's ``imaging.roi``, read back and compared: the same
+    ROI or a calibration that records none passes; another ROI (smaller, larger, moved,
+    another shape, the whole frame) gives a line naming both."""
+    own = CircleROI(kind="circle", cx_px=320, cy_px=240, radius_px=180)
+    cal = dataclasses.replace(fitted_calibration(), roi=own)
+    path = save_calibration(tmp_path / "calib.json", cal)
+    assert json.loads(path.read_text())["roi"] == {**_CIRCLE, "cx_px": 320.0}
+    assert load_calibration(path) == cal
+    assert cal.roi_problem(CircleROI(**_CIRCLE), "field 'imaging.roi'") is None
+    assert fitted_calibration().roi_problem(None, "x") is None  # records none
+    rect = RectROI(kind="rect", x_px=140, y_px=60, width_px=360, height_px=360)
+    for other in (
+        own.model_copy(update={"radius_px": 170.0}),
+        own.model_copy(update={"cx_px": 321.0}),
+        rect,
+        None,
+    ):
+        problem = cal.roi_problem(other, "field 'imaging.roi'")
+        assert problem is not None
+        assert problem.startswith(f"field 'imaging.roi' counts S in {describe_roi(other)}, but")
+        assert "made in circle centre (320, 240) r 180 px (its field 'roi')" in problem
+    # an older file without the field loads with none
+    doc = json.loads(path.read_text())
+    del doc["roi"]
+    path.write_text(json.dumps(doc))
+    assert load_calibration(path).roi is None
+
+
 def test_save_fills_created_timestamp_and_minimal_file_loads(tmp_path: Path) -> None:
     cal = example_calibration()
     path = save_calibration(tmp_path / "c.json", cal)
@@ -444,6 +480,10 @@ def _set_fit(key: str, value: Any) -> Any:
         (_set("frame_size_px", [640, 0]), "field 'frame_size_px.1': must be > 0 (got 0)"),
         (_set("frame_size_px", [640, 480.5]), "field 'frame_size_px.1'"),
         (_set("frame_size_px", [640]), "field 'frame_size_px.1': missing"),
+        (_set("roi", {**_CIRCLE, "radius_px": 0}), "field 'roi.circle.radius_px': must be > 0"),
+        (_set("roi", {**_CIRCLE, "kind": "oval"}), "field 'roi': Input tag 'oval'"),
+        (_set("roi", {**_CIRCLE, "cx_px": "320"}), "field 'roi.circle.cx_px'"),
+        (_set("roi", [320, 240, 100]), "field 'roi'"),
     ],
 )
 def test_load_rejects_bad_files(tmp_path: Path, mutate: Any, words: str) -> None:

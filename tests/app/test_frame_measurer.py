@@ -39,7 +39,9 @@ def _frame(k: int) -> tuple[np.ndarray, bytes]:
     return np.asarray(gray, np.uint8), packet
 
 
-def _measurer(tmp_path: Path, clock: ScaledClock) -> tuple[FrameMeasurer, SessionWriter]:
+def _measurer(
+    tmp_path: Path, clock: ScaledClock, frame_size_px: tuple[int, int] | None = None
+) -> tuple[FrameMeasurer, SessionWriter]:
     writer = SessionWriter.create(tmp_path, {}, {}, session_id="s", video=True, options=OPTS)
     assert writer.video_path is not None
     pipeline = SimpleNamespace(
@@ -55,6 +57,7 @@ def _measurer(tmp_path: Path, clock: ScaledClock) -> tuple[FrameMeasurer, Sessio
         pipeline,
         skip_late_s=5.0,
         writer=writer,  # type: ignore[arg-type]
+        frame_size_px=frame_size_px,
     )
     measurer.recorder = VideoRecorder(writer.video_path, writer, "passthrough")
     return measurer, writer
@@ -201,6 +204,36 @@ def test_a_frame_of_another_shape_is_neither_measured_nor_stored(tmp_path: Path)
         assert r.frames()["seq"].tolist() == [0]
     assert measurer.recorder is not None
     assert measurer.recorder.failed is None and measurer.recorder.frames == 1
+    measurer.recorder.close()
+    writer.close()
+
+
+def test_a_first_frame_of_another_size_than_the_camera_reported_is_not_measured(
+    tmp_path: Path,
+) -> None:
+    """The ROI and the calibration were checked against the size the camera reported on
+    opening (a V4L2 driver's granted size, a file's header); a camera that then delivers
+    frames of another size would have set the session's size with its first frame, and S_k
+    were counted on pixels the calibration was not made for, unflagged. The first frame
+    must have the reported size: otherwise a ResizedFrame (``reported``), which the loop
+    turns into a fault naming both sizes; a frame of the reported size is measured."""
+    clock = ScaledClock(1.0)
+    measurer, writer = _measurer(tmp_path, clock, frame_size_px=(32, 24))
+    gray, pk = _frame(2)  # 64x48
+    (captured,) = _in_thread(measurer, [RawFrame(0, clock.now(), gray, pk)])
+    result = measurer(CameraFrame(0, captured.t_done_s, gray, 0, pk, captured))
+    assert result == ResizedFrame(0, captured.t_done_s, (48, 64), (24, 32), 0, reported=True)
+    assert measurer.shape is None
+    assert isinstance(result, ResizedFrame) and result.fault_line() == (
+        "camera: frame 0 is 64x48 gray, but the camera reported 32x24 px frames on opening, "
+        "the size the ROI and the calibration were checked against; the measurement "
+        "stopped there"
+    )
+    small = np.ascontiguousarray(gray[:24, :32])
+    (ok,) = _in_thread(measurer, [RawFrame(1, clock.now(), small, None)])
+    assert measurer(CameraFrame(1, ok.t_done_s, small, 0, None, ok)).s_k == 2 * 32
+    assert measurer.shape == (24, 32)
+    assert measurer.recorder is not None
     measurer.recorder.close()
     writer.close()
 

@@ -95,6 +95,22 @@ def test_the_calibrations_own_threshold_comes_after_manifest_before_scene() -> N
     assert choose_imaging(override=no_p, scene=scene).threshold_p == Choice(44, "scene")
 
 
+def test_the_calibrations_own_roi_comes_after_manifest_before_scene() -> None:
+    """The ROI a calibration was made in is counted in unless the command line, the
+    config or the session's manifest (the ROI the live run counted in) says otherwise;
+    the scene's disc only when the calibration records none."""
+    own = dataclasses.replace(_cal(1.0), roi=_roi(7.0))
+    over = ImagingSource(calibration=Choice(own, "cal.json"))
+    rec = ImagingSource(roi=Choice(_roi(3.0), "manifest"))
+    scene = _source("scene", 4.0, 44, 4.0)
+    assert choose_imaging(override=over, recorded=rec, scene=scene).roi == rec.roi
+    assert choose_imaging(override=over, scene=scene).roi == Choice(
+        _roi(7.0), "calibration (cal.json)"
+    )
+    no_roi = ImagingSource(calibration=Choice(_cal(1.0), "cal.json"))
+    assert choose_imaging(override=no_roi, scene=scene).roi == Choice(_roi(4.0), "scene")
+
+
 def test_an_explicit_full_frame_overrides_every_roi() -> None:
     full = ImagingSource(roi=Choice(None, "--roi"))
     chosen = choose_imaging(override=full, config=_source("config", 2.0, 22, 2.0))
@@ -130,6 +146,15 @@ def test_manifest_record_round_trips_every_field_the_analysis_reads() -> None:
     assert record["frame_size_px"] == [320, 240]
     back = recorded_source(record, "manifest.json").calibration
     assert back is not None and back.value.frame_size_px == (320, 240)
+    # The ROI counted in is read back as the source's and the calibration's: counting
+    # again in another is then flagged. The whole frame is a choice; no key says nothing.
+    src = recorded_source(calibration_record(cal, 101, _roi(9.0), "cal.json"), "m.json")
+    assert src.roi == Choice(_roi(9.0), "session manifest calibration")
+    assert src.calibration is not None and src.calibration.value.roi == _roi(9.0)
+    whole = recorded_source(record, "m.json")
+    assert whole.roi == Choice(None, "session manifest calibration")
+    del record["roi"]
+    assert recorded_source(record, "m.json").roi is None
 
 
 def test_truth_source_offers_the_scenes_calibration_threshold_and_disc() -> None:
@@ -191,6 +216,30 @@ def test_daemon_simulated_scene_then_config_overrides(tmp_path: Path) -> None:
         load_config(_config(tmp_path, calibration=str(cal_path), imaging=imaging))
     )
     assert p == 60 and cal.threshold_p is None
+
+
+def test_daemon_refuses_an_roi_other_than_the_calibrations(tmp_path: Path) -> None:
+    """The config's ROI must be the one the calibration was made in; left out, the
+    calibration's is counted in; a calibration that records none takes the config's."""
+    made_in = {"kind": "circle", "cx_px": 320.0, "cy_px": 240.0, "radius_px": 150.0}
+    cal_path = save_calibration(
+        tmp_path / "cal.json", dataclasses.replace(_cal(5.0, 90), roi=CircleROI(**made_in))
+    )
+    for same in ({}, {"roi": made_in}):
+        cfg = load_config(_config(tmp_path, calibration=str(cal_path), imaging=same))
+        assert resolve_imaging(cfg)[2] == CircleROI(**made_in)
+    rect = {"kind": "rect", "x_px": 170, "y_px": 90, "width_px": 300, "height_px": 300}
+    for other in ({**made_in, "radius_px": 151.0}, {**made_in, "cx_px": 319.0}, rect):
+        cfg = load_config(_config(tmp_path, calibration=str(cal_path), imaging={"roi": other}))
+        with pytest.raises(ConfigError) as info:
+            resolve_imaging(cfg)
+        msg = str(info.value)
+        assert msg.startswith("field 'imaging.roi' counts S in "), msg
+        assert "made in circle centre (320, 240) r 150 px" in msg
+        assert msg.endswith("or calibrate in this one"), msg
+    save_calibration(cal_path, _cal(5.0, 90))
+    cfg = load_config(_config(tmp_path, calibration=str(cal_path), imaging={"roi": rect}))
+    assert isinstance(resolve_imaging(cfg)[2], RectROI)
 
 
 def test_daemon_real_camera_needs_a_calibration(tmp_path: Path) -> None:

@@ -12,6 +12,7 @@ from typing import Any
 import pytest
 
 from stipi_daemon.analysis.calibration import save_calibration
+from stipi_daemon.analysis.imaging import RectROI
 from stipi_daemon.app.offline_io import SessionData, read_session
 from stipi_daemon.cli import main
 from stipi_daemon.sim import load_scene
@@ -357,10 +358,18 @@ def test_a_calibration_made_at_another_frame_size_is_refused(
     capsys.readouterr()
 
 
-def _uncalibrated(doc: dict[str, Any]) -> list[str]:
-    """The quantities an analysis flags ``threshold_not_calibrated``."""
+def _uncalibrated(doc: dict[str, Any], flag: str = "threshold_not_calibrated") -> list[str]:
+    """The quantities an analysis flags ``flag``."""
     validity = doc["summary"]["validity"]
-    return sorted(q for q, v in validity.items() if "threshold_not_calibrated" in v["flags"])
+    return sorted(q for q, v in validity.items() if flag in v["flags"])
+
+
+def _video_argv(sim_dir: Path) -> list[str]:
+    """``analyze`` of the simulator's video and force CSV."""
+    return ["analyze", "--video", str(sim_dir / "video.mkv"), "--force", str(sim_dir / "force.csv")]
+
+
+_CALIBRATED = ["depth_mm", "elasticity_kpa", "rebound_force_n", "severity", "viscosity_n_s_per_mm2"]
 
 
 def test_s_k_counted_with_another_threshold_than_the_calibrations_flags_what_it_calibrates(
@@ -371,26 +380,13 @@ def test_s_k_counted_with_another_threshold_than_the_calibrations_flags_what_it_
     with another p is allowed offline, but D_p, F_r and what follows from them (E, eta,
     the severity) are flagged, with the reason, and the verdict is not ``complete``; T_r
     and tau (times only) are not."""
-    calibrated = [
-        "depth_mm",
-        "elasticity_kpa",
-        "rebound_force_n",
-        "severity",
-        "viscosity_n_s_per_mm2",
-    ]
-    video = [
-        "analyze",
-        "--video",
-        str(sim_dir / "video.mkv"),
-        "--force",
-        str(sim_dir / "force.csv"),
-    ]
+    video = _video_argv(sim_dir)
     out = tmp_path / "a.json"
     assert main([*video, "--out", str(out)]) == 0  # the scene's calibration and p
     assert _uncalibrated(json.loads(out.read_text())) == []
     assert main([*video, "--threshold", "110", "--out", str(out), "--overwrite"]) == 0
     doc = json.loads(out.read_text())
-    assert _uncalibrated(doc) == calibrated
+    assert _uncalibrated(doc) == _CALIBRATED
     reason = doc["summary"]["validity"]["depth_mm"]["reason"]
     assert "S_k counted with threshold p 110, the calibration (" in reason
     assert "made with p 128: D_p, F_r and what follows from them are not calibrated" in reason
@@ -402,11 +398,57 @@ def test_s_k_counted_with_another_threshold_than_the_calibrations_flags_what_it_
     argv = ["analyze", str(session_dir), "--calibration", str(cal_path)]
     assert main([*argv, "--out", str(out), "--overwrite"]) == 0
     doc = json.loads(out.read_text())
-    assert _uncalibrated(doc) == calibrated
+    assert _uncalibrated(doc) == _CALIBRATED
     assert (
         f"S_k counted with threshold p 128, the calibration ({cal_path}) made with p 100"
         in (doc["summary"]["validity"]["rebound_force_n"]["reason"])
     )
+    capsys.readouterr()
+
+
+def test_s_k_counted_in_another_roi_than_the_calibrations_flags_what_it_calibrates(
+    session_dir: Path, sim_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """S counts the occluded pixels within the ROI, and Eqs. 4-5 were fitted on S counted
+    in the calibration's ROI (the scene's: its waveguide disc). Counting in another ROI
+    (``--roi``: on a video, or again on a session's video) or bringing a calibration made
+    in another ROI than the session counted in is allowed offline, but D_p, F_r and what
+    follows from them are flagged ``roi_not_calibrated`` with the reason."""
+    truth = json.loads((sim_dir / "ground_truth.json").read_text())
+    disc = truth["roi"]
+    assert truth["calibration"]["roi"] == {"kind": "circle", **disc}
+    same = f"circle:{disc['cx_px']:g},{disc['cy_px']:g},{disc['radius_px']:g}"
+    smaller = f"circle:{disc['cx_px']:g},{disc['cy_px']:g},{disc['radius_px'] - 20:g}"
+    video = _video_argv(sim_dir)
+    out = tmp_path / "a.json"
+    flag = "roi_not_calibrated"
+    assert main([*video, "--roi", same, "--out", str(out)]) == 0
+    assert _uncalibrated(json.loads(out.read_text()), flag) == []
+    assert main([*video, "--roi", smaller, "--out", str(out), "--overwrite"]) == 0
+    doc = json.loads(out.read_text())
+    assert _uncalibrated(doc, flag) == _CALIBRATED
+    reason = doc["summary"]["validity"]["depth_mm"]["reason"]
+    assert f"S_k counted in circle centre ({disc['cx_px']:g}, {disc['cy_px']:g}) r " in reason
+    assert "D_p, F_r and what follows from them are not calibrated" in reason
+    assert doc["summary"]["verdict"]["status"] != "complete"
+    assert _uncalibrated(doc) == []  # the threshold is the calibration's
+    # A session's stored S_k (the scene's disc) against a calibration made in a rectangle.
+    manifest = json.loads((session_dir / "manifest.json").read_text())
+    assert manifest["calibration"]["roi"]["kind"] == "circle"
+    cal, _ = scaled_calibration(load_scene(short_scene(tmp_path)))
+    rect = RectROI(kind="rect", x_px=0, y_px=0, width_px=64, height_px=48)
+    cal_path = save_calibration(tmp_path / "rect.json", dataclasses.replace(cal, roi=rect))
+    argv = ["analyze", str(session_dir), "--calibration", str(cal_path)]
+    assert main([*argv, "--out", str(out), "--overwrite"]) == 0
+    doc = json.loads(out.read_text())
+    assert _uncalibrated(doc, flag) == _CALIBRATED
+    assert (
+        f"the calibration ({cal_path}) made in rect at (0, 0) size 64x48 px"
+        in (doc["summary"]["validity"]["rebound_force_n"]["reason"])
+    )
+    # The session's own calibration (the manifest's) and its ROI: nothing flagged.
+    assert main(["analyze", str(session_dir), "--out", str(out), "--overwrite"]) == 0
+    assert _uncalibrated(json.loads(out.read_text()), flag) == []
     capsys.readouterr()
 
 

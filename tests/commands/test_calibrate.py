@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -18,6 +19,7 @@ from stipi_daemon.analysis.calibration import (
     load_calibration,
     save_calibration,
 )
+from stipi_daemon.analysis.imaging import CircleROI
 from stipi_daemon.cli import main
 from stipi_daemon.storage import SessionWriter, StorageOptions
 from tests.test_calibrate_procedure import staircase
@@ -130,11 +132,12 @@ def test_example_files_agree_with_the_scene_calibration(
 def _recording_session(root: Path, name: str, frames: list[tuple[float, float]],
                        force: list[tuple[float, float]],
                        size: list[int] | None = None,
-                       summary_size: list[int] | None = None) -> Path:  # fmt: skip
+                       summary_size: list[int] | None = None,
+                       roi: dict[str, Any] | None = None) -> Path:  # fmt: skip
     """A session as the daemon records one; ``size``: the manifest's calibration record's
     ``frame_size_px`` (None: a session recorded before it was kept), ``summary_size``: its
-    summary's camera size (``run.camera.source.size``)."""
-    record: dict[str, object] = {"threshold_p": 128}
+    summary's camera size (``run.camera.source.size``), ``roi``: the record's ROI."""
+    record: dict[str, object] = {"threshold_p": 128, "roi": roi}
     if size is not None:
         record["frame_size_px"] = size
     with SessionWriter.create(
@@ -157,6 +160,7 @@ def _recordings(
     depth_size: list[int] | None,
     force_size: list[int] | None,
     force_summary_size: list[int] | None = None,
+    rois: tuple[dict[str, Any] | None, dict[str, Any] | None] = (None, None),
 ) -> list[str]:
     """A depth run and a force run recorded as sessions; the calibrate arguments for them."""
     rng = np.random.default_rng(4)
@@ -172,6 +176,7 @@ def _recordings(
         list(zip(t, fn, strict=True)),
         force_size,
         force_summary_size,
+        rois[1],
     )
     # Depth run: the indenter held at 8 known displacements, 2 s each, 1 s moves between.
     d = np.linspace(3.0, 10.0, 8)
@@ -181,7 +186,9 @@ def _recordings(
         marks.append(f"{a + 0.2},{a + 1.8},{dk}")
         for tt in np.arange(a, a + 2.0, 1 / 30):
             rows.append((tt, SCENE.s0_for_depth_change(dk) + rng.normal(0.0, 20.0)))
-    depth_dir = _recording_session(tmp_path, "depth-run", rows, [(0.0, 0.0)], depth_size)
+    depth_dir = _recording_session(
+        tmp_path, "depth-run", rows, [(0.0, 0.0)], depth_size, roi=rois[0]
+    )
     marks_csv = tmp_path / "displacements.csv"
     marks_csv.write_text("\n".join(marks) + "\n")
     argv = ["calibrate", "--depth-recording", str(depth_dir), "--displacements", str(marks_csv)]
@@ -236,14 +243,50 @@ def test_the_frame_size_comes_from_the_option_or_the_recordings_and_must_agree(
     ) in err
     same = _recordings(tmp_path / "same", [640, 480], None)  # force run: not recorded
     err = _err(capsys, [*same, "--frame-size", "320x240", "--out", str(out)])
-    assert "--frame-size 320x240 differs from 640x480 px in session depth-run" in err
+    assert "--frame-size 320x240 px differs from 640x480 px in session depth-run" in err
     assert not out.exists()
     assert main([*same, "--out", str(out)]) == 0
     assert load_calibration(out).frame_size_px == (640, 480)
     # A session recorded before the manifest kept it: its summary's camera says.
     older = _recordings(tmp_path / "older", None, None, [320, 240])
     err = _err(capsys, [*older, "--frame-size", "640x480", "--out", str(tmp_path / "o.json")])
-    assert "--frame-size 640x480 differs from 320x240 px in session force-run" in err
+    assert "--frame-size 640x480 px differs from 320x240 px in session force-run" in err
+
+
+def test_the_roi_comes_from_the_option_or_the_recordings_and_must_agree(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """S counts the occluded pixels within the ROI, so a calibration belongs to one ROI:
+    ``--roi`` or the recordings' (the manifest's calibration record) is written into the
+    file, and ROIs that disagree are refused in one line, nothing written."""
+    depth, force = _pairs(tmp_path, SCENE)
+    pairs = ["calibrate", "--depth-pairs", str(depth), "--force-pairs", str(force)]
+    out = tmp_path / "c.json"
+    assert main([*pairs, "--roi", "circle:320,240,180", "--out", str(out)]) == 0
+    assert "no ROI recorded" not in capsys.readouterr().out
+    assert load_calibration(out).roi == CircleROI(cx_px=320, cy_px=240, radius_px=180)
+    assert main([*pairs, "--roi", "full", "--out", str(out), "--overwrite"]) == 0
+    assert "warning: no ROI recorded (--roi)" in capsys.readouterr().out
+    assert load_calibration(out).roi is None
+
+    disc = {"kind": "circle", "cx_px": 320.0, "cy_px": 240.0, "radius_px": 180.0}
+    rect = {"kind": "rect", "x_px": 140, "y_px": 60, "width_px": 360, "height_px": 360}
+    out = tmp_path / "rec.json"
+    mixed = _recordings(tmp_path / "mixed", None, None, rois=(disc, rect))
+    err = _err(capsys, [*mixed, "--out", str(out)])
+    assert (
+        "the recordings' ROIs differ (circle centre (320, 240) r 180 px in session depth-run; "
+        "rect at (140, 60) size 360x360 px in session force-run): S values are not comparable"
+    ) in err
+    same = _recordings(tmp_path / "same", None, None, rois=(disc, None))
+    err = _err(capsys, [*same, "--roi", "circle:320,240,170", "--out", str(out)])
+    assert (
+        "--roi circle centre (320, 240) r 170 px differs from circle centre (320, 240) r 180 "
+        "px in session depth-run"
+    ) in err
+    assert not out.exists()
+    assert main([*same, "--out", str(out)]) == 0
+    assert load_calibration(out).roi == CircleROI(**disc)
 
 
 def _err(capsys: pytest.CaptureFixture[str], argv: list[str]) -> str:

@@ -21,9 +21,11 @@ import pytest
 import yaml
 
 from stipi_daemon.analysis.calibration import save_calibration
+from stipi_daemon.analysis.imaging import CircleROI, describe_roi
 from stipi_daemon.cli import main
 from stipi_daemon.sim.physics import scaled_calibration
 from stipi_daemon.sim.scene import load_scene
+from stipi_daemon.sim.truth import ground_truth
 from tests.conftest import REPO_ROOT
 
 SCENE = str(REPO_ROOT / "configs" / "scenes" / "grade1.yaml")
@@ -131,6 +133,38 @@ def test_a_threshold_other_than_the_calibrations_is_a_config_error_before_record
         "field 'imaging.threshold_p': 100 differs from the threshold p 128 the calibration "
         f"({source}) was made with",
         "leave imaging.threshold_p out to count with 128, or calibrate with p 100",
+    )
+    assert not (tmp_path / "sessions").exists()
+
+
+@pytest.mark.parametrize("with_file", [False, True], ids=["scene", "calibration-file"])
+def test_an_roi_other_than_the_calibrations_is_a_config_error_before_recording(
+    tmp_path: Path, with_file: bool
+) -> None:
+    """S counts the occluded pixels within the ROI: ``imaging.roi`` other than the ROI the
+    calibration (a file's, or the scene's waveguide disc) was made in counts S values its
+    Eqs. 4-5 do not describe (a smaller circle cuts the pit, a larger one adds dark pixels
+    beyond the lit disc), and D_p and F_r came out wrong with no flag. One line naming the
+    field, both ROIs and the calibration; exit 2, nothing recorded."""
+    cal, _ = scaled_calibration(load_scene(SCENE))
+    disc = ground_truth(load_scene(SCENE)).roi
+    own = CircleROI(kind="circle", **disc)
+    doc: dict[str, Any] = {
+        "probe": {"transport": EMULATED},
+        "camera": SIMULATOR,
+        "imaging": {"roi": {"kind": "circle", "cx_px": 320, "cy_px": 240, "radius_px": 100}},
+    }
+    source = "simulated scene"
+    if with_file:
+        source = str(save_calibration(tmp_path / "cal.json", replace(cal, roi=own)))
+        doc["calibration"] = source
+    proc = run_cli(tmp_path, doc)
+    assert_one_line_error(
+        proc,
+        "field 'imaging.roi' counts S in circle centre (320, 240) r 100 px, but the "
+        f"calibration was made in {describe_roi(own)} (its field 'roi')",
+        f"({source}); leave imaging.roi out to count in the calibration's ROI, or calibrate "
+        "in this one",
     )
     assert not (tmp_path / "sessions").exists()
 
@@ -300,14 +334,14 @@ def test_bad_calibration_file_names_it(tmp_path: Path, capsys: pytest.CaptureFix
     ids=["entirely-outside", "partly-outside"],
 )
 def test_roi_outside_the_frame_is_a_config_error_before_recording(
-    tmp_path: Path, roi: dict[str, Any], needle: str
+    tmp_path: Path, calibration: Path, roi: dict[str, Any], needle: str
 ) -> None:
     """Issue 14 case 6: an ROI off the camera's frame recorded 105 s of empty_roi frames
     and reported D_p 12 mm, F_r 0 N, exit 0. Now: one line naming the field, exit 2,
-    nothing recorded (the check runs once the camera is open, before the session)."""
-    proc = run_cli(
-        tmp_path,
-        {"probe": {"transport": EMULATED}, "camera": SIMULATOR, "imaging": {"roi": roi}},
-    )
+    nothing recorded (the check runs once the camera is open, before the session). The
+    calibration records no ROI (the scene's own, made in its disc, would refuse any
+    other ROI first)."""
+    doc = {"probe": {"transport": EMULATED}, "camera": SIMULATOR, "imaging": {"roi": roi}}
+    proc = run_cli(tmp_path, {**doc, "calibration": str(calibration)})
     assert_one_line_error(proc, needle)
     assert not (tmp_path / "sessions").exists()

@@ -144,6 +144,7 @@ def test_frames_that_change_size_end_the_run_with_one_line_and_keep_what_came_be
             "seq": CHANGE_AT,
             "shape": [240, 320],
             "session_shape": [120, 160],
+            "reported": False,
         }
         assert reader.video_frames()["seq"].tolist() == seqs
         assert reader.integrity_check().ok, reader.integrity_check().problems
