@@ -321,6 +321,7 @@ def _cal_dict(cal: Calibration, source: str) -> dict[str, Any]:
         "s0_valid_range_px": pair(cal.s0_valid_range_px),
         "force_valid_range_n": pair(cal.force_valid_range_n),
         "frame_size_px": None if cal.frame_size_px is None else list(cal.frame_size_px),
+        "roi": _roi_dict(cal.roi),
         "source": source,
     }
 

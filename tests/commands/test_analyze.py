@@ -446,6 +446,7 @@ def test_s_k_counted_in_another_roi_than_the_calibrations_flags_what_it_calibrat
         f"the calibration ({cal_path}) made in rect at (0, 0) size 64x48 px"
         in (doc["summary"]["validity"]["rebound_force_n"]["reason"])
     )
+    assert doc["settings"]["calibration"]["roi"] == rect.model_dump(mode="json")
     # The session's own calibration (the manifest's) and its ROI: nothing flagged.
     assert main(["analyze", str(session_dir), "--out", str(out), "--overwrite"]) == 0
     assert _uncalibrated(json.loads(out.read_text()), flag) == []
