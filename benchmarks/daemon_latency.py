@@ -490,11 +490,13 @@ def machine() -> dict[str, str]:
 
 def prepare(tmp: Path, width: int, height: int) -> tuple[Path, dict[str, Any]]:
     """Scene file, rendered MJPG video, calibration; return (scene path, config template)."""
+    import dataclasses
     import subprocess
 
     import yaml
 
     from stipi_daemon.analysis.calibration import save_calibration
+    from stipi_daemon.analysis.imaging import CircleROI
     from stipi_daemon.sim.physics import scaled_calibration
     from stipi_daemon.sim.scene import load_scene
 
@@ -526,7 +528,8 @@ def prepare(tmp: Path, width: int, height: int) -> tuple[Path, dict[str, Any]]:
     )
     truth = json.loads((out / "ground_truth.json").read_text())
     rendered = load_scene(scene).with_camera(width=width, height=height, fps=FPS)
-    cal, _ = scaled_calibration(rendered)
+    disc = CircleROI(kind="circle", **{k: float(v) for k, v in truth["roi"].items()})
+    cal = dataclasses.replace(scaled_calibration(rendered)[0], roi=disc)  # made in the disc
     cal_path = save_calibration(tmp / f"calibration_{height}p.json", cal)
     video = next(p for p in sorted(out.iterdir()) if p.name.startswith("video."))
     config = {
@@ -535,7 +538,7 @@ def prepare(tmp: Path, width: int, height: int) -> tuple[Path, dict[str, Any]]:
         "calibration": str(cal_path),
         "imaging": {
             "threshold_p": int(truth["frame"]["threshold_p"]),
-            "roi": {"kind": "circle", **{k: float(v) for k, v in truth["roi"].items()}},
+            "roi": disc.model_dump(mode="json"),
         },
         "measurement": {"pitting_duration_s": 5.0, "recovery_max_s": 10.0, "settle_hold_s": 5.0},
         "run": {"speed": 1.0},
