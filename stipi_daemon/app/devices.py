@@ -391,7 +391,11 @@ def _check_frame(
     if size is None:
         return None
     if roi is not None:
-        field = "field 'imaging.roi'" if config.imaging.roi is not None else "the scene's ROI"
+        field = "the scene's ROI"
+        if config.imaging.roi is not None:
+            field = "field 'imaging.roi'"
+        elif calibration.roi is not None and config.calibration is not None:
+            field = f"field 'roi' of the calibration ({config.calibration})"  # counted in it
         check_roi_fits(roi, size[0], size[1], field)
     where = f"field 'calibration' ({config.calibration})" if config.calibration else "the scene"
     problem = calibration.frame_size_problem(size[0], size[1], "the camera")

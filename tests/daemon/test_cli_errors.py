@@ -169,6 +169,26 @@ def test_an_roi_other_than_the_calibrations_is_a_config_error_before_recording(
     assert not (tmp_path / "sessions").exists()
 
 
+def test_a_calibrations_own_roi_outside_the_frame_is_named_as_the_calibrations(
+    tmp_path: Path,
+) -> None:
+    """With ``imaging.roi`` left out, S is counted in the calibration's ROI: one that lies
+    off the camera's frame is refused naming the calibration's field, not the scene's."""
+    cal, _ = scaled_calibration(load_scene(SCENE))
+    off = CircleROI(kind="circle", cx_px=900.0, cy_px=100.0, radius_px=200.0)
+    path = save_calibration(tmp_path / "cal.json", replace(cal, roi=off))
+    proc = run_cli(
+        tmp_path,
+        {"probe": {"transport": EMULATED}, "camera": SIMULATOR, "calibration": str(path)},
+    )
+    assert_one_line_error(
+        proc,
+        f"field 'roi' of the calibration ({path}): circle centre (900, 100) r 200 px lies "
+        "outside the 640x480 frame",
+    )
+    assert not (tmp_path / "sessions").exists()
+
+
 def test_a_calibration_made_at_another_frame_size_is_a_config_error_before_recording(
     tmp_path: Path,
 ) -> None:
