@@ -105,19 +105,23 @@ EXIT_S_K_NOT_REPRODUCED = 3
 #: Validity flag of the quantities computed from S_k when the recount does not reproduce
 #: or cover the stored S_k (``settings.imaging.s_k_vs_stored.problem`` says how).
 S_K_NOT_REPRODUCED = "s_k_not_reproduced"
-#: Validity flag of the calibrated quantities (D_p, F_r by Eqs. 4-5, and E, eta and the
-#: severity from them) when S_k were counted with another threshold p than the one the
-#: calibration was made with (``analyze --threshold`` exploring another p, or a
-#: ``--calibration`` made with another p than the session counted with): the S values of
-#: Eqs. 4-5 and these S_k do not compare.
+#: Validity flag of every quantity computed from S_k (D_p, F_r by Eqs. 4-5, T_r by Eq. 6,
+#: tau, and E, eta and the severity from them) when S_k were counted with another threshold
+#: p than the one the calibration was made with (``analyze --threshold`` exploring another
+#: p, or a ``--calibration`` made with another p than the session counted with): the S
+#: values of Eqs. 4-5 and these S_k do not compare, and T_r's settling level (a fraction of
+#: S_max) moves with them (1.5 % at p 90 instead of 128 on a simulated grade I).
 THRESHOLD_NOT_CALIBRATED = "threshold_not_calibrated"
-#: Validity flag of the calibrated quantities when S_k were counted in another ROI than
-#: the one the calibration was made in (``analyze --roi``, a study's ``imaging.roi``, or a
+#: Validity flag of the same quantities when S_k were counted in another ROI than the one
+#: the calibration was made in (``analyze --roi``, a study's ``imaging.roi``, or a
 #: ``--calibration`` made in another ROI than the session counted in): S counts the occluded
-#: pixels within the ROI, so the S values of Eqs. 4-5 and these S_k do not compare.
+#: pixels within the ROI, so the S values of Eqs. 4-5 and these S_k do not compare (a disc
+#: 20 px wider than the lit one: D_p 12 mm instead of 1.82, T_r 27 % short).
 ROI_NOT_CALIBRATED = "roi_not_calibrated"
-#: The quantities that go through the calibration.
-_CALIBRATED = ("depth_mm", "rebound_force_n", "elasticity_kpa", "viscosity_n_s_per_mm2", "severity")
+#: What either flag's reason says follows.
+_NOT_CALIBRATED = (
+    "S_k are not the calibration's S, so D_p, F_r, T_r, tau and what follows from them do not hold"
+)
 
 _NO_THRESHOLD = "no threshold p for Eq. (1): give --threshold P (or a calibration with threshold_p)"
 
@@ -659,7 +663,7 @@ def _threshold_problem(counted_p: Any, calibration: Choice[Calibration]) -> str 
         return None
     return (
         f"S_k counted with threshold p {int(counted_p)}, the calibration ({calibration.source}) "
-        f"made with p {own}: D_p, F_r and what follows from them are not calibrated"
+        f"made with p {own}: {_NOT_CALIBRATED}"
     )
 
 
@@ -673,19 +677,19 @@ def _roi_problem(
         return None
     return (
         f"S_k counted in {describe_roi(counted)}, the calibration ({calibration.source}) made "
-        f"in {describe_roi(own)}: D_p, F_r and what follows from them are not calibrated"
+        f"in {describe_roi(own)}: {_NOT_CALIBRATED}"
     )
 
 
 def _flag_uncalibrated(
     summary: dict[str, Any], problems: Mapping[str, str | None], notes: list[str]
 ) -> None:
-    """Flag the calibrated quantities of ``summary`` with each flag of ``problems`` whose
-    problem is not None, and note the problem."""
+    """Flag the S_k quantities of ``summary`` with each flag of ``problems`` whose problem
+    is not None, and note the problem."""
     for flag, problem in problems.items():
         if problem is not None:
             notes.append(problem)
-            _flag_quantities(summary, problem, flag, _CALIBRATED)
+            _flag_quantities(summary, problem, flag)
 
 
 def _json_roundtrip(value: Any) -> Any:

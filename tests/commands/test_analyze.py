@@ -369,7 +369,18 @@ def _video_argv(sim_dir: Path) -> list[str]:
     return ["analyze", "--video", str(sim_dir / "video.mkv"), "--force", str(sim_dir / "force.csv")]
 
 
-_CALIBRATED = ["depth_mm", "elasticity_kpa", "rebound_force_n", "severity", "viscosity_n_s_per_mm2"]
+#: Every quantity computed from S_k (F_a, from the force alone, is not among them).
+_CALIBRATED = sorted(
+    [
+        "depth_mm",
+        "elasticity_kpa",
+        "rebound_force_n",
+        "recovery_time_s",
+        "severity",
+        "tau_s",
+        "viscosity_n_s_per_mm2",
+    ]
+)
 
 
 def test_s_k_counted_with_another_threshold_than_the_calibrations_flags_what_it_calibrates(
@@ -377,9 +388,9 @@ def test_s_k_counted_with_another_threshold_than_the_calibrations_flags_what_it_
 ) -> None:
     """S_k depends on p (Eq. 1) and Eqs. 4-5 were fitted on S counted with the
     calibration's p. Exploring another p (``--threshold``) or bringing a calibration made
-    with another p is allowed offline, but D_p, F_r and what follows from them (E, eta,
-    the severity) are flagged, with the reason, and the verdict is not ``complete``; T_r
-    and tau (times only) are not."""
+    with another p is allowed offline, but D_p, F_r, T_r (its settling level is a fraction
+    of S_max), tau and what follows from them (E, eta, the severity) are flagged, with the
+    reason, and the verdict is not ``complete``; F_a (force only) is not."""
     video = _video_argv(sim_dir)
     out = tmp_path / "a.json"
     assert main([*video, "--out", str(out)]) == 0  # the scene's calibration and p
@@ -389,7 +400,10 @@ def test_s_k_counted_with_another_threshold_than_the_calibrations_flags_what_it_
     assert _uncalibrated(doc) == _CALIBRATED
     reason = doc["summary"]["validity"]["depth_mm"]["reason"]
     assert "S_k counted with threshold p 110, the calibration (" in reason
-    assert "made with p 128: D_p, F_r and what follows from them are not calibrated" in reason
+    assert (
+        "made with p 128: S_k are not the calibration's S, so D_p, F_r, T_r, tau and what "
+        "follows from them do not hold"
+    ) in reason
     assert doc["summary"]["verdict"]["status"] != "complete"
     assert any("threshold p 110" in n for n in doc["notes"])
     # A session's stored S_k (p 128) against a calibration made with p 100.
@@ -412,8 +426,8 @@ def test_s_k_counted_in_another_roi_than_the_calibrations_flags_what_it_calibrat
     """S counts the occluded pixels within the ROI, and Eqs. 4-5 were fitted on S counted
     in the calibration's ROI (the scene's: its waveguide disc). Counting in another ROI
     (``--roi``: on a video, or again on a session's video) or bringing a calibration made
-    in another ROI than the session counted in is allowed offline, but D_p, F_r and what
-    follows from them are flagged ``roi_not_calibrated`` with the reason."""
+    in another ROI than the session counted in is allowed offline, but every quantity from
+    S_k is flagged ``roi_not_calibrated`` with the reason."""
     truth = json.loads((sim_dir / "ground_truth.json").read_text())
     disc = truth["roi"]
     assert truth["calibration"]["roi"] == {"kind": "circle", **disc}
@@ -429,9 +443,18 @@ def test_s_k_counted_in_another_roi_than_the_calibrations_flags_what_it_calibrat
     assert _uncalibrated(doc, flag) == _CALIBRATED
     reason = doc["summary"]["validity"]["depth_mm"]["reason"]
     assert f"S_k counted in circle centre ({disc['cx_px']:g}, {disc['cy_px']:g}) r " in reason
-    assert "D_p, F_r and what follows from them are not calibrated" in reason
+    assert "so D_p, F_r, T_r, tau and what follows from them do not hold" in reason
     assert doc["summary"]["verdict"]["status"] != "complete"
     assert _uncalibrated(doc) == []  # the threshold is the calibration's
+    # A disc 20 px wider than the lit one adds its dark ring to every S_k: D_p and T_r (its
+    # settling level is a fraction of S_max) move far from the scene's truth, and are flagged.
+    wider = f"circle:{disc['cx_px']:g},{disc['cy_px']:g},{disc['radius_px'] + 20:g}"
+    assert main([*video, "--roi", wider, "--out", str(out), "--overwrite"]) == 0
+    doc = json.loads(out.read_text())
+    pitting = doc["summary"]["results"]["pitting"]
+    assert abs(pitting["depth_mm"] / truth["depth_mm"] - 1) > 0.5
+    assert abs(pitting["recovery_time_s"] / truth["recovery_time_s"] - 1) > 0.1
+    assert _uncalibrated(doc, flag) == _CALIBRATED
     # A session's stored S_k (the scene's disc) against a calibration made in a rectangle.
     manifest = json.loads((session_dir / "manifest.json").read_text())
     assert manifest["calibration"]["roi"]["kind"] == "circle"
