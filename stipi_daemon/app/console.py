@@ -265,15 +265,18 @@ def verdict_lines(summary: dict[str, Any]) -> list[str]:
     return out
 
 
-def _shown(summary: dict[str, Any], quantity: str, text: str) -> str:
+def _shown(summary: dict[str, Any], quantity: str | tuple[str, ...], text: str) -> str:
     """A value as the results show it: ``invalid`` for an invalid quantity (its value is
-    recorded in the summary, never shown as a result), marked ``(flagged)`` when flagged."""
+    recorded in the summary, never shown as a result), marked ``(flagged)`` when flagged. A
+    value computed from several quantities (a tuple) takes the worst of their statuses."""
     validity = summary.get("validity")
-    entry = validity.get(quantity) if isinstance(validity, dict) else None
-    status = entry.get("status") if isinstance(entry, dict) else None
-    if status == "invalid":
+    statuses = set()
+    for q in (quantity,) if isinstance(quantity, str) else quantity:
+        entry = validity.get(q) if isinstance(validity, dict) else None
+        statuses.add(entry.get("status") if isinstance(entry, dict) else None)
+    if "invalid" in statuses:
         return "invalid"
-    return f"{text} (flagged)" if status == "flagged" else text
+    return f"{text} (flagged)" if "flagged" in statuses else text
 
 
 def format_results(summary: dict[str, Any]) -> list[str]:
@@ -291,7 +294,7 @@ def format_results(summary: dict[str, Any]) -> list[str]:
     fm = fit["model"] or {}
     tau_se = fit.get("tau_se_s")
 
-    def val(q: str, v: float | None, unit: str) -> str:
+    def val(q: str | tuple[str, ...], v: float | None, unit: str) -> str:
         return _shown(summary, q, _fmt(v, unit, 4))
 
     tau = _fmt(fit["tau_s"], "s", 4) + (f" +- {tau_se:.2g} s" if tau_se is not None else "")
@@ -313,8 +316,9 @@ def format_results(summary: dict[str, Any]) -> list[str]:
         + " (Eq. 8, E*T_r)",
         f"  time constant      tau = {_shown(summary, 'tau_s', tau)}"
         "  (fitted Kelvin-Voigt recovery)",
-        f"  viscosity (fit)    eta = {_fmt(fm.get('viscosity_n_s_per_mm2'), 'N*s/mm^2', 4)}"
-        " (E*tau)",
+        "  viscosity (fit)    eta = "
+        + val(("elasticity_kpa", "tau_s"), fm.get("viscosity_n_s_per_mm2"), "N*s/mm^2")
+        + " (E*tau)",
     ]
     lines.extend(_severity_lines(summary, res["severity"]))
     if res["flags"]:

@@ -106,3 +106,21 @@ def test_the_verdict_is_green_only_on_a_terminal() -> None:
     plain = io.StringIO()
     OperatorConsole(MeasurementConfig(), plain, live=False).line("verdict: X", "bold green")
     assert plain.getvalue() == "verdict: X\n"
+
+
+def test_the_fitted_viscosity_takes_the_worst_status_of_e_and_tau() -> None:
+    """eta = E tau has no validity entry of its own: it is shown as its inputs allow, never
+    plain beside a flagged or invalid E or tau."""
+    results = _results()
+    results["fitted_recovery"]["model"] = {"viscosity_n_s_per_mm2": 13.16}
+
+    def shown(**status: tuple[str, str | None]) -> str:
+        summary = {"results": results, "validity": _validity(**status), "verdict": {}}
+        (line,) = [x for x in format_results(summary) if "viscosity (fit)" in x]
+        return line
+
+    assert shown().endswith("eta = 13.16 N*s/mm^2 (E*tau)")
+    assert "13.16 N*s/mm^2 (flagged)" in shown(elasticity_kpa=("flagged", "extrapolated"))
+    assert "13.16 N*s/mm^2 (flagged)" in shown(tau_s=("flagged", "poor fit"))
+    no_tau = shown(tau_s=("invalid", "no fit"), elasticity_kpa=("flagged", "extrapolated"))
+    assert "eta = invalid (E*tau)" in no_tau and "13.16" not in no_tau
