@@ -169,18 +169,24 @@ def test_an_roi_other_than_the_calibrations_is_a_config_error_before_recording(
     assert not (tmp_path / "sessions").exists()
 
 
+def _run_with_scene_calibration(
+    tmp_path: Path, **changes: Any
+) -> tuple[subprocess.CompletedProcess[str], Path]:
+    """The CLI on the simulated scene with the scene's calibration, ``changes`` made, as a
+    calibration file; its result and the file."""
+    cal, _ = scaled_calibration(load_scene(SCENE))
+    path = save_calibration(tmp_path / "cal.json", replace(cal, **changes))
+    doc = {"probe": {"transport": EMULATED}, "camera": SIMULATOR, "calibration": str(path)}
+    return run_cli(tmp_path, doc), path
+
+
 def test_a_calibrations_own_roi_outside_the_frame_is_named_as_the_calibrations(
     tmp_path: Path,
 ) -> None:
     """With ``imaging.roi`` left out, S is counted in the calibration's ROI: one that lies
     off the camera's frame is refused naming the calibration's field, not the scene's."""
-    cal, _ = scaled_calibration(load_scene(SCENE))
     off = CircleROI(kind="circle", cx_px=900.0, cy_px=100.0, radius_px=200.0)
-    path = save_calibration(tmp_path / "cal.json", replace(cal, roi=off))
-    proc = run_cli(
-        tmp_path,
-        {"probe": {"transport": EMULATED}, "camera": SIMULATOR, "calibration": str(path)},
-    )
+    proc, path = _run_with_scene_calibration(tmp_path, roi=off)
     assert_one_line_error(
         proc,
         f"field 'roi' of the calibration ({path}): circle centre (900, 100) r 200 px lies "
@@ -196,13 +202,8 @@ def test_a_calibration_made_at_another_frame_size_is_a_config_error_before_recor
     640x480, would give D_p and F_r from areas 2.25 times as large, unflagged. A
     calibration that records its frame size is checked against the camera's once it is
     open: one line naming the field and both sizes, exit 2, nothing recorded."""
-    cal, _ = scaled_calibration(load_scene(SCENE))
-    assert cal.frame_size_px == (640, 480)  # the scene's camera
-    path = save_calibration(tmp_path / "cal_720p.json", replace(cal, frame_size_px=(1280, 720)))
-    proc = run_cli(
-        tmp_path,
-        {"probe": {"transport": EMULATED}, "camera": SIMULATOR, "calibration": str(path)},
-    )
+    assert scaled_calibration(load_scene(SCENE))[0].frame_size_px == (640, 480)  # the camera's
+    proc, path = _run_with_scene_calibration(tmp_path, frame_size_px=(1280, 720))
     assert_one_line_error(
         proc,
         f"field 'calibration' ({path}): the camera has 640x480 px frames, but the "
