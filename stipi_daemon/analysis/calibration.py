@@ -36,7 +36,7 @@ import numpy as np
 import numpy.typing as npt
 from pydantic import AwareDatetime, BaseModel, ConfigDict, Field, ValidationError
 
-from stipi_daemon.analysis.imaging import ROI, CircleROI, RectROI, describe_roi
+from stipi_daemon.analysis.imaging import ROI, CircleROI, RectROI, describe_roi, same_roi
 from stipi_daemon.errors import AnalysisError, CalibrationError
 
 __all__ = [
@@ -226,8 +226,10 @@ class Calibration:
         coordinates]. S counts the occluded pixels within it: a smaller ROI that cuts into
         the occluded area lowers S, a larger one that reaches past the lit disc adds its
         dark pixels, so the daemon refuses another ROI and ``analyze`` flags results counted
-        in one (``roi_not_calibrated``). None: not recorded (older files; pairs fitted
-        without ``--roi``).
+        in one (``roi_not_calibrated``). The whole frame is the rect of ``frame_size_px``
+        (:func:`~stipi_daemon.analysis.imaging.whole_frame_roi`), the same S as any ROI
+        holding the frame. None: not recorded (older files; pairs fitted without
+        ``--roi``).
 
     Raises
     ------
@@ -318,12 +320,12 @@ class Calibration:
 
     def roi_problem(self, roi: CircleROI | RectROI | None, where: str) -> str | None:
         """Why S counted in ``roi`` [px] (None: the whole frame) cannot use this
-        calibration, or None when they can (the same ROI, or a calibration that records
-        none).
+        calibration, or None when they can (the same ROI, both holding the whole frame of
+        the calibration's ``frame_size_px``, or a calibration that records none).
 
         ``where`` names what counts in that ROI (a config field, ``--roi``, a session).
         """
-        if self.roi is None or roi == self.roi:
+        if self.roi is None or same_roi(roi, self.roi, self.frame_size_px):
             return None
         return (
             f"{where} counts S in {describe_roi(roi)}, but the calibration was made in "

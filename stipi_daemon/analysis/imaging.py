@@ -69,16 +69,19 @@ __all__ = [
     "FrameProcessor",
     "RectROI",
     "bgr_gray_formula",
+    "covers_frame",
     "describe_roi",
     "occluded_area_subpixel",
     "occluded_pixel_count",
     "otsu_threshold",
     "roi_from_record",
     "roi_mask",
+    "same_roi",
     "sk_kernel",
     "subpixel_membership_lut",
     "threshold_binary_inverted",
     "to_gray",
+    "whole_frame_roi",
 ]
 
 GrayImage = npt.NDArray[np.uint8]
@@ -279,6 +282,45 @@ def roi_from_record(value: Any) -> RectROI | CircleROI | None:
     except ValidationError as exc:
         raise ValueError(f"not a valid ROI: {exc.errors()[0]['msg']}") from None
     return roi
+
+
+def whole_frame_roi(frame_size_px: tuple[int, int]) -> RectROI:
+    """The whole ``(width, height)`` [px] frame as an ROI: the rect a calibration records
+    for S counted in the whole frame (``calibrate --roi full``)."""
+    width, height = frame_size_px
+    return RectROI(kind="rect", x_px=0, y_px=0, width_px=int(width), height_px=int(height))
+
+
+def covers_frame(roi: RectROI | CircleROI | None, frame_size_px: tuple[int, int]) -> bool:
+    """Whether ``roi`` [px] (None: the whole frame) holds every pixel of a ``(width,
+    height)`` [px] frame, so that S counted in it is S of the whole frame."""
+    if roi is None:
+        return True
+    width, height = frame_size_px
+    if isinstance(roi, RectROI):
+        return (
+            roi.x_px <= 0
+            and roi.y_px <= 0
+            and roi.x_px + roi.width_px >= width
+            and roi.y_px + roi.height_px >= height
+        )
+    # the farthest pixel centre, by the mask's own test (module docstring)
+    far_x = max(abs(roi.cx_px), abs(width - 1 - roi.cx_px))
+    far_y = max(abs(roi.cy_px), abs(height - 1 - roi.cy_px))
+    return far_x * far_x + far_y * far_y <= roi.radius_px * roi.radius_px
+
+
+def same_roi(
+    a: RectROI | CircleROI | None,
+    b: RectROI | CircleROI | None,
+    frame_size_px: tuple[int, int] | None,
+) -> bool:
+    """Whether S counted in ROI ``a`` and in ROI ``b`` [px] (None: the whole frame) count
+    the same pixels: the same ROI, or, in frames of ``frame_size_px`` (None: unknown), two
+    that both hold the whole frame."""
+    if a == b:
+        return True
+    return frame_size_px is not None and all(covers_frame(x, frame_size_px) for x in (a, b))
 
 
 def describe_roi(roi: RectROI | CircleROI | None) -> str:

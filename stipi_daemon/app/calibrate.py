@@ -46,7 +46,14 @@ from stipi_daemon.analysis.calibration_procedure import (
     force_domain_problem,
     force_points,
 )
-from stipi_daemon.analysis.imaging import CircleROI, RectROI, describe_roi, roi_from_record
+from stipi_daemon.analysis.imaging import (
+    CircleROI,
+    RectROI,
+    describe_roi,
+    roi_from_record,
+    same_roi,
+    whole_frame_roi,
+)
 from stipi_daemon.app.offline_io import (
     CsvTable,
     count_video,
@@ -88,8 +95,10 @@ class CalibrateRequest:
         Threshold p of Eq. (1) the S values were counted with [8-bit intensity].
     roi : CircleROI or RectROI or None
         ROI to count S on a video [px] (None: the whole frame), and the ROI recorded in the
-        file as the one the S values were counted in (a recording's own must agree; the
-        whole frame records none).
+        file as the one the S values were counted in (a recording's own must agree).
+    whole_frame : bool
+        ``--roi full``: the S values were counted in the whole frame (``roi`` None), which
+        the file records as the rect of the frame size (needs the frame size).
     probe_id : str or None
         Probe identifier recorded in the file.
     frame_size_px : tuple of int or None
@@ -109,6 +118,7 @@ class CalibrateRequest:
     indenter_length_mm: float = DEFAULT_INDENTER_LENGTH_MM
     threshold_p: int | None = None
     roi: CircleROI | RectROI | None = None
+    whole_frame: bool = False
     probe_id: str | None = None
     frame_size_px: tuple[int, int] | None = None
     plateau_tolerance_n: float = DEFAULT_PLATEAU_TOLERANCE_N
@@ -127,6 +137,9 @@ class _Series:
     what: str
     frame_size_px: tuple[int, int] | None = None
     roi: CircleROI | RectROI | None = None
+    """The ROI the S values were counted in (None: the whole frame, or not known)."""
+    whole_frame: bool = False
+    """Whether they were counted in the whole frame (``roi`` None)."""
 
 
 @dataclass
@@ -135,14 +148,15 @@ class _Seen:
 
     thresholds: list[int] = field(default_factory=list)
     sizes: list[tuple[tuple[int, int], str]] = field(default_factory=list)
-    rois: list[tuple[CircleROI | RectROI, str]] = field(default_factory=list)
+    #: (ROI, which recording); None: the whole frame.
+    rois: list[tuple[CircleROI | RectROI | None, str]] = field(default_factory=list)
 
     def add(self, rec: _Series) -> None:
         if rec.threshold_p is not None:
             self.thresholds.append(rec.threshold_p)
         if rec.frame_size_px is not None:
             self.sizes.append((rec.frame_size_px, rec.what))
-        if rec.roi is not None:
+        if rec.roi is not None or rec.whole_frame:
             self.rois.append((rec.roi, rec.what))
 
 
@@ -170,6 +184,9 @@ def _load_recording(
             f"session {data.session_id}",
             data.frame_size_px(),
             counted_in,
+            # a record with "roi": null counted in the whole frame; one without, before the
+            # ROI was kept, says nothing
+            whole_frame=counted_in is None and "roi" in cal,
         )
     video = path / "video.mkv"
     if not path.is_dir() or not video.is_file():
@@ -190,7 +207,8 @@ def _load_recording(
         ft, fn = np.empty(0), np.empty(0)
     h, w = counted.frame_shape[:2]
     size = (int(w), int(h)) if counted.crop is None else None  # a crop's frame is unknown
-    return _Series(t, s, ft, fn, threshold, f"video {video}", size, roi)
+    whole = roi is None and size is not None
+    return _Series(t, s, ft, fn, threshold, f"video {video}", size, roi, whole_frame=whole)
 
 
 def _check_domain(table: CsvTable, problem: tuple[int, str] | None, option: str | None) -> None:
@@ -317,6 +335,30 @@ def _agreed(
     return given if given is not None else (seen[0][0] if seen else None)
 
 
+def _agreed_roi(
+    request: CalibrateRequest,
+    seen: list[tuple[CircleROI | RectROI | None, str]],
+    frame_size: tuple[int, int] | None,
+) -> tuple[CircleROI | RectROI | None, bool]:
+    """The ROI to record and whether S was counted in the whole frame without a known
+    frame size to record it with. The ROI is ``--roi`` (``--roi full``: the whole frame),
+    else the recordings' ``seen`` (ROI or None for the whole frame, which recording); they
+    must all count the same pixels (:func:`same_roi`). The whole frame is recorded as the
+    rect of ``frame_size`` [px]."""
+    text = "; ".join(f"{describe_roi(v)} in {what}" for v, what in seen)
+    if any(not same_roi(v, seen[0][0], frame_size) for v, _ in seen[1:]):
+        raise CalibrationError(f"the recordings' ROIs differ ({text}): S values are not comparable")
+    given = request.roi is not None or request.whole_frame
+    if given and any(not same_roi(request.roi, v, frame_size) for v, _ in seen):
+        raise CalibrationError(f"--roi {describe_roi(request.roi)} differs from {text}")
+    if not given and not seen:
+        return None, False
+    chosen = request.roi if given else seen[0][0]
+    if chosen is None:
+        return (None, True) if frame_size is None else (whole_frame_roi(frame_size), False)
+    return chosen, False
+
+
 def _size_text(size: tuple[int, int]) -> str:
     return f"{size[0]}x{size[1]} px"
 
@@ -344,7 +386,7 @@ def calibrate(request: CalibrateRequest, emit: Emit) -> tuple[Calibration, Path]
     frame_size = _agreed(
         "--frame-size", request.frame_size_px, seen.sizes, _size_text, "frames differ in size"
     )
-    roi = _agreed("--roi", request.roi, seen.rois, describe_roi, "ROIs differ")
+    roi, whole_unsized = _agreed_roi(request, seen.rois, frame_size)
     try:
         depth_fit = fit_depth_calibration(s0, d_s)
     except CalibrationError as exc:
@@ -377,7 +419,13 @@ def calibrate(request: CalibrateRequest, emit: Emit) -> tuple[Calibration, Path]
             "warning: no frame size recorded (--frame-size WxH): the daemon cannot tell a "
             "camera at another resolution, whose S values are not comparable"
         )
-    if roi is None:
+    if whole_unsized:
+        emit(
+            "warning: no ROI recorded: S was counted in the whole frame, whose size is not "
+            "known (--frame-size WxH records both); the daemon cannot tell S counted in "
+            "another ROI, whose S values are not comparable"
+        )
+    elif roi is None:
         emit(
             "warning: no ROI recorded (--roi): the daemon cannot tell S counted in another "
             "ROI, whose S values are not comparable"

@@ -98,8 +98,8 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         "--roi",
         metavar="ROI",
         help="ROI the S values were counted in, and to count S on a video in: circle:CX,CY,R, "
-        "rect:X,Y,W,H, full (recorded in the file, full records none; the daemon refuses "
-        "another ROI; a recording's own must agree)",
+        "rect:X,Y,W,H, full (recorded in the file, full as the rect of the frame size; the "
+        "daemon refuses another ROI; a recording's own must agree)",
     )
     parser.add_argument("--probe-id", metavar="ID", help="probe identifier recorded in the file")
     parser.add_argument(
@@ -168,6 +168,7 @@ def run(args: argparse.Namespace) -> int:
     if args.depth_recording is None and args.displacements is not None:
         raise ConfigError("--displacements applies to --depth-recording")
     _check_values(args)
+    roi = parse_roi(args.roi) if args.roi is not None else None
     request = CalibrateRequest(
         out=args.out,
         depth_pairs=args.depth_pairs,
@@ -177,7 +178,8 @@ def run(args: argparse.Namespace) -> int:
         force_recording=args.force_recording,
         indenter_length_mm=args.indenter_length,
         threshold_p=args.threshold,
-        roi=parse_roi(args.roi) if args.roi is not None else None,
+        roi=roi,
+        whole_frame=args.roi is not None and roi is None,
         probe_id=args.probe_id,
         frame_size_px=args.frame_size,
         plateau_tolerance_n=args.plateau_tolerance,

@@ -25,7 +25,7 @@ from stipi_daemon.analysis.calibration import (
     load_calibration,
     save_calibration,
 )
-from stipi_daemon.analysis.imaging import CircleROI, RectROI, describe_roi
+from stipi_daemon.analysis.imaging import CircleROI, RectROI, describe_roi, whole_frame_roi
 from stipi_daemon.errors import AnalysisError, CalibrationError
 
 # A plausible probe: S0 up to ~60 000 px for d_s up to ~12 mm, C1 ~ 2000 px, C2 ~ 900 px/N.
@@ -399,6 +399,16 @@ def test_the_roi_round_trips_and_is_checked_against_the_roi_counted_in(
         assert problem is not None
         assert problem.startswith(f"field 'imaging.roi' counts S in {describe_roi(other)}, but")
         assert "made in circle centre (320, 240) r 180 px (its field 'roi')" in problem
+    # made in the whole frame (calibrate --roi full): the rect of its frame size, which is
+    # the same pixels as no ROI or any ROI holding the frame, and no others
+    full = dataclasses.replace(
+        fitted_calibration(), frame_size_px=(640, 480), roi=whole_frame_roi((640, 480))
+    )
+    assert load_calibration(save_calibration(tmp_path / "full.json", full)) == full
+    for same in (None, RectROI(kind="rect", x_px=-5, y_px=0, width_px=700, height_px=480)):
+        assert full.roi_problem(same, "--roi") is None
+    problem = full.roi_problem(own, "field 'imaging.roi'")
+    assert problem is not None and "made in rect at (0, 0) size 640x480 px" in problem
     # an older file without the field loads with none
     doc = json.loads(path.read_text())
     del doc["roi"]

@@ -19,13 +19,16 @@ from stipi_daemon.analysis.imaging import (
     CircleROI,
     FrameProcessor,
     RectROI,
+    covers_frame,
     occluded_area_subpixel,
     occluded_pixel_count,
     otsu_threshold,
     roi_mask,
+    same_roi,
     subpixel_membership_lut,
     threshold_binary_inverted,
     to_gray,
+    whole_frame_roi,
 )
 from stipi_daemon.errors import AnalysisError
 
@@ -512,3 +515,50 @@ def test_subpixel_area_rejects_bad_edge_width(w: object) -> None:
         occluded_area_subpixel(frame, 10, edge_width_levels=w)  # type: ignore[arg-type]
     with pytest.raises(AnalysisError, match="edge_width_levels"):
         FrameProcessor(frame.shape, 10, edge_width_levels=w)  # type: ignore[arg-type]
+
+
+@settings(max_examples=150, deadline=None)
+@given(
+    width=st.integers(1, 24),
+    height=st.integers(1, 24),
+    shape=st.sampled_from(["rect", "circle"]),
+    a=st.floats(-8.0, 32.0),
+    b=st.floats(-8.0, 32.0),
+    c=st.floats(0.5, 40.0),
+    d=st.floats(0.5, 40.0),
+)
+def test_covers_frame_is_true_exactly_when_the_s_kernel_counts_the_whole_frame(
+    width: int, height: int, shape: str, a: float, b: float, c: float, d: float
+) -> None:
+    """An ROI covers the frame when S counted in it is S of the whole frame: checked by
+    the counting kernel itself on an all-dark frame (every pixel occluded, Eq. (1)), where
+    S is the number of frame pixels in the ROI. Edges: a rect just short of or past a
+    border, a circle through the farthest pixel centre."""
+    roi: RectROI | CircleROI
+    if shape == "rect":
+        roi = RectROI(kind="rect", x_px=round(a), y_px=round(b), width_px=round(c) or 1,
+                      height_px=round(d) or 1)  # fmt: skip
+    else:
+        roi = CircleROI(kind="circle", cx_px=a, cy_px=b, radius_px=c)
+    dark = np.zeros((height, width), np.uint8)
+    whole = occluded_pixel_count(dark, 128, roi) == width * height
+    assert covers_frame(roi, (width, height)) is whole
+    assert same_roi(roi, None, (width, height)) is whole
+    assert same_roi(roi, None, None) is False  # the frame size unknown: only equal ROIs
+
+
+def test_whole_frame_roi_and_same_roi_edges() -> None:
+    full = whole_frame_roi((640, 480))
+    assert full == RectROI(kind="rect", x_px=0, y_px=0, width_px=640, height_px=480)
+    assert same_roi(full, None, (640, 480)) and covers_frame(None, (640, 480))
+    assert not same_roi(full, None, (641, 480))  # a pixel column outside it
+    assert not same_roi(whole_frame_roi((639, 480)), None, (640, 480))
+    # the circle through the corner pixel centres (0, 0) and (639, 479) holds the frame
+    r = math.hypot(319.5, 239.5)
+    assert covers_frame(CircleROI(kind="circle", cx_px=319.5, cy_px=239.5, radius_px=r),
+                        (640, 480))  # fmt: skip
+    assert not covers_frame(
+        CircleROI(kind="circle", cx_px=319.5, cy_px=239.5, radius_px=r - 1e-9), (640, 480)
+    )
+    disc = CircleROI(kind="circle", cx_px=320, cy_px=240, radius_px=180)
+    assert same_roi(disc, disc, None) and not same_roi(disc, full, (640, 480))

@@ -12,7 +12,7 @@ from typing import Any
 import pytest
 
 from stipi_daemon.analysis.calibration import save_calibration
-from stipi_daemon.analysis.imaging import RectROI
+from stipi_daemon.analysis.imaging import RectROI, whole_frame_roi
 from stipi_daemon.app.offline_io import SessionData, read_session
 from stipi_daemon.cli import main
 from stipi_daemon.sim import load_scene
@@ -473,6 +473,16 @@ def test_s_k_counted_in_another_roi_than_the_calibrations_flags_what_it_calibrat
     # The session's own calibration (the manifest's) and its ROI: nothing flagged.
     assert main(["analyze", str(session_dir), "--out", str(out), "--overwrite"]) == 0
     assert _uncalibrated(json.loads(out.read_text()), flag) == []
+    # A calibration made in the whole frame (calibrate --roi full --frame-size WxH): S
+    # counted in the whole frame is its S, S counted in the disc is not.
+    size = (truth["frame"]["width_px"], truth["frame"]["height_px"])
+    full = dataclasses.replace(cal, frame_size_px=size, roi=whole_frame_roi(size))
+    cal_path = save_calibration(tmp_path / "full.json", full)
+    argv = [*video, "--calibration", str(cal_path), "--out", str(out), "--overwrite"]
+    assert main([*argv, "--roi", "full"]) == 0
+    assert _uncalibrated(json.loads(out.read_text()), flag) == []
+    assert main([*argv, "--roi", same]) == 0
+    assert _uncalibrated(json.loads(out.read_text()), flag) == _CALIBRATED
     capsys.readouterr()
 
 

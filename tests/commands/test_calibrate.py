@@ -19,7 +19,7 @@ from stipi_daemon.analysis.calibration import (
     load_calibration,
     save_calibration,
 )
-from stipi_daemon.analysis.imaging import CircleROI
+from stipi_daemon.analysis.imaging import CircleROI, RectROI, whole_frame_roi
 from stipi_daemon.cli import main
 from stipi_daemon.storage import SessionWriter, StorageOptions
 from tests.test_calibrate_procedure import staircase
@@ -133,11 +133,14 @@ def _recording_session(root: Path, name: str, frames: list[tuple[float, float]],
                        force: list[tuple[float, float]],
                        size: list[int] | None = None,
                        summary_size: list[int] | None = None,
-                       roi: dict[str, Any] | None = None) -> Path:  # fmt: skip
+                       roi: dict[str, Any] | str | None = None) -> Path:  # fmt: skip
     """A session as the daemon records one; ``size``: the manifest's calibration record's
     ``frame_size_px`` (None: a session recorded before it was kept), ``summary_size``: its
-    summary's camera size (``run.camera.source.size``), ``roi``: the record's ROI."""
-    record: dict[str, object] = {"threshold_p": 128, "roi": roi}
+    summary's camera size (``run.camera.source.size``), ``roi``: the record's ROI ("full":
+    ``null``, S counted in the whole frame; None: no field, recorded before it was kept)."""
+    record: dict[str, object] = {"threshold_p": 128}
+    if roi is not None:
+        record["roi"] = None if roi == "full" else roi
     if size is not None:
         record["frame_size_px"] = size
     with SessionWriter.create(
@@ -160,7 +163,7 @@ def _recordings(
     depth_size: list[int] | None,
     force_size: list[int] | None,
     force_summary_size: list[int] | None = None,
-    rois: tuple[dict[str, Any] | None, dict[str, Any] | None] = (None, None),
+    rois: tuple[dict[str, Any] | str | None, dict[str, Any] | str | None] = (None, None),
 ) -> list[str]:
     """A depth run and a force run recorded as sessions; the calibrate arguments for them."""
     rng = np.random.default_rng(4)
@@ -266,8 +269,14 @@ def test_the_roi_comes_from_the_option_or_the_recordings_and_must_agree(
     assert "no ROI recorded" not in capsys.readouterr().out
     assert load_calibration(out).roi == CircleROI(cx_px=320, cy_px=240, radius_px=180)
     assert main([*pairs, "--roi", "full", "--out", str(out), "--overwrite"]) == 0
-    assert "warning: no ROI recorded (--roi)" in capsys.readouterr().out
+    assert "no ROI recorded: S was counted in the whole frame, whose size" in (
+        capsys.readouterr().out
+    )
     assert load_calibration(out).roi is None
+    full = ["--roi", "full", "--frame-size", "640x480", "--out", str(out), "--overwrite"]
+    assert main([*pairs, *full]) == 0
+    assert "no ROI recorded" not in capsys.readouterr().out
+    assert load_calibration(out).roi == whole_frame_roi((640, 480))
 
     disc = {"kind": "circle", "cx_px": 320.0, "cy_px": 240.0, "radius_px": 180.0}
     rect = {"kind": "rect", "x_px": 140, "y_px": 60, "width_px": 360, "height_px": 360}
@@ -287,6 +296,39 @@ def test_the_roi_comes_from_the_option_or_the_recordings_and_must_agree(
     assert not out.exists()
     assert main([*same, "--out", str(out)]) == 0
     assert load_calibration(out).roi == CircleROI(**disc)
+
+
+def test_recordings_counted_in_the_whole_frame_record_it(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A session whose record has ``roi: null`` counted S in the whole frame: calibrating
+    from it records the whole frame (the rect of its size), so that the daemon refuses a
+    smaller ROI; ``--roi`` with another ROI is refused, as a rect holding the frame is
+    not; a session from before the ROI was kept (no field) says nothing."""
+    out = tmp_path / "c.json"
+    whole = _recordings(tmp_path / "whole", [640, 480], [640, 480], rois=("full", "full"))
+    assert main([*whole, "--out", str(out)]) == 0
+    assert "no ROI recorded" not in capsys.readouterr().out
+    assert load_calibration(out).roi == whole_frame_roi((640, 480))
+    err = _err(capsys, [*whole, "--roi", "circle:320,240,180", "--out", str(tmp_path / "x")])
+    assert (
+        "--roi circle centre (320, 240) r 180 px differs from the whole frame in session "
+        "depth-run; the whole frame in session force-run"
+    ) in err
+    rect = ["--roi", "rect:-2,0,650,480", "--out", str(out), "--overwrite"]
+    assert main([*whole, *rect]) == 0
+    assert load_calibration(out).roi == RectROI(
+        kind="rect", x_px=-2, y_px=0, width_px=650, height_px=480
+    )
+    disc = {"kind": "circle", "cx_px": 320.0, "cy_px": 240.0, "radius_px": 180.0}
+    mixed = _recordings(tmp_path / "mixed", [640, 480], [640, 480], rois=("full", disc))
+    err = _err(capsys, [*mixed, "--out", str(tmp_path / "y")])
+    assert "the recordings' ROIs differ (the whole frame in session depth-run; circle" in err
+    # its size unknown, the whole frame cannot be recorded: a warning, no ROI
+    unsized = _recordings(tmp_path / "unsized", None, None, rois=("full", None))
+    assert main([*unsized, "--out", str(tmp_path / "z")]) == 0
+    assert "no ROI recorded: S was counted in the whole frame" in capsys.readouterr().out
+    assert load_calibration(tmp_path / "z").roi is None
 
 
 def _err(capsys: pytest.CaptureFixture[str], argv: list[str]) -> str:

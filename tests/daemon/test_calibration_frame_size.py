@@ -19,7 +19,13 @@ import pytest
 import yaml
 
 from stipi_daemon.analysis.calibration import save_calibration
-from stipi_daemon.analysis.imaging import CircleROI, describe_roi
+from stipi_daemon.analysis.imaging import (
+    CircleROI,
+    RectROI,
+    describe_roi,
+    roi_from_record,
+    whole_frame_roi,
+)
 from stipi_daemon.app.config import load_config
 from stipi_daemon.app.daemon import run_measurement
 from stipi_daemon.sim.physics import scaled_calibration
@@ -72,15 +78,23 @@ def test_a_calibration_without_a_frame_size_is_used_with_a_warning_and_an_event(
     assert summary["verdict"]["status"] == "complete", summary["verdict"]
 
 
+@pytest.mark.parametrize(
+    "own",
+    [
+        CircleROI(kind="circle", cx_px=80.0, cy_px=60.0, radius_px=50.0),
+        whole_frame_roi((160, 120)),  # calibrate --roi full --frame-size 160x120
+    ],
+    ids=["disc", "whole-frame"],
+)
 def test_a_calibrations_own_roi_is_counted_in_when_the_config_gives_none(
-    tmp_path: Path, capfd: pytest.CaptureFixture[str]
+    tmp_path: Path, capfd: pytest.CaptureFixture[str], own: CircleROI | RectROI
 ) -> None:
     """``imaging.roi`` left out: S_k are counted in the ROI the calibration was made in
-    (not the scene's disc), as the manifest records, with no warning about the ROI."""
+    (not the scene's disc; the whole frame too), as the manifest records, with no warning
+    about the ROI."""
     path = short_config(tmp_path, {}, speed=4.0)
     doc = yaml.safe_load(path.read_text())
     cal, _ = scaled_calibration(load_scene(doc["camera"]["scene"]))
-    own = CircleROI(kind="circle", cx_px=80.0, cy_px=60.0, radius_px=50.0)
     cal_path = save_calibration(tmp_path / "cal.json", dataclasses.replace(cal, roi=own))
     doc["calibration"] = str(cal_path)
     path.write_text(yaml.safe_dump(doc))
@@ -88,4 +102,4 @@ def test_a_calibrations_own_roi_is_counted_in_when_the_config_gives_none(
     assert session is not None
     assert "does not record the ROI" not in capfd.readouterr().err
     manifest = json.loads((Path(session) / "manifest.json").read_text())
-    assert CircleROI(**manifest["calibration"]["roi"]) == own
+    assert roi_from_record(manifest["calibration"]["roi"]) == own
