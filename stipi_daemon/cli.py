@@ -8,6 +8,8 @@ stderr with exit status 2, never as a traceback; Ctrl-C is one line and exit sta
 from __future__ import annotations
 
 import argparse
+import os
+import signal
 import sys
 from collections.abc import Sequence
 from pathlib import Path
@@ -118,6 +120,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         # 'aborted' (asyncio.run cancels it and re-raises the interrupt here).
         print("stipi-daemon: interrupted", file=sys.stderr)
         return 130
+    except BrokenPipeError:
+        # Whatever read the output stopped reading (``sessions list | head``): nothing more
+        # can reach it. Stdout goes to /dev/null so that Python's own flush at exit does not
+        # fail again; exit status as a shell gives a process ended by SIGPIPE.
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 128 + signal.SIGPIPE
 
 
 if __name__ == "__main__":  # pragma: no cover

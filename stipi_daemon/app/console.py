@@ -9,7 +9,9 @@ measurement state.
 
 from __future__ import annotations
 
+import contextlib
 import math
+import os
 import sys
 from typing import Any, TextIO
 
@@ -115,12 +117,34 @@ class OperatorConsole:
         """
         if self.quiet:
             return
-        if self._live is not None:
-            self._live.console.print(text, style=style, markup=False, highlight=False)
-        elif style is not None and self.out.isatty():
-            self.rich.print(text, style=style, markup=False, highlight=False, soft_wrap=True)
-        else:
-            print(text, file=self.out, flush=True)
+        try:
+            if self._live is not None:
+                self._live.console.print(text, style=style, markup=False, highlight=False)
+            elif style is not None and self.out.isatty():
+                self.rich.print(text, style=style, markup=False, highlight=False, soft_wrap=True)
+            else:
+                print(text, file=self.out, flush=True)
+        except BrokenPipeError:
+            self._output_closed()
+
+    def _output_closed(self) -> None:
+        """What read the console's output stopped reading (``... | head``, a closed
+        terminal): the measurement goes on, printing nothing more, and says so once on
+        stderr. Stdout is pointed at /dev/null, so that later prints (the results) and
+        Python's flush at exit do not fail again."""
+        self.quiet = True
+        if self.out is sys.stdout:
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        live, self._live = self._live, None
+        if live is not None:
+            with contextlib.suppress(OSError):  # its last refresh, to the closed output
+                live.stop()
+        print(
+            "stipi-daemon: warning: the console's output was closed: the measurement goes on "
+            "without it, its results are written to the session",
+            file=sys.stderr,
+            flush=True,
+        )
 
     # ---------------------------------------------------------------- updates
 
