@@ -16,7 +16,7 @@ from pathlib import Path
 
 from stipi_daemon import __version__
 from stipi_daemon.commands import register_all
-from stipi_daemon.errors import ConfigError, StipiError
+from stipi_daemon.errors import ConfigError, StipiError, Terminated
 from stipi_daemon.storage.metadata import FIELD_DOCS, METADATA_FIELDS
 
 
@@ -115,6 +115,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     except StipiError as exc:
         print(f"stipi-daemon: error: {exc}", file=sys.stderr)
         return 2
+    except Terminated:
+        print("stipi-daemon: terminated (SIGTERM)", file=sys.stderr)
+        return 128 + signal.SIGTERM
     except KeyboardInterrupt:
         # Ctrl-C: the daemon has already closed its devices and finished the session as
         # 'aborted' (asyncio.run cancels it and re-raises the interrupt here).

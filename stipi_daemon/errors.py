@@ -14,6 +14,11 @@ class StipiError(Exception):
     """Base class of every error stipi-daemon reports to its user."""
 
 
+class Terminated(KeyboardInterrupt):
+    """A measurement was stopped by SIGTERM (``kill PID``, a service manager's stop) and
+    ended as after Ctrl-C: its session finished ``aborted``, its devices closed."""
+
+
 class AnalysisError(StipiError, ValueError):
     """Input to an analysis function cannot give a meaningful result.
 

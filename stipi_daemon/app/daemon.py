@@ -19,8 +19,11 @@ machine, the analysis and storage live in their own modules.
 from __future__ import annotations
 
 import asyncio
+import contextlib
+import signal
+import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, TextIO
@@ -53,7 +56,7 @@ from stipi_daemon.app.frame_measurer import FrameMeasurer
 from stipi_daemon.app.imaging import resolve_imaging
 from stipi_daemon.app.memory import hold_heap, return_free_memory
 from stipi_daemon.clock import ScaledClock
-from stipi_daemon.errors import SessionError
+from stipi_daemon.errors import SessionError, Terminated
 from stipi_daemon.measurement.pipeline import MeasurementPipeline
 from stipi_daemon.measurement.representative_frames import RepresentativeFrames
 from stipi_daemon.measurement.state_machine import Phase
@@ -153,10 +156,43 @@ def run_measurement(
     heap reuses frame buffers and has two arenas meanwhile (:mod:`.memory`).
     """
     hold_heap()  # frame buffers reused from the heap, two arenas (app/memory.py)
-    with threadpool_limits(limits=1, user_api="blas"):
-        return asyncio.run(
-            run_daemon(config, speed=speed, out=out, quiet=quiet, live=live, on_session=on_session)
-        )
+    with threadpool_limits(limits=1, user_api="blas"), _sigterm_as_interrupt() as terminated:
+        try:
+            return asyncio.run(
+                run_daemon(
+                    config, speed=speed, out=out, quiet=quiet, live=live, on_session=on_session
+                )
+            )
+        except KeyboardInterrupt:
+            if terminated:
+                raise Terminated from None
+            raise
+
+
+@contextlib.contextmanager
+def _sigterm_as_interrupt() -> Iterator[list[int]]:
+    """While measuring, SIGTERM (``kill PID``, a service manager's stop) stops the daemon
+    as Ctrl-C does: the session is finished ``aborted`` and the devices are closed, where
+    the default action ends the process with the session left unfinished. Yields the
+    list of the SIGTERMs received. Only in the main thread (where Python handles signals)
+    and over the default action (a handler the caller set stays)."""
+    received: list[int] = []
+    if (
+        threading.current_thread() is not threading.main_thread()
+        or signal.getsignal(signal.SIGTERM) is not signal.SIG_DFL
+    ):
+        yield received
+        return
+
+    def on_sigterm(signum: int, _frame: object) -> None:
+        received.append(signum)
+        signal.raise_signal(signal.SIGINT)  # asyncio.run's Ctrl-C: cancels the measurement
+
+    signal.signal(signal.SIGTERM, on_sigterm)
+    try:
+        yield received
+    finally:
+        signal.signal(signal.SIGTERM, signal.SIG_DFL)
 
 
 async def run_daemon(

@@ -1,19 +1,24 @@
-"""The CLI when what reads its output stops reading (``stipi-daemon ... | head``).
+"""The CLI as a process, when its output is closed or it is told to stop.
 
-A measurement goes on without its console: the data is the session's, not the console's,
-and a probe held on a patient is not started again because a pipe closed; it says so once
-on stderr. Any other command stops quietly with the shell's status for SIGPIPE (141),
-never a traceback.
+* What reads its output stops reading (``stipi-daemon ... | head``): a measurement goes on
+  without its console - the data is the session's, not the console's, and a probe held on
+  a patient is not started again because a pipe closed - and says so once on stderr. Any
+  other command stops quietly with the shell's status for SIGPIPE (141), no traceback.
+* SIGTERM (``kill PID``, a service manager's stop) ends a measurement as Ctrl-C does: the
+  session finished ``aborted`` and whole, one line, the shell's status for SIGTERM (143).
+  Without it the process died with the session left unfinished and locked.
 """
 
 from __future__ import annotations
 
 import json
 import os
+import signal
 import subprocess
 import sys
 from pathlib import Path
 
+from stipi_daemon.storage import SessionReader
 from tests.daemon._support import short_config
 
 
@@ -60,3 +65,31 @@ def test_another_command_stops_quietly_when_its_output_is_closed(tmp_path: Path)
     # argparse's own output (--help, --version) ignores a closed output and exits 0
     proc = _run_with_stdout_closed(["--help"], tmp_path)
     assert (proc.returncode, proc.stderr) == (0, "")
+
+
+def test_sigterm_ends_a_measurement_as_ctrl_c_does(tmp_path: Path) -> None:
+    config = short_config(tmp_path, {}, speed=1.0)
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "stipi_daemon", "--config", str(config)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        cwd=tmp_path,
+    )
+    try:
+        assert proc.stdout is not None
+        for line in proc.stdout:  # recording: the stream is up and the operator was asked
+            if "idle -> armed" in line:
+                break
+        proc.send_signal(signal.SIGTERM)
+        out, err = proc.communicate(timeout=120)
+    finally:
+        proc.kill()
+    assert proc.returncode == 128 + signal.SIGTERM, err
+    assert err == "stipi-daemon: terminated (SIGTERM)\n"
+    assert "measurement aborted; what was recorded is in" in out
+    (session,) = (tmp_path / "sessions").iterdir()
+    assert json.loads((session / "summary.json").read_text())["status"] == "aborted"
+    assert not (session / "writer.lock").exists()
+    with SessionReader(session) as reader:
+        assert reader.integrity_check().ok
