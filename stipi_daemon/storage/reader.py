@@ -432,8 +432,11 @@ class SessionReader:
         video failure) may end in a cut-off element, hold up to
         :data:`~.video.UNINDEXED_FRAMES_MAX` frames more than rows (the row batches not
         stored), and lack the newest frames of at most one commit interval of capture time
-        (the block the muxer holds, the FFV1 encoders' queue).
+        (the block the muxer holds, the FFV1 encoders' queue). Which of the two is read
+        before the rows: a recording that finishes while they are read (``sessions show``
+        of a live session) was read as the one that did not end yet.
         """
+        clean = self._ended_cleanly()
         rows = [
             (int(r[0]), int(r[1]), int(r[2]), float(r[3])) for r in self.iter_rows(VIDEO_FRAMES)
         ]
@@ -447,7 +450,6 @@ class SessionReader:
         check = check_video(path, decode=decode)
         problems = list(check.problems) + _damage_problem(check, rows)
         problems += self._video_row_problems(rows)
-        clean = self._ended_cleanly()
         if check.cut_at is not None and clean:
             problems.append(
                 f"{path}: ends inside an element at byte {check.cut_at} of {check.size_bytes} "

@@ -331,6 +331,29 @@ def test_frames_without_rows_by_how_the_recording_ended(
         assert problem.startswith(f"{rec.video}: {expected}")
 
 
+def test_a_recording_that_finishes_while_it_is_checked_is_judged_as_not_ended(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """``sessions show`` of a live session: its rows are read while it records, its state
+    may be read after it finished. The rows then lag the video by the rows not yet handed
+    over, which a recording that has not ended may do; judged by the later state, the
+    check said FAILED "(the recording ended cleanly)" of a sound session."""
+    rec = _record(tmp_path, "ffv1", N_ROWS_TEST, finish=None)
+    db = rec.directory / "session.sqlite"
+    with sqlite3.connect(db) as conn:  # the last rows not yet handed over
+        conn.execute("DELETE FROM video_frames WHERE frame_index >= ?", (N_ROWS_TEST - 2,))
+    iter_rows = SessionReader.iter_rows
+
+    def finishing_meanwhile(self: SessionReader, table: Any, *args: Any, **kwargs: Any) -> Any:
+        rows = list(iter_rows(self, table, *args, **kwargs))
+        with sqlite3.connect(db) as conn:  # the writer finishes as the rows were read
+            conn.execute("UPDATE meta SET value = 'complete' WHERE key = 'state'")
+        return iter(rows)
+
+    monkeypatch.setattr(SessionReader, "iter_rows", finishing_meanwhile)
+    assert _problems(rec.directory) == ()
+
+
 @pytest.mark.parametrize(
     ("sql", "message"),
     [
