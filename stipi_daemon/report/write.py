@@ -278,6 +278,8 @@ def _session_makers(
 
     def frames() -> Figure | str:
         panels = frame_panels(inp)
+        if not panels and inp.status == "recording":
+            return "the session is still recording: its representative frames are stored as it ends"
         if not panels:
             return (
                 "the session stores no representative frame (frames/representative.json): "
@@ -481,9 +483,17 @@ def write_session_report(
     Raises
     ------
     SessionError
-        The session cannot be read or the report cannot be written.
+        The session cannot be read or the report cannot be written, or it is still
+        recording and ``out_dir`` is not given (its directory is the live writer's).
     """
     inp = load_report_input(session_dir)
+    if out_dir is None and inp.status == "recording":
+        # The directory is the live writer's, and its own report goes there at the end.
+        raise SessionError(
+            f"{session_dir}: the session is still recording, and the daemon writes its report "
+            "into it when the measurement ends; give --out DIR for a report of what is "
+            "recorded so far"
+        )
     out = Path(out_dir) if out_dir is not None else Path(session_dir) / REPORT_DIR
     return render_session_report(inp, out, reference)
 

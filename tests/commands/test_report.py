@@ -8,6 +8,7 @@ import pytest
 
 from stipi_daemon.cli import main
 from stipi_daemon.report.write import COMPARE_FIGURES, REPORT_HTML, SESSION_FIGURES
+from stipi_daemon.storage import SessionWriter, StorageOptions
 from tests._report_sessions import recorded_session
 
 
@@ -69,3 +70,30 @@ def test_report_errors_are_one_line(
     err = capsys.readouterr().err
     assert message in err
     assert err.count("\n") == 1 and "Traceback" not in err
+
+
+def test_a_session_still_recording_is_reported_only_outside_it(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The directory of a session being recorded is its writer's, and the daemon writes the
+    report there as it ends: ``report`` of a live session is one line and exit 2 (nothing
+    written into it), or, with ``--out``, the report of what is recorded so far, which says
+    why its frames are missing."""
+    writer = SessionWriter.create(
+        tmp_path / "sessions", {}, {}, session_id="live", options=StorageOptions(min_free_bytes=0)
+    )
+    try:
+        writer.add_force_samples([(i, 0, i, i, i / 100, 1.0) for i in range(200)])
+        writer.add_frames([(i, i / 30, i / 30, 1000, "") for i in range(60)])
+        writer.commit()
+        assert main(["report", str(writer.directory)]) == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and "the session is still recording" in err, err
+        assert not (writer.directory / "report").exists()
+        out = tmp_path / "so-far"
+        assert main(["report", str(writer.directory), "--out", str(out)]) == 0
+        text = capsys.readouterr().out
+        assert "not drawn: frames: the session is still recording" in text, text
+        assert (out / REPORT_HTML).is_file()
+    finally:
+        writer.close()
