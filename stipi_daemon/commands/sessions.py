@@ -22,7 +22,13 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-from stipi_daemon.storage import DEFAULT_ROOT, EXPORT_FORMATS, SessionReader, export_session
+from stipi_daemon.storage import (
+    DEFAULT_ROOT,
+    EXPORT_FORMATS,
+    SessionReader,
+    SessionState,
+    export_session,
+)
 from stipi_daemon.storage.export import (
     default_export_dir,
     default_table_path,
@@ -204,6 +210,7 @@ def _cmd_export(args: argparse.Namespace) -> int:
     directory = _session_dir(root, args.session_id)
     out = args.out if args.out is not None else default_export_dir(directory)
     with SessionReader(directory) as reader:
+        live = reader.status is SessionState.RECORDING
         integrity = reader.integrity_check()
         written = export_session(
             reader,
@@ -218,6 +225,12 @@ def _cmd_export(args: argparse.Namespace) -> int:
         print(
             f"stipi-daemon: warning: {directory}: integrity check failed, exported as it is "
             f"(--allow-damaged): {'; '.join(integrity.problems)}",
+            file=sys.stderr,
+        )
+    if live:
+        print(
+            f"stipi-daemon: warning: {directory}: the session is still recording: exported "
+            "what was stored so far, without its results",
             file=sys.stderr,
         )
     for path in written:

@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 
 from stipi_daemon.cli import main
-from stipi_daemon.storage import TABLES, SessionReader
+from stipi_daemon.storage import TABLES, SessionReader, SessionWriter, StorageOptions
 from tests.storage.conftest import write_full_session
 from tests.storage.test_export import assert_equal_to_reader, read_csv_table, read_parquet_table
 
@@ -142,3 +142,26 @@ def test_sessions_help_via_entry_point() -> None:
     )
     assert proc.returncode == 0
     assert "list" in proc.stdout and "export" in proc.stdout
+
+
+def test_export_of_a_session_still_recording_says_so(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """An export of a live session is what was stored so far, which goes stale as it records
+    on, without results: a warning says so (the export itself goes on)."""
+    root = tmp_path / "sessions"
+    writer = SessionWriter.create(
+        root, {}, {}, session_id="live", options=StorageOptions(min_free_bytes=0)
+    )
+    try:
+        writer.add_frames([(i, i / 30, i / 30, 1000, "") for i in range(10)])
+        writer.commit()
+        args = ["sessions", "export", "live", "--root", str(root), "--out", str(tmp_path / "x")]
+        assert main(args) == 0
+        err = capsys.readouterr().err
+        assert err == (
+            f"stipi-daemon: warning: {root / 'live'}: the session is still recording: exported "
+            "what was stored so far, without its results\n"
+        )
+    finally:
+        writer.close()
