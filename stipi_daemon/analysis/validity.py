@@ -35,6 +35,7 @@ if TYPE_CHECKING:
 __all__ = [
     "DEPENDS_ON",
     "FLAG_RULES",
+    "FROM_SK",
     "PRIMARY_QUANTITIES",
     "QUANTITY_SYMBOLS",
     "SECONDARY_QUANTITIES",
@@ -57,8 +58,15 @@ PRIMARY_QUANTITIES: Final = (
     "viscosity_n_s_per_mm2",
     "severity",
 )
-#: The secondary quantities (shown, never decisive for the verdict).
-SECONDARY_QUANTITIES: Final = ("tau_s", "applied_force_n")
+#: The secondary quantities (shown, never decisive for the verdict): the fitted recovery's
+#: tau, F_a, and what the fitted recovery gives in place of T_r: eta = E*tau (Eq. 8 with tau)
+#: and its severity class (Section IV.C on the fitted curve).
+SECONDARY_QUANTITIES: Final = (
+    "tau_s",
+    "applied_force_n",
+    "viscosity_fit_n_s_per_mm2",
+    "severity_fit",
+)
 #: Symbol of each quantity in operator lines.
 QUANTITY_SYMBOLS: Final[Mapping[str, str]] = MappingProxyType(
     {
@@ -70,10 +78,12 @@ QUANTITY_SYMBOLS: Final[Mapping[str, str]] = MappingProxyType(
         "severity": "severity",
         "tau_s": "tau",
         "applied_force_n": "F_a",
+        "viscosity_fit_n_s_per_mm2": "eta (E*tau)",
+        "severity_fit": "severity (fit)",
     }
 )
 #: Quantities computed from S_k (every image-side caveat concerns them all).
-_FROM_SK: Final = (
+FROM_SK: Final = (
     "depth_mm",
     "rebound_force_n",
     "recovery_time_s",
@@ -81,6 +91,8 @@ _FROM_SK: Final = (
     "viscosity_n_s_per_mm2",
     "severity",
     "tau_s",
+    "viscosity_fit_n_s_per_mm2",
+    "severity_fit",
 )
 #: What each quantity is computed from: an invalid input makes it invalid (Eqs. 7-8, IV.C).
 DEPENDS_ON: Final[Mapping[str, tuple[str, ...]]] = MappingProxyType(
@@ -88,8 +100,12 @@ DEPENDS_ON: Final[Mapping[str, tuple[str, ...]]] = MappingProxyType(
         "elasticity_kpa": ("depth_mm", "applied_force_n"),
         "viscosity_n_s_per_mm2": ("elasticity_kpa", "recovery_time_s"),
         "severity": ("viscosity_n_s_per_mm2",),
+        "viscosity_fit_n_s_per_mm2": ("elasticity_kpa", "tau_s"),
+        "severity_fit": ("tau_s",),
     }
 )
+#: The quantities of :data:`DEPENDS_ON`, each after its sources.
+_DERIVED: Final = tuple(DEPENDS_ON)
 
 
 @dataclass(frozen=True)
@@ -114,9 +130,9 @@ class FlagRule:
 #: Flag -> the quantities it concerns and those it invalidates.
 FLAG_RULES: Final[Mapping[Flag, FlagRule]] = MappingProxyType(
     {
-        Flag.SATURATED_FRAME: FlagRule(_FROM_SK, (), "saturated frames may bias S_k low"),
-        Flag.EMPTY_ROI: FlagRule(_FROM_SK, _FROM_SK, "the ROI does not overlap the frame"),
-        Flag.ROI_CLIPPED: FlagRule(_FROM_SK, (), "part of the ROI lies outside the frame"),
+        Flag.SATURATED_FRAME: FlagRule(FROM_SK, (), "saturated frames may bias S_k low"),
+        Flag.EMPTY_ROI: FlagRule(FROM_SK, FROM_SK, "the ROI does not overlap the frame"),
+        Flag.ROI_CLIPPED: FlagRule(FROM_SK, (), "part of the ROI lies outside the frame"),
         Flag.NOT_SETTLED: FlagRule(
             ("recovery_time_s",),
             ("recovery_time_s",),
@@ -156,8 +172,9 @@ FLAG_RULES: Final[Mapping[Flag, FlagRule]] = MappingProxyType(
         # Informational: a dropped frame is a missing frame, judged where it matters by the
         # gap rules (release, settling crossing, maximum, fit).
         Flag.NON_FINITE_INPUT: FlagRule((), (), "NaN frames were dropped"),
+        # (of either estimator: the result's flags do not say which)
         Flag.OUTSIDE_REFERENCE_RANGE: FlagRule(
-            ("severity",), (), "the measurement lies beyond the reference grades"
+            ("severity", "severity_fit"), (), "the measurement lies beyond the reference grades"
         ),
         Flag.RISE_WITHIN_SETTLING_BAND: FlagRule(
             ("recovery_time_s",),
@@ -217,7 +234,9 @@ FLAG_RULES: Final[Mapping[Flag, FlagRule]] = MappingProxyType(
         Flag.PARAMETER_AT_BOUND: FlagRule((), (), "a model parameter is at its search bound"),
         Flag.NO_CONFIDENCE_INTERVALS: FlagRule((), (), "a model has no bootstrap intervals"),
         Flag.ESTIMATORS_DISAGREE: FlagRule(
-            ("severity",), (), "the paper's estimator and the fitted recovery disagree"
+            ("severity", "severity_fit"),
+            (),
+            "the paper's estimator and the fitted recovery disagree",
         ),
     }
 )
@@ -305,6 +324,8 @@ def _value_missing(result: MeasurementResult, quantity: str) -> str | None:
         "viscosity_n_s_per_mm2": result.paper_model is None,
         "severity": result.severity_paper is None,
         "tau_s": result.fit.tau_s is None,
+        "viscosity_fit_n_s_per_mm2": result.fit_model is None,
+        "severity_fit": result.severity_fit is None,
     }
     if not missing.get(quantity, False):
         return None
@@ -360,7 +381,7 @@ def quantity_validity(
             invalid[q].append(why)
     # Derived quantities name the root cause: "D_p is invalid: no frame between ...".
     root = {q: f"{QUANTITY_SYMBOLS[q]} is invalid: {why[0]}" for q, why in invalid.items() if why}
-    for q in ("elasticity_kpa", "viscosity_n_s_per_mm2", "severity"):
+    for q in _DERIVED:
         for source in DEPENDS_ON[q]:
             if invalid[source] and not invalid[q]:
                 invalid[q].append(root[source])
@@ -417,6 +438,8 @@ def verdict(
     # the secondary quantities do not decide the verdict, but the line never calls a
     # flagged or invalid one valid
     others = [q for q in SECONDARY_QUANTITIES if q in validity and validity[q].status != "valid"]
+    # one derived from another listed (eta (E*tau) from tau) adds nothing to the line
+    others = [q for q in others if not set(DEPENDS_ON.get(q, ())) & set(others)]
     if others:
         said = ", ".join(f"{QUANTITY_SYMBOLS[q]} {validity[q].status}" for q in others)
         return Verdict("complete", f"Complete: every primary result is valid ({said}).")

@@ -49,7 +49,7 @@ from stipi_daemon.analysis.results import AnalysisSettings
 from stipi_daemon.analysis.severity import load_reference
 from stipi_daemon.analysis.summary_diff import diff_results
 from stipi_daemon.analysis.truth_comparison import ParameterComparison, compare_ground_truth
-from stipi_daemon.analysis.validity import PRIMARY_QUANTITIES
+from stipi_daemon.analysis.validity import FROM_SK
 from stipi_daemon.app.config import DaemonConfig, ImagingSettings
 from stipi_daemon.app.console import format_results
 from stipi_daemon.app.imaging import (
@@ -632,7 +632,7 @@ def _flag_quantities(
     summary: dict[str, Any],
     problem: str,
     flag: str = S_K_NOT_REPRODUCED,
-    quantities: tuple[str, ...] = (*PRIMARY_QUANTITIES, "tau_s"),
+    quantities: tuple[str, ...] = FROM_SK,
 ) -> None:
     """Flag ``quantities`` and the verdict of ``summary`` (in place) with ``flag`` and
     ``problem``: by default the quantities computed from S_k, for a recount that did not

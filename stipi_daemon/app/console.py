@@ -341,7 +341,11 @@ def format_results(summary: dict[str, Any]) -> list[str]:
         f"  time constant      tau = {_shown(summary, 'tau_s', tau)}"
         "  (fitted Kelvin-Voigt recovery)",
         "  viscosity (fit)    eta = "
-        + val(("elasticity_kpa", "tau_s"), fm.get("viscosity_n_s_per_mm2"), "N*s/mm^2")
+        + val(
+            ("viscosity_fit_n_s_per_mm2", "elasticity_kpa", "tau_s"),  # own, or E's and tau's
+            fm.get("viscosity_n_s_per_mm2"),
+            "N*s/mm^2",
+        )
         + " (E*tau)",
     ]
     lines.extend(_severity_lines(summary, res["severity"]))

@@ -48,6 +48,8 @@ QUANTITY_NAMES: Final[Mapping[str, tuple[str, str]]] = {
     "severity": ("severity", "edema class (paper estimator)"),
     "tau_s": ("τ", "fitted time constant"),
     "applied_force_n": ("F_a", "applied force"),
+    "viscosity_fit_n_s_per_mm2": ("η_τ", "viscosity E·τ"),
+    "severity_fit": ("severity (fit)", "edema class (fitted recovery)"),
 }
 #: The line of a session recorded before ``summary.json`` kept validity.
 UNKNOWN_LINE: Final = "validity unknown (recorded before validity was kept)"

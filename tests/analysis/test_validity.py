@@ -191,7 +191,14 @@ def test_a_complete_verdict_never_calls_a_flagged_secondary_quantity_valid() -> 
     # secondary quantity), so the verdict stays complete, and its line says what is not valid
     t, s = noisy_kv(7.5)
     out = assess_validity(analyse(*gap(t, s, 60.0, 75.0), 19.5), ended_done=True)
-    assert {q for q, v in out["validity"].items() if v["status"] != "valid"} == {"tau_s"}
+    v = out["validity"]
+    # what the fitted recovery gives beside tau (eta = E*tau, its severity) follows tau
+    from_tau = {"tau_s", "viscosity_fit_n_s_per_mm2", "severity_fit"}
+    assert {q for q, e in v.items() if e["status"] != "valid"} == from_tau
+    for q in from_tau - {"tau_s"}:
+        assert v[q]["status"] == "flagged" and "frame_gaps_in_fit" in v[q]["flags"]
+        assert v[q]["reason"].startswith("tau is flagged: frame gaps cover"), v[q]
+    # the line names tau, not what follows from it
     assert out["verdict"] == {
         "status": "complete",
         "line": "Complete: every primary result is valid (tau flagged).",
@@ -307,6 +314,10 @@ def test_facts_from_outside_the_result_invalidate_or_flag_and_propagate() -> Non
     }
     assert v["severity"]["reason"] == "D_p is invalid: S_0 not observed"
     assert v["severity"]["flags"] == ["s0_not_observed"]
+    # eta = E*tau through E (Eq. 7 needs D_p); the fitted severity, from the curve alone, not
+    assert v["viscosity_fit_n_s_per_mm2"]["status"] == "invalid"
+    assert v["viscosity_fit_n_s_per_mm2"]["reason"] == "D_p is invalid: S_0 not observed"
+    assert v["severity_fit"]["status"] == "valid"
     out = assess_validity(
         res,
         ended_done=True,

@@ -379,6 +379,8 @@ _CALIBRATED = sorted(
         "severity",
         "tau_s",
         "viscosity_n_s_per_mm2",
+        "viscosity_fit_n_s_per_mm2",
+        "severity_fit",
     ]
 )
 

@@ -35,6 +35,8 @@ QUANTITIES = (
     "severity",
     "tau_s",
     "applied_force_n",
+    "viscosity_fit_n_s_per_mm2",
+    "severity_fit",
 )
 
 
