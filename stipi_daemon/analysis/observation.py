@@ -27,7 +27,6 @@ from typing import Any, Final
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.ndimage import median_filter
 
 __all__ = [
     "GAP_FACTOR",
@@ -217,6 +216,8 @@ def running_median(values: NDArray[np.float64], half_width: int) -> NDArray[np.f
     steps, under 1 px on a recovery's plateau. A single outlier frame (indeed up to
     ``half_width`` of them in a row, away from the end) cannot raise the maximum.
     """
+    from scipy.ndimage import median_filter  # scipy: imported where used
+
     n = values.size
     if half_width < 1 or n == 0:
         return values.astype(np.float64, copy=True)
@@ -264,6 +265,8 @@ def find_outlier_frames(values: NDArray[np.float64]) -> NDArray[np.bool_]:
     # frame-to-frame step where S_k rises fast: allow OUTLIER_STEP_ALLOWANCE local steps
     # (the median of the 2h + 1 steps around each frame, mirrored at the ends: one outlier
     # sets two steps, at most three of the seven even at an end, so it cannot set it).
+    from scipy.ndimage import median_filter  # scipy: imported where used
+
     steps = median_filter(np.abs(np.diff(values)), size=2 * h + 1, mode="mirror")
     local_step = steps[np.minimum(np.arange(n), n - 2)]
     bound = max(OUTLIER_THRESHOLD * sigma, floor, 1.0) + OUTLIER_STEP_ALLOWANCE * local_step

@@ -18,7 +18,6 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy.ndimage import median_filter
 
 from stipi_daemon.analysis.flags import Flag
 from stipi_daemon.analysis.observation import (
@@ -820,6 +819,8 @@ def detect_recovery_start(
         Invalid series or bounds, fewer than three frames in the search range, or T_0 is
         the last frame of the range (nothing recovers after it).
     """
+    from scipy.ndimage import median_filter  # scipy: imported where used
+
     series = validate_series(times_s, s_k)
     t, s = series.times_s, series.s_px
     if smooth_frames < 1:

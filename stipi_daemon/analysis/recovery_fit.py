@@ -20,7 +20,6 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy.optimize import least_squares
 
 from stipi_daemon.analysis.flags import Flag
 from stipi_daemon.analysis.pitting import DEFAULT_SETTLE_FRACTION, DEFAULT_WINDOW_S
@@ -469,6 +468,8 @@ def solve_scaled(x: NDArray[np.float64], z: NDArray[np.float64]) -> NDArray[np.f
     start = grid_start(x, z)
     lo_u, hi_u = math.log(TAU_SEARCH_RANGE_S[0]), math.log(TAU_SEARCH_RANGE_S[1])
     x_start = np.array([start[0], start[1], min(max(start[2], lo_u), hi_u)])
+    from scipy.optimize import least_squares  # scipy: imported where used
+
     sol = least_squares(
         _residuals,
         x_start,

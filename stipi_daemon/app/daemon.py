@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import importlib
 import signal
 import threading
 import time
@@ -169,6 +170,14 @@ def run_measurement(
             raise
 
 
+def _import_scipy() -> None:
+    """The analysis imports SciPy where it uses it (other commands start faster): the daemon
+    imports it before measuring, not in its first live fit, which would hold the GIL for it
+    while frames come in."""
+    for module in ("scipy.ndimage", "scipy.optimize"):
+        importlib.import_module(module)
+
+
 @contextlib.contextmanager
 def _sigterm_as_interrupt() -> Iterator[list[int]]:
     """While measuring, SIGTERM (``kill PID``, a service manager's stop) stops the daemon
@@ -246,6 +255,7 @@ async def run_daemon(
     """
     if clock is None:
         clock = ScaledClock(speed if speed is not None else config.run.speed)
+    _import_scipy()
     calibration, threshold, roi, truth = resolve_imaging(config)
     reference = load_reference()
     console = OperatorConsole(config.measurement, out, live=live, quiet=quiet)

@@ -26,9 +26,6 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from stipi_daemon.app.analyze import AnalyzeRequest, analyze
-from stipi_daemon.app.config import find_session, load_config, sessions_root
-from stipi_daemon.app.offline_io import parse_roi
 from stipi_daemon.errors import ConfigError
 from stipi_daemon.storage import DEFAULT_ROOT
 
@@ -161,10 +158,17 @@ def _check(args: argparse.Namespace) -> None:
 def _session_dir(args: argparse.Namespace) -> Path:
     """SESSION as a directory: a path, or an id under the sessions root (one rule for every
     command, :func:`~stipi_daemon.app.config.find_session`)."""
+    from stipi_daemon.app.config import find_session, sessions_root
+
     return find_session(sessions_root(args.root, args.config), args.session)
 
 
 def run(args: argparse.Namespace) -> int:
+    # the analysis is imported when it runs, not by every command's start-up
+    from stipi_daemon.app.analyze import AnalyzeRequest, analyze
+    from stipi_daemon.app.config import load_config
+    from stipi_daemon.app.offline_io import parse_roi
+
     _check(args)
     roi_given = args.roi is not None
     request = AnalyzeRequest(

@@ -29,8 +29,6 @@ from stipi_daemon.analysis.calibration_procedure import (
     DEFAULT_PLATEAU_TOLERANCE_N,
     DEFAULT_TRIM_S,
 )
-from stipi_daemon.app.calibrate import CalibrateRequest, calibrate
-from stipi_daemon.app.offline_io import parse_roi
 from stipi_daemon.commands import frame_size_arg
 from stipi_daemon.errors import ConfigError
 
@@ -161,6 +159,10 @@ def _check_values(args: argparse.Namespace) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    # the fits and the readers are imported when the command runs, not at every start-up
+    from stipi_daemon.app.calibrate import CalibrateRequest, calibrate
+    from stipi_daemon.app.offline_io import parse_roi
+
     if args.out.exists() and not args.overwrite:
         raise ConfigError(f"{args.out}: exists already (give --overwrite to replace it)")
     if args.depth_recording is not None and args.displacements is None:

@@ -31,7 +31,6 @@ from typing import ClassVar, Literal
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy.optimize import least_squares
 
 from stipi_daemon.analysis.recovery_fit import TAU_SEARCH_RANGE_S
 from stipi_daemon.errors import AnalysisError
@@ -303,6 +302,8 @@ def solve_scaled(
         assert j is not None
         out: FloatArray = j[0]
         return out
+
+    from scipy.optimize import least_squares  # scipy: imported where used
 
     sol = least_squares(
         fun, x0, jac=jac, bounds=(lo, hi), method="trf", x_scale="jac", max_nfev=400

@@ -28,7 +28,6 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from scipy.optimize import brentq
 
 from stipi_daemon.analysis.recovery_models.base import (
     FloatArray,
@@ -147,4 +146,6 @@ class TwoExponential(RecoveryModel):
             return lo
         if h(hi) >= 0.0:
             return hi
+        from scipy.optimize import brentq  # scipy: imported where used
+
         return float(brentq(h, lo, hi, xtol=1e-12 * hi, rtol=1e-12))
