@@ -8,7 +8,6 @@ stderr with exit status 2, never as a traceback; Ctrl-C is one line and exit sta
 from __future__ import annotations
 
 import argparse
-import os
 import signal
 import sys
 from collections.abc import Sequence
@@ -127,7 +126,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         # Whatever read the output stopped reading (``sessions list | head``): nothing more
         # can reach it. Stdout goes to /dev/null so that Python's own flush at exit does not
         # fail again; exit status as a shell gives a process ended by SIGPIPE.
-        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        from stipi_daemon.app.console import stdout_to_devnull
+
+        stdout_to_devnull()
         return 128 + signal.SIGPIPE
 
 

@@ -318,6 +318,12 @@ class Calibration:
             "(Eqs. 4-5) would be wrong"
         )
 
+    def holds_in_roi(self, roi: CircleROI | RectROI | None) -> bool:
+        """Whether this calibration holds for S counted in ``roi`` [px] (None: the whole
+        frame): it was made in the same pixels (the same ROI, or both holding the whole frame
+        of its ``frame_size_px``), or it records no ROI."""
+        return self.roi is None or same_roi(roi, self.roi, self.frame_size_px)
+
     def roi_problem(self, roi: CircleROI | RectROI | None, where: str) -> str | None:
         """Why S counted in ``roi`` [px] (None: the whole frame) cannot use this
         calibration, or None when they can (the same ROI, both holding the whole frame of
@@ -325,7 +331,7 @@ class Calibration:
 
         ``where`` names what counts in that ROI (a config field, ``--roi``, a session).
         """
-        if self.roi is None or same_roi(roi, self.roi, self.frame_size_px):
+        if self.holds_in_roi(roi):
             return None
         return (
             f"{where} counts S in {describe_roi(roi)}, but the calibration was made in "

@@ -44,7 +44,7 @@ from pydantic import BaseModel, ValidationError
 
 from stipi_daemon import __version__
 from stipi_daemon.analysis.calibration import Calibration, load_calibration
-from stipi_daemon.analysis.imaging import CircleROI, RectROI, describe_roi, same_roi
+from stipi_daemon.analysis.imaging import CircleROI, RectROI, describe_roi
 from stipi_daemon.analysis.results import AnalysisSettings
 from stipi_daemon.analysis.severity import load_reference
 from stipi_daemon.analysis.summary_diff import diff_results
@@ -673,12 +673,11 @@ def _roi_problem(
     """Why the calibrated quantities do not hold for S_k counted in ``counted`` [px] (None:
     the whole frame), or None when the calibration was made in that ROI (or in the whole
     frame, as ``counted``) or records none."""
-    own = calibration.value.roi
-    if own is None or same_roi(counted, own, calibration.value.frame_size_px):
+    if calibration.value.holds_in_roi(counted):
         return None
     return (
         f"S_k counted in {describe_roi(counted)}, the calibration ({calibration.source}) made "
-        f"in {describe_roi(own)}: {_NOT_CALIBRATED}"
+        f"in {describe_roi(calibration.value.roi)}: {_NOT_CALIBRATED}"
     )
 
 

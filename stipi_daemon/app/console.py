@@ -134,7 +134,7 @@ class OperatorConsole:
         Python's flush at exit do not fail again."""
         self.quiet = True
         if self.out is sys.stdout:
-            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+            stdout_to_devnull()
         live, self._live = self._live, None
         if live is not None:
             with contextlib.suppress(OSError):  # its last refresh, to the closed output
@@ -371,3 +371,12 @@ def _severity_lines(summary: dict[str, Any], severity: dict[str, Any]) -> list[s
             f" (threshold {sev['threshold_recovered_percent']:.1f} %)"
         )
     return lines
+
+
+def stdout_to_devnull() -> None:
+    """Point the process's stdout at /dev/null, after whatever read it stopped reading:
+    later prints and Python's flush at exit then succeed instead of raising
+    BrokenPipeError again."""
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    os.dup2(devnull, sys.stdout.fileno())
+    os.close(devnull)

@@ -42,7 +42,7 @@ from stipi_daemon.analysis.imaging import (
     to_gray,
 )
 from stipi_daemon.app.config import DaemonConfig
-from stipi_daemon.app.imaging import calibration_record, check_roi_fits
+from stipi_daemon.app.imaging import calibration_record, check_roi_fits, roi_field
 from stipi_daemon.app.session_metadata import session_metadata
 from stipi_daemon.cameras import CameraStream, open_camera
 from stipi_daemon.clock import ScaledClock
@@ -391,12 +391,7 @@ def _check_frame(
     if size is None:
         return None
     if roi is not None:
-        field = "the scene's ROI"
-        if config.imaging.roi is not None:
-            field = "field 'imaging.roi'"
-        elif calibration.roi is not None and config.calibration is not None:
-            field = f"field 'roi' of the calibration ({config.calibration})"  # counted in it
-        check_roi_fits(roi, size[0], size[1], field)
+        check_roi_fits(roi, size[0], size[1], roi_field(config, calibration))
     where = f"field 'calibration' ({config.calibration})" if config.calibration else "the scene"
     problem = calibration.frame_size_problem(size[0], size[1], "the camera")
     if problem is not None:

@@ -60,6 +60,7 @@ __all__ = [
     "choose_imaging",
     "recorded_source",
     "resolve_imaging",
+    "roi_field",
     "roi_fit_problem",
     "roi_from_truth",
     "scene_source",
@@ -409,6 +410,16 @@ def check_roi_fits(
 # --------------------------------------------------------------------------------------------
 
 
+def roi_field(config: DaemonConfig, calibration: Calibration) -> str:
+    """What the daemon's ROI comes from, for messages: the config's field, else the
+    calibration file's own ROI, else the simulated scene's (:func:`choose_imaging`)."""
+    if config.imaging.roi is not None:
+        return "field 'imaging.roi'"
+    if calibration.roi is not None and config.calibration is not None:
+        return f"field 'roi' of the calibration ({config.calibration})"
+    return "the scene's ROI"
+
+
 def resolve_imaging(
     config: DaemonConfig,
 ) -> tuple[Calibration, int, CircleROI | RectROI | None, dict[str, Any] | None]:
@@ -446,8 +457,7 @@ def resolve_imaging(
             f"leave imaging.threshold_p out to count with {own}, or calibrate with p {p.value}"
         )
     roi = imaging.roi_value
-    field = "field 'imaging.roi'" if config.imaging.roi is not None else "the scene's ROI"
-    problem = calibration.value.roi_problem(roi, field)
+    problem = calibration.value.roi_problem(roi, roi_field(config, calibration.value))
     if problem is not None:
         raise ConfigError(
             f"{problem} ({calibration.source}); leave imaging.roi out to count in the "
