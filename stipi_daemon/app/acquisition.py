@@ -67,6 +67,7 @@ from stipi_daemon.app.frame_measurer import (
 from stipi_daemon.cameras import CameraRecovered as CamRecovered
 from stipi_daemon.cameras import CameraStalled as CamStalled
 from stipi_daemon.cameras.threaded import ThreadedCamera
+from stipi_daemon.clock import SessionClock
 from stipi_daemon.measurement.merge import TimeOrderedMerger
 from stipi_daemon.measurement.pipeline import LiveParameters, MeasurementPipeline, compute_live
 from stipi_daemon.measurement.state_machine import (
@@ -254,15 +255,7 @@ class Acquisition:
         clock, writer, pipeline = self._clock, self._writer, self._pipeline
         self._console.line(f"session {writer.session_id} in {self._config.storage.root}")
         self._record(pipeline.arm(clock.now()))
-        # How session times map onto the host's monotonic clock (time.monotonic()).
-        writer.add_event(
-            clock.now(),
-            "session_clock",
-            {
-                "speed": clock.speed,
-                "monotonic_origin_s": time.monotonic() - clock.now() / clock.speed,
-            },
-        )
+        writer.add_event(clock.now(), "session_clock", session_clock_detail(clock))
         await self._devices.probe.start_stream()
         self._start_tasks(on_running)
         switch = sys.getswitchinterval()
@@ -355,9 +348,12 @@ class Acquisition:
         await self._queue.put(_Stop(who))
 
     async def _ticker(self) -> None:
+        clock = self._clock
+        t_s = clock.now()
         while True:
-            await asyncio.sleep(self._clock.wall_seconds(TICK_S))
-            await self._queue.put(Tick(self._clock.now()))
+            t_s = max(t_s + TICK_S, clock.now())
+            await clock.sleep_until(t_s)
+            await self._queue.put(Tick(clock.now()))
 
     def _record(self, outputs: list[Output]) -> None:
         """Show the pipeline's outputs and store transitions, advisories, faults, prompts."""
@@ -399,7 +395,8 @@ class Acquisition:
             if not future.done():
                 if not wait:
                     return
-                await asyncio.wait([future])
+                with self._clock.hold():  # a simulated world waits for the live fit
+                    await asyncio.wait([future])
             pending.popleft()
             live_params = future.result()
             if live_params is not None:
@@ -579,6 +576,19 @@ class Acquisition:
         for kind, value in self.merger.drain():
             outputs += _feed(self._pipeline, kind, value)
         return outputs + self._pipeline.close(self._clock.now())
+
+
+def session_clock_detail(clock: SessionClock) -> dict[str, Any]:
+    """What the ``session_clock`` event records: on wall time, how session times map onto
+    the host's monotonic clock (``time.monotonic()``); on a simulated run's clock, that it
+    waited for the daemon (its times are not wall times, and the same on every run)."""
+    if clock.waits_for_daemon:
+        return {"kind": "simulated", "waits_for_daemon": True}
+    return {
+        "kind": "wall",
+        "speed": clock.speed,
+        "monotonic_origin_s": time.monotonic() - clock.now() / clock.speed,
+    }
 
 
 def _task_stacks(tasks: set[asyncio.Task[None]]) -> str:

@@ -43,6 +43,7 @@ from stipi_daemon.app.devices import (
     Devices,
     close_devices,
     open_devices,
+    simulated_world,
 )
 from stipi_daemon.app.finish import (
     finish_session,
@@ -56,7 +57,7 @@ from stipi_daemon.app.finish import (
 from stipi_daemon.app.frame_measurer import FrameMeasurer
 from stipi_daemon.app.imaging import resolve_imaging
 from stipi_daemon.app.memory import hold_heap, return_free_memory
-from stipi_daemon.clock import ScaledClock
+from stipi_daemon.clock import ScaledClock, SessionClock, VirtualClock
 from stipi_daemon.errors import SessionError, Terminated
 from stipi_daemon.measurement.pipeline import MeasurementPipeline
 from stipi_daemon.measurement.representative_frames import RepresentativeFrames
@@ -211,7 +212,7 @@ async def run_daemon(
     out: TextIO | None = None,
     quiet: bool = False,
     live: bool | None = None,
-    clock: ScaledClock | None = None,
+    clock: SessionClock | None = None,
     scene_origin_s: float | None = None,
     on_session: Callable[[SessionWriter], None] | None = None,
     on_running: OnRunning | None = None,
@@ -227,8 +228,8 @@ async def run_daemon(
         devices; the demo accelerates its simulated devices).
     out, quiet, live
         Console output (see :class:`~stipi_daemon.app.console.OperatorConsole`).
-    clock : ScaledClock, optional
-        The session clock to run on (default: a new one at ``speed``); lets a caller
+    clock : SessionClock, optional
+        The session clock to run on (default: :func:`session_clock`); lets a caller
         start devices of its own (an emulated probe on a pty, a firmware simulation) on
         the same timeline before the daemon starts.
     scene_origin_s : float, optional
@@ -254,7 +255,39 @@ async def run_daemon(
         in one line.
     """
     if clock is None:
-        clock = ScaledClock(speed if speed is not None else config.run.speed)
+        clock = session_clock(config, speed)
+    if isinstance(clock, VirtualClock):
+        async with clock.running():
+            return await _run_daemon(
+                config, out, quiet, live, clock, scene_origin_s, on_session, on_running
+            )
+    return await _run_daemon(
+        config, out, quiet, live, clock, scene_origin_s, on_session, on_running
+    )
+
+
+def session_clock(config: DaemonConfig, speed: float | None = None) -> SessionClock:
+    """The clock a run of ``config`` runs on: a :class:`VirtualClock` paced at ``speed``
+    (default ``run.speed``) when every device is simulated in this process (the emulated
+    probe and a scene-playing camera), which waits for the daemon; wall time times
+    ``speed`` otherwise (a real device cannot wait)."""
+    pace = speed if speed is not None else config.run.speed
+    if simulated_world(config):
+        return VirtualClock(pace)
+    return ScaledClock(pace)
+
+
+async def _run_daemon(
+    config: DaemonConfig,
+    out: TextIO | None,
+    quiet: bool,
+    live: bool | None,
+    clock: SessionClock,
+    scene_origin_s: float | None,
+    on_session: Callable[[SessionWriter], None] | None,
+    on_running: OnRunning | None,
+) -> RunOutcome:
+    """:func:`run_daemon` on its clock."""
     _import_scipy()
     calibration, threshold, roi, truth = resolve_imaging(config)
     reference = load_reference()
@@ -303,14 +336,17 @@ async def run_daemon(
         return_free_memory()  # before the analysis and the report: large blocks mmapped
         summary["run"] = run_stats(
             devices,
-            speed=clock.speed,
+            clock=clock,
             wall_s=time.monotonic() - wall0,
             counts=acquisition.counts,
             latencies_s=acquisition.latencies_s,
             merge_released_by_timeout=acquisition.merger.released_by_timeout,
             keeper=keeper,
         ) | {"lag_s": percentiles(acquisition.lag_s), "max_lag_s": config.run.max_lag_s}
-        finish_session(writer, status, summary, storage_error)
+        wall = {"wall_s": repr(time.monotonic() - wall0), "clock": type(clock).__name__}
+        if isinstance(clock, VirtualClock):
+            wall |= {"pace": repr(clock.pace), "clock_steps": str(clock.steps)}
+        finish_session(writer, status, summary, storage_error, wall)
         if status == "aborted" or storage_error is not None:  # did not end: say so, and where
             how = "aborted" if storage_error is None else "stopped: storing failed"
             console.line(f"measurement {how}; what was recorded is in {writer.directory}")

@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import math
 import sys
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -45,7 +46,7 @@ from stipi_daemon.app.config import DaemonConfig
 from stipi_daemon.app.imaging import calibration_record, check_roi_fits, roi_field
 from stipi_daemon.app.session_metadata import session_metadata
 from stipi_daemon.cameras import CameraStream, open_camera
-from stipi_daemon.clock import ScaledClock
+from stipi_daemon.clock import SessionClock
 from stipi_daemon.errors import ConfigError
 from stipi_daemon.measurement.pipeline import MeasurementPipeline
 from stipi_daemon.probe.link import ProbeLink
@@ -78,7 +79,7 @@ class Devices:
 
     Attributes
     ----------
-    clock : ScaledClock
+    clock : SessionClock
         The session clock.
     probe : ProbeLink
         The connected probe link (not yet streaming).
@@ -94,7 +95,7 @@ class Devices:
         calibration were checked against (None: it reported none).
     """
 
-    clock: ScaledClock
+    clock: SessionClock
     probe: ProbeLink
     camera: CameraStream
     writer: SessionWriter
@@ -112,7 +113,7 @@ class DaemonHandles:
 
     Attributes
     ----------
-    clock : ScaledClock
+    clock : SessionClock
         The session clock.
     probe : ProbeLink
         The probe link.
@@ -124,14 +125,14 @@ class DaemonHandles:
         The live measurement (``pipeline.phase`` is the state machine's phase).
     """
 
-    clock: ScaledClock
+    clock: SessionClock
     probe: Any
     camera: Any
     writer: SessionWriter
     pipeline: MeasurementPipeline
 
 
-def scene_origin(clock: ScaledClock, given_s: float | None) -> float:
+def scene_origin(clock: SessionClock, given_s: float | None) -> float:
     """Session time of scene time 0 for simulated and replayed devices [s].
 
     ``given_s`` when a caller's own device plays the scene from a known instant, else
@@ -164,9 +165,12 @@ class SceneStartProbeLink(ProbeLink):
         # A timer wakes the loop late on a busy host (milliseconds of wall time, times the
         # clock's speed): sleep to just before the instant, then yield until it comes.
         clock = self.clock
-        await clock.sleep_until(at - STREAM_START_SPIN_WALL_S * clock.speed)
-        while clock.now() < at:
-            await asyncio.sleep(0)
+        if clock.waits_for_daemon:  # its time is exact: no timer wakes it late
+            await clock.sleep_until(at)
+        else:
+            await clock.sleep_until(at - STREAM_START_SPIN_WALL_S * clock.speed)
+            while clock.now() < at:
+                await asyncio.sleep(0)
         sent_s = clock.now()
         acknowledged = await super().start_stream()
         if self.on_stream_start is not None:
@@ -186,6 +190,14 @@ def plays_scene_from_stream_start(config: DaemonConfig) -> bool:
     return _plays_scene(config) and not in_process
 
 
+def simulated_world(config: DaemonConfig) -> bool:
+    """Whether every device of a run of ``config`` is simulated in this process: the
+    emulated probe on a pty and a camera that plays the scene (the simulator, a paced
+    video file). Such a run's clock waits for the daemon
+    (:class:`~stipi_daemon.clock.VirtualClock`)."""
+    return config.probe.transport.kind == "emulated" and _plays_scene(config)
+
+
 def _plays_scene(config: DaemonConfig) -> bool:
     """Whether the camera plays the scene on the session clock (simulator, paced file)."""
     # A paced video file replays the scene too (e.g. the simulator's rendering of it).
@@ -194,7 +206,7 @@ def _plays_scene(config: DaemonConfig) -> bool:
     )
 
 
-def _follow_probe_link(clock: ScaledClock, probe: SceneStartProbeLink) -> float:
+def _follow_probe_link(clock: SessionClock, probe: SceneStartProbeLink) -> float:
     """The scene origin chosen once the probe link is open [s]; schedules STREAM_START.
 
     The origin is :data:`SCENE_LEAD_WALL_S` of wall time from now: the camera opens, the
@@ -221,7 +233,7 @@ def _transport_config(config: DaemonConfig, origin_s: float) -> TransportConfig:
 
 
 def _probe_link(
-    config: DaemonConfig, clock: ScaledClock, origin_s: float, *, scheduled_start: bool = False
+    config: DaemonConfig, clock: SessionClock, origin_s: float, *, scheduled_start: bool = False
 ) -> ProbeLink:
     """The probe link the config describes (not yet connected); with ``scheduled_start`` a
     :class:`SceneStartProbeLink`."""
@@ -239,7 +251,7 @@ def _probe_link(
     )
 
 
-def _camera_stream(config: DaemonConfig, clock: ScaledClock, origin_s: float) -> CameraStream:
+def _camera_stream(config: DaemonConfig, clock: SessionClock, origin_s: float) -> CameraStream:
     """The camera stream the config describes (not yet opened)."""
     simulated = _plays_scene(config)
     return CameraStream(
@@ -288,7 +300,7 @@ def _video_recorder(
     writer: SessionWriter,
     threshold_p: int,
     roi: CircleROI | RectROI | None,
-    clock: ScaledClock,
+    clock: SessionClock,
     camera_metadata: dict[str, Any],
     frame_rate_hz: float | None = None,
 ) -> VideoRecorder | None:
@@ -316,10 +328,14 @@ def _video_recorder(
     if storage.video_roi_only:
         if storage.video == "passthrough" and delivers_jpeg_packets(camera_metadata):
             _note_roi_only_ignored(writer, clock.now(), camera_metadata)
-        return VideoRecorder(
+        recorder = VideoRecorder(
             path, writer, storage.video, crop=roi_box, to_gray=to_gray, frame_rate_hz=frame_rate_hz
         )
-    return VideoRecorder(path, writer, storage.video, frame_rate_hz=frame_rate_hz)
+    else:
+        recorder = VideoRecorder(path, writer, storage.video, frame_rate_hz=frame_rate_hz)
+    if clock.waits_for_daemon:  # a simulated world waits for the encoders: no frame left out
+        recorder.wait_max_s = math.inf
+    return recorder
 
 
 def delivers_jpeg_packets(metadata: dict[str, Any]) -> bool:
@@ -435,7 +451,7 @@ def _warn_unrecorded(
 
 async def open_devices(
     config: DaemonConfig,
-    clock: ScaledClock,
+    clock: SessionClock,
     calibration: Calibration,
     threshold_p: int,
     roi: CircleROI | RectROI | None,
@@ -448,7 +464,7 @@ async def open_devices(
     ----------
     config : DaemonConfig
         The configuration (paths resolved).
-    clock : ScaledClock
+    clock : SessionClock
         The session clock.
     calibration, threshold_p, roi
         What S_k is counted with (:mod:`stipi_daemon.app.imaging`), for the manifest.

@@ -28,6 +28,7 @@ from stipi_daemon.app.console import (
     verdict_status,
 )
 from stipi_daemon.app.devices import Devices
+from stipi_daemon.clock import SessionClock
 from stipi_daemon.errors import SessionError, StipiError
 from stipi_daemon.measurement.pipeline import MeasurementPipeline
 from stipi_daemon.measurement.representative_frames import RepresentativeFrames
@@ -98,7 +99,7 @@ def percentiles(values: list[float]) -> dict[str, float | None]:
 def run_stats(
     devices: Devices,
     *,
-    speed: float,
+    clock: SessionClock,
     wall_s: float,
     counts: dict[str, int],
     latencies_s: list[float],
@@ -111,8 +112,10 @@ def run_stats(
     ----------
     devices : Devices
         The (closed) devices and the session.
-    speed : float
-        Session seconds per wall second.
+    clock : SessionClock
+        The session clock. On a simulated run's clock (which waits for the daemon) the
+        statistics are the same on every machine: the wall time and the pace are not in
+        them (the session's ``meta`` table has them, :func:`finish_session`).
     wall_s : float
         Wall time of the run [s].
     counts : dict
@@ -127,10 +130,12 @@ def run_stats(
         The chosen frames, stored now in the session directory.
     """
     camera = devices.camera
+    timing: dict[str, Any] = {"clock": "simulated"}
+    if not clock.waits_for_daemon:
+        timing = {"clock": "wall", "speed": clock.speed, "wall_s": wall_s}
     return {
         "software": __version__,
-        "speed": speed,
-        "wall_s": wall_s,
+        **timing,
         **counts,
         "frame_latency_s": percentiles(latencies_s),
         "merge_released_by_timeout": merge_released_by_timeout,
@@ -154,14 +159,16 @@ def finish_session(
     status: str,
     summary: dict[str, Any],
     storage_error: SessionError | None,
+    meta: dict[str, str] | None = None,
 ) -> None:
-    """Write the final status and summary and close the session.
+    """Write the final status and summary (and ``meta`` entries: how the run went on this
+    machine, e.g. its wall time) and close the session.
 
     After a storage failure (``storage_error``) this is best effort: the disk that failed
     may still take the final state (``fault``, with the error), and nothing is raised.
     """
     if storage_error is None:
-        writer.finish(status, summary)
+        writer.finish(status, summary, meta)
         writer.close()
         return
     with contextlib.suppress(SessionError):

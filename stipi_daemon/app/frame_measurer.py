@@ -47,7 +47,7 @@ import numpy.typing as npt
 from stipi_daemon.analysis.imaging import CircleROI, FrameProcessor, RectROI
 from stipi_daemon.cameras import CameraFrame
 from stipi_daemon.cameras.threaded import RawFrame
-from stipi_daemon.clock import ScaledClock
+from stipi_daemon.clock import SessionClock
 from stipi_daemon.errors import SessionError
 from stipi_daemon.measurement.pipeline import MeasurementPipeline
 from stipi_daemon.measurement.representative_frames import RepresentativeFrames
@@ -193,7 +193,7 @@ class FrameMeasurer:
 
     Parameters
     ----------
-    clock : ScaledClock
+    clock : SessionClock
         Session clock (the processing time stamp).
     threshold_p : int
         Threshold p of Eq. (1) [8-bit intensity].
@@ -223,7 +223,7 @@ class FrameMeasurer:
 
     def __init__(
         self,
-        clock: ScaledClock,
+        clock: SessionClock,
         threshold_p: int,
         roi: CircleROI | RectROI | None,
         saturation_limit_fraction: float,

@@ -30,7 +30,6 @@ measurement's phases at once with the frames still to come.
 
 from __future__ import annotations
 
-import asyncio
 import logging
 import math
 from collections.abc import AsyncIterator
@@ -149,10 +148,9 @@ class CameraStream:
         self, frames: AsyncIterator[CameraFrame], timeout_s: float
     ) -> CameraFrame | None:
         """The next frame, None at the source's end; TimeoutError after ``timeout_s``."""
-        wall_s = timeout_s / self.clock.speed
         try:
-            # asyncio.timeout: a timer on this task, no task of its own per frame (wait_for)
-            async with asyncio.timeout(wall_s):
+            # a timer on this task, no task of its own per frame (wait_for)
+            async with self.clock.timeout(timeout_s):
                 return await anext(frames)
         except StopAsyncIteration:
             return None

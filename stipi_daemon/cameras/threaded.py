@@ -15,7 +15,6 @@ from __future__ import annotations
 import asyncio
 import logging
 import threading
-import time
 from abc import ABC, abstractmethod
 from collections import deque
 from collections.abc import AsyncIterator, Callable
@@ -297,16 +296,13 @@ class ThreadedCamera(ABC, Generic[H]):
         before decoding, as a camera delivers a frame when it is captured); False when the
         camera is being closed meanwhile."""
         stop: threading.Event | None = getattr(self._thread_state, "stop", None)
-        clock = self._clock
         self._waited_for_s = max(self._waited_for_s, t_s)
-        while True:
-            wall_s = (t_s - clock.now()) / clock.speed
-            if wall_s <= 0.0:
-                return stop is None or not stop.is_set()
-            if stop is None:
-                time.sleep(wall_s)
-            elif stop.wait(wall_s):
-                return False
+        return self._clock.wait_until_blocking(t_s, stop)
+
+    def _consumer_busy_until_s(self, t_capture_s: float) -> float | None:
+        """Session time [s] until which the consumer does not take the frame captured at
+        ``t_capture_s`` (a simulated processing stall), or None: it takes it now."""
+        return None
 
     def source_silent_s(self) -> float:
         """How long the source itself has been silent [s of session time]: the time since
@@ -382,7 +378,8 @@ class ThreadedCamera(ABC, Generic[H]):
         if self._thread is not None:
             return
         loop = asyncio.get_running_loop()
-        handle = await loop.run_in_executor(None, self._open_source)
+        with self._clock.hold():  # a simulated world waits for the device to open
+            handle = await loop.run_in_executor(None, self._open_source)
         handoff: FrameHandoff[RawFrame | _End] = FrameHandoff(
             loop, self._capacity, self._drop_oldest
         )
@@ -407,7 +404,8 @@ class ThreadedCamera(ABC, Generic[H]):
         stop.set()
         handoff.close()
         self._queue_dropped_closed += handoff.dropped
-        await asyncio.get_running_loop().run_in_executor(None, thread.join, JOIN_TIMEOUT_S)
+        with self._clock.hold():
+            await asyncio.get_running_loop().run_in_executor(None, thread.join, JOIN_TIMEOUT_S)
         if thread.is_alive():
             self._note(
                 f"{self.name}: capture thread still blocked in the driver {JOIN_TIMEOUT_S:g} s "
@@ -451,6 +449,17 @@ class ThreadedCamera(ABC, Generic[H]):
         stop: threading.Event,
         progress: _Progress,
     ) -> None:
+        # the session clock waits for this thread while it reads and hands frames over
+        with self._clock.participant():
+            self._capture(handle, handoff, stop, progress)
+
+    def _capture(
+        self,
+        handle: H,
+        handoff: FrameHandoff[RawFrame | _End],
+        stop: threading.Event,
+        progress: _Progress,
+    ) -> None:
         end = _End(None)
         self._thread_state.stop = stop
         try:
@@ -469,6 +478,11 @@ class ThreadedCamera(ABC, Generic[H]):
                     self._first_read_s = raw.t_capture_s
                 progress.last_s, progress.handing_over = self._clock.now(), True
                 progress.frozen = False
+                busy_until_s = self._consumer_busy_until_s(raw.t_capture_s)
+                if busy_until_s is not None and not self._clock.wait_until_blocking(
+                    busy_until_s, stop
+                ):
+                    return  # closed while the consumer was stalled
                 try:
                     if not self._hand_over(raw, handoff):
                         return

@@ -454,7 +454,9 @@ class ProbeLink:
             if self._closed or lost is None:
                 raise
             if not lost.done():  # a failed write: the reader declares the link lost at once
-                await asyncio.wait([lost], timeout=_LOST_NOTICE_WALL_S)
+                with contextlib.suppress(TimeoutError):
+                    async with self.clock.timeout(_LOST_NOTICE_WALL_S * self.clock.speed):
+                        await asyncio.wait([lost])
             if not lost.done():  # the link is up and the probe did not answer
                 raise
             # the link went down meanwhile (LinkDown is queued): its return starts the stream
@@ -531,7 +533,7 @@ class ProbeLink:
                 # asyncio.timeout, not wait_for, whose Python 3.11 version drops a cancel
                 # that comes with the answer (clock.wait_event)
                 with contextlib.suppress(TimeoutError):
-                    async with asyncio.timeout(per_try / self.clock.speed):
+                    async with self.clock.timeout(per_try):
                         return await asyncio.shield(fut)
         finally:
             for seq in seqs:

@@ -26,6 +26,7 @@ from typing import Any
 from stipi_daemon.cameras.base import SimulatorCameraConfig
 from stipi_daemon.cameras.threaded import RawFrame, ThreadedCamera
 from stipi_daemon.clock import SessionClock
+from stipi_daemon.sim.effects.processing_stall import Params as ProcessingStall
 from stipi_daemon.sim.jpeg import scene_encoding
 from stipi_daemon.sim.pipeline import Pipeline, SimFrame
 from stipi_daemon.sim.scene import Scene, load_scene
@@ -121,6 +122,17 @@ class SimulatorCamera(ThreadedCamera[Iterator[SimFrame]]):
         next_s = 0.0 if self._last_seq is None else (self._last_seq + 1) / self.nominal_fps
         start_s = max(0.0, now_scene_s, next_s)
         return self._pipeline.frames(start_s=start_s)
+
+    def _consumer_busy_until_s(self, t_capture_s: float) -> float | None:
+        """The scene's ``processing_stall`` spans: a frame captured in one is handed over
+        at its end [s of session time]."""
+        t0 = self._t0_s if self._t0_s is not None else 0.0
+        until = [
+            s.t_end_s
+            for s in self.scene.effects
+            if isinstance(s, ProcessingStall) and s.t_start_s <= t_capture_s - t0 < s.t_end_s
+        ]
+        return t0 + max(until) if until else None
 
     def _read(self, handle: Iterator[SimFrame]) -> RawFrame | None:
         f = next(handle, None)  # rendered and, in a Motion-JPEG scene, encoded

@@ -15,6 +15,7 @@ on its battery); ``release()`` also stops the emulator. The emulator is reachabl
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import TYPE_CHECKING
 
 from stipi_daemon.clock import SessionClock
@@ -44,6 +45,7 @@ class EmulatedTransport:
         self.clock = clock
         self._feather: EmulatedFeather | None = None
         self._serial: SerialTransport | None = None
+        self._unwatch: Callable[[], None] | None = None
 
     @property
     def name(self) -> str:
@@ -82,15 +84,25 @@ class EmulatedTransport:
         if self._serial is None:
             self._serial = SerialTransport(SerialTransportConfig(port=str(self._feather.path)))
         await self._serial.open()
+        feather = self._feather
+        feather.reset_flight()
+        if self._unwatch is None:  # a simulated run's clock waits for bytes in flight
+            serial = self._serial
+            self._unwatch = self.clock.add_pending(lambda: serial.is_open and feather.in_flight())
 
     async def read(self) -> bytes:
         if self._serial is None:
             raise LinkLostError(f"{self.name} is not open")
-        return await self._serial.read()
+        data = await self._serial.read()
+        if self._feather is not None:
+            self._feather.host_bytes_read += len(data)
+        return data
 
     async def write(self, data: bytes) -> None:
         if self._serial is None:
             raise LinkLostError(f"{self.name} is not open")
+        if self._feather is not None:
+            self._feather.host_bytes_written += len(data)
         await self._serial.write(data)
 
     async def close(self) -> None:
@@ -98,6 +110,9 @@ class EmulatedTransport:
             await self._serial.close()
 
     async def release(self) -> None:
+        if self._unwatch is not None:
+            self._unwatch()
+            self._unwatch = None
         await self.close()
         feather, self._feather = self._feather, None
         if feather is not None:

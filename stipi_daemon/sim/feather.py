@@ -44,7 +44,7 @@ from typing import Final, Protocol
 import numpy as np
 from numpy.typing import NDArray
 
-from stipi_daemon.clock import SessionClock, wait_event
+from stipi_daemon.clock import SessionClock
 from stipi_daemon.protocol.cobs import cobs_decode
 from stipi_daemon.protocol.errors import FrameError
 from stipi_daemon.protocol.messages import (
@@ -811,6 +811,13 @@ class EmulatedFeather:
         """Frames lost before the pty: unplugged, silent, or the host's buffer full."""
         self.bits_flipped = 0
         self.garbage_bytes = 0
+        #: Bytes written to / read from the pty since it was plugged in (a simulated run's
+        #: clock waits while the host has not read what was written, or the probe not what
+        #: the host wrote: :meth:`in_flight`).
+        self.bytes_out = 0
+        self.bytes_in = 0
+        self.host_bytes_read = 0
+        self.host_bytes_written = 0
 
     # ------------------------------------------------------------------ lifecycle
 
@@ -857,6 +864,7 @@ class EmulatedFeather:
         os.set_blocking(master, False)
         self._master, self._slave = master, slave
         self._pending.clear()
+        self.reset_flight()
         tmp = self.path.with_name(self.path.name + ".new")
         with contextlib.suppress(FileNotFoundError):
             tmp.unlink()
@@ -875,6 +883,7 @@ class EmulatedFeather:
         if self._master is not None:
             with contextlib.suppress(RuntimeError):
                 asyncio.get_running_loop().remove_reader(self._master)
+                asyncio.get_running_loop().remove_writer(self._master)
             with contextlib.suppress(FileNotFoundError):
                 self.path.unlink()
             os.close(self._master)
@@ -915,6 +924,7 @@ class EmulatedFeather:
             return
         except OSError:
             return  # EIO: no reader on the slave side; nothing to do
+        self.bytes_in += len(data)
         if not data or self._silent():
             return
         self.core.feed(data, self._mcu_now())
@@ -950,11 +960,37 @@ class EmulatedFeather:
             try:
                 n = os.write(self._master, self._pending)
             except (BlockingIOError, InterruptedError):
-                return
+                break
             except OSError:
                 self._pending.clear()
                 return
             del self._pending[:n]
+            self.bytes_out += n
+        if self._pending and self._master is not None:  # the pty is full: write when it drains
+            with contextlib.suppress(RuntimeError):
+                asyncio.get_running_loop().add_writer(self._master, self._drain)
+
+    def _drain(self) -> None:
+        if self._master is not None:
+            asyncio.get_running_loop().remove_writer(self._master)
+            self._write_pending()
+
+    def reset_flight(self) -> None:
+        """Start counting bytes in flight anew (the pty was plugged in, the host opened it)."""
+        self.bytes_out = self.bytes_in = 0
+        self.host_bytes_read = self.host_bytes_written = 0
+
+    def in_flight(self) -> bool:
+        """Whether bytes are on their way across the pty: written by the probe and not yet
+        read by the host, written by the host and not yet read by the probe, or waiting
+        for room in the pty."""
+        if self._master is None:
+            return False
+        return (
+            bool(self._pending)
+            or self.host_bytes_read < self.bytes_out
+            or self.bytes_in < self.host_bytes_written
+        )
 
     async def _run(self) -> None:
         clock = self.clock
@@ -969,6 +1005,6 @@ class EmulatedFeather:
             deadline = min(t_next, now + self._max_tick_s)
             if self._replug_at is not None:
                 deadline = min(deadline, self._replug_at)
-            wall_s = max(0.0, (deadline - clock.now()) / clock.speed)
             self._wake.clear()
-            await wait_event(self._wake, wall_s)  # ends on a cancel that comes with a wake-up
+            # ends on a cancel that comes with a wake-up (clock.wait_event)
+            await clock.wait_event(self._wake, max(0.0, deadline - clock.now()))

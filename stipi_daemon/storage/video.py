@@ -221,6 +221,9 @@ class VideoRecorder:
         self._row_batch_s = ROW_BATCH_FRACTION * writer.options.commit_interval_s
         #: Frames stored [-].
         self.frames = 0
+        #: Longest a caller that can wait waits for the encoders [s of wall time]; inf on
+        #: a simulated run's clock, which waits for the daemon: no frame is left out there.
+        self.wait_max_s = ENCODER_WAIT_MAX_S
         #: Frames left out because the encoder could not keep up [-] (no row either).
         self.left_out = 0
 
@@ -338,7 +341,7 @@ class VideoRecorder:
         repeat = read_only and image is self._last_image
         pts = self._next_pts(t_capture_s)
         item = _Lossless(seq, t_capture_s, pts, None if repeat else image, read_only)
-        if not self._encoders.submit(item, wait_s=ENCODER_WAIT_MAX_S if wait else 0.0):
+        if not self._encoders.submit(item, wait_s=self.wait_max_s if wait else 0.0):
             self.left_out += 1  # the encoders cannot keep up: leave this frame out
             self._last_image = None
             return False

@@ -497,7 +497,12 @@ class SessionWriter:
         layout.write_json_atomic(self.summary_path, summary, what="summary")
         return self.summary_path
 
-    def finish(self, status: str, summary: Mapping[str, Any] | None = None) -> None:
+    def finish(
+        self,
+        status: str,
+        summary: Mapping[str, Any] | None = None,
+        meta: Mapping[str, str] | None = None,
+    ) -> None:
         """End the recording: commit all rows, write the summary, store the final state.
 
         Parameters
@@ -507,6 +512,8 @@ class SessionWriter:
         summary : mapping, optional
             Final results, written atomically to ``summary.json`` before the state is
             stored (so a ``complete`` session always has its summary).
+        meta : mapping, optional
+            More ``meta`` table entries stored with the final state.
 
         The final commit is made with ``synchronous=FULL``: the finished session is durable
         against power loss whatever ``options.synchronous`` is.
@@ -534,6 +541,7 @@ class SessionWriter:
                         ("state", state.value),
                         ("finished_utc", layout.utc_now_iso()),
                         ("finished_monotonic_s", repr(time.monotonic())),
+                        *(meta or {}).items(),
                     ],
                 )
                 self._conn.execute("COMMIT")

@@ -136,3 +136,22 @@ def short_session(
     session = run_measurement(load_config(path), quiet=True).session_dir
     assert session is not None
     return Path(session)
+
+
+def session_record(session_dir: Path) -> dict[str, Any]:
+    """Every row of every data table of a session (in storage order) and its summary."""
+    import json
+    import sqlite3
+
+    con = sqlite3.connect(f"file:{session_dir / 'session.sqlite'}?mode=ro", uri=True)
+    try:
+        names = [
+            n
+            for (n,) in con.execute("SELECT name FROM sqlite_master WHERE type = 'table'")
+            if n != "meta"
+        ]
+        tables = {n: con.execute(f"SELECT * FROM {n} ORDER BY id").fetchall() for n in names}
+    finally:
+        con.close()
+    summary = json.loads((session_dir / "summary.json").read_text())
+    return {"tables": tables, "summary": summary}

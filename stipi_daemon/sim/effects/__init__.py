@@ -35,6 +35,7 @@ EFFECT_MODULES: dict[str, str] = {
     "mcu_clock_drift": "mcu_clock_drift",
     "ble_link": "ble_link",
     "force_dropout": "force_dropout",
+    "processing_stall": "processing_stall",
 }
 
 
