@@ -2,7 +2,7 @@
 
 Only argument parsing and dispatch live here; every subcommand calls into the package.
 User-facing errors (:class:`~stipi_daemon.errors.StipiError`) are printed as one line on
-stderr with exit status 2, never as a traceback; Ctrl-C is one line and exit status 130.
+stderr, never as a traceback; the exit statuses are :data:`EXIT_STATUSES`.
 """
 
 from __future__ import annotations
@@ -15,16 +15,35 @@ from pathlib import Path
 
 from stipi_daemon import __version__
 from stipi_daemon.commands import register_all
-from stipi_daemon.errors import ConfigError, StipiError, Terminated
+from stipi_daemon.errors import (
+    EXIT_BAD_INPUT,
+    EXIT_DAMAGED,
+    ConfigError,
+    DamagedSessionError,
+    StipiError,
+    Terminated,
+)
 from stipi_daemon.storage.metadata import FIELD_DOCS, METADATA_FIELDS
+
+#: What each exit status means (``--help`` and README.md say the same).
+EXIT_STATUSES = """exit status:
+  0    the command did its work; a measurement was made, whatever its verdict (the
+       verdict is in the output and in summary.json)
+  1    a fault stopped the measurement before it had results (analyze: no results)
+  2    bad input: arguments, a config, scene or data file, a session not found
+  3    analyze --recompute-sk: the recount did not reproduce the stored S_k
+  4    a session's stored data is damaged (corrupt database, failed integrity check)
+  130  interrupted (Ctrl-C); 143 terminated (SIGTERM); 141 the output was closed"""
 
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="stipi-daemon",
+        epilog=EXIT_STATUSES,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
         description=(
-            "Acquisition and analysis for the STIP-I tactile imaging probe: force and "
-            "video of an indenter pitting test, turned into pitting depth, rebound force, "
+            "Acquisition and analysis for the STIP-I tactile imaging probe: force and\n"
+            "video of an indenter pitting test, turned into pitting depth, rebound force,\n"
             "recovery time, elasticity, viscosity and an edema severity class."
         ),
     )
@@ -38,7 +57,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument(
         "--realtime",
         action="store_true",
-        help="run simulated devices at real speed instead of the config's run.speed",
+        help="pace simulated devices at real time instead of the config's run.speed "
+        "(the results are the same)",
     )
     parser.add_argument("--quiet", action="store_true", help="print only the results' path")
     parser.add_argument(
@@ -111,9 +131,12 @@ def main(argv: Sequence[str] | None = None) -> int:
             return 0
         result: int = handler(args)
         return result
+    except DamagedSessionError as exc:
+        print(f"stipi-daemon: error: {exc}", file=sys.stderr)
+        return EXIT_DAMAGED
     except StipiError as exc:
         print(f"stipi-daemon: error: {exc}", file=sys.stderr)
-        return 2
+        return EXIT_BAD_INPUT
     except Terminated:
         print("stipi-daemon: terminated (SIGTERM)", file=sys.stderr)
         return 128 + signal.SIGTERM

@@ -9,6 +9,20 @@ from __future__ import annotations
 
 import math
 
+#: Exit status of a command that did its work; of a measurement that was made, whatever
+#: its verdict (the verdict is in the output and in ``summary.json``).
+EXIT_OK = 0
+#: Exit status of a measurement a fault stopped before it had results (or an analysis
+#: that produced none).
+EXIT_FAULT = 1
+#: Exit status for bad input: arguments, a config, scene, calibration or data file, a
+#: session that is not there (one line names the problem and where it is).
+EXIT_BAD_INPUT = 2
+#: Exit status of ``analyze --recompute-sk`` whose recount did not reproduce the stored S_k.
+EXIT_S_K_NOT_REPRODUCED = 3
+#: Exit status for a session whose stored data is damaged (:class:`DamagedSessionError`).
+EXIT_DAMAGED = 4
+
 
 class StipiError(Exception):
     """Base class of every error stipi-daemon reports to its user."""
@@ -55,6 +69,12 @@ class SessionError(StipiError):
     fit the session schema, and for too little free disk space; the message names the file
     (or table, row and column) and the problem, on one line.
     """
+
+
+class DamagedSessionError(SessionError):
+    """A session's stored data is damaged: its database is corrupt or unreadable, or it
+    fails its integrity check (rows against the video, the video's frames). The CLI exits
+    with :data:`EXIT_DAMAGED` for it."""
 
 
 class DataFileError(StipiError, ValueError):

@@ -72,7 +72,7 @@ from stipi_daemon.app.offline_io import (
     read_frame_times_csv,
     read_session,
 )
-from stipi_daemon.errors import ConfigError, DataFileError, SessionError
+from stipi_daemon.errors import EXIT_S_K_NOT_REPRODUCED, ConfigError, DataFileError, SessionError
 from stipi_daemon.measurement.replay import Recording, ReplayOutcome, ReplaySetup, replay
 from stipi_daemon.measurement.state_machine import FAULT_PHASES, MeasurementConfig, Phase
 from stipi_daemon.storage import SessionState, layout
@@ -97,11 +97,6 @@ __all__ = [
 OUTPUT_FORMAT = "stipi-offline-analysis"
 OUTPUT_VERSION = 1
 
-#: Exit status of an analysis written whose S_k, counted again from the session's video,
-#: do not reproduce the stored ones with the recorded threshold and ROI, or lack stored
-#: frames (missing from the video or undecodable): the results are flagged
-#: (:data:`S_K_NOT_REPRODUCED`). 1: no results; 2: a usage or input error (nothing written).
-EXIT_S_K_NOT_REPRODUCED = 3
 #: Validity flag of the quantities computed from S_k when the recount does not reproduce
 #: or cover the stored S_k (``settings.imaging.s_k_vs_stored.problem`` says how).
 S_K_NOT_REPRODUCED = "s_k_not_reproduced"

@@ -58,7 +58,7 @@ from stipi_daemon.app.frame_measurer import FrameMeasurer
 from stipi_daemon.app.imaging import resolve_imaging
 from stipi_daemon.app.memory import hold_heap, return_free_memory
 from stipi_daemon.clock import ScaledClock, SessionClock, VirtualClock
-from stipi_daemon.errors import SessionError, Terminated
+from stipi_daemon.errors import EXIT_FAULT, EXIT_OK, SessionError, Terminated
 from stipi_daemon.measurement.pipeline import MeasurementPipeline
 from stipi_daemon.measurement.representative_frames import RepresentativeFrames
 from stipi_daemon.measurement.state_machine import Phase
@@ -90,8 +90,10 @@ class RunOutcome:
 
     @property
     def exit_code(self) -> int:
-        """0 for a completed measurement with results, 1 otherwise."""
-        return 0 if self.phase == Phase.DONE and self.summary.get("results") else 1
+        """:data:`~stipi_daemon.errors.EXIT_OK` for a measurement that was made, whatever
+        its verdict (a frame left out of the video, an invalid result: the verdict says
+        so); :data:`~stipi_daemon.errors.EXIT_FAULT` when a fault stopped it."""
+        return EXIT_OK if self.phase == Phase.DONE else EXIT_FAULT
 
 
 #: Said when a session ended early: its recording may still hold a usable recovery.
@@ -270,9 +272,9 @@ def session_clock(config: DaemonConfig, speed: float | None = None) -> SessionCl
     """The clock a run of ``config`` runs on: a :class:`VirtualClock` paced at ``speed``
     (default ``run.speed``) when every device is simulated in this process (the emulated
     probe and a scene-playing camera), which waits for the daemon; wall time times
-    ``speed`` otherwise (a real device cannot wait)."""
+    ``speed`` otherwise (a real device cannot wait) and with ``run.clock: wall``."""
     pace = speed if speed is not None else config.run.speed
-    if simulated_world(config):
+    if config.run.clock == "auto" and simulated_world(config):
         return VirtualClock(pace)
     return ScaledClock(pace)
 

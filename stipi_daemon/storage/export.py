@@ -43,7 +43,7 @@ from typing import Any, Final, Literal
 import numpy as np
 import numpy.typing as npt
 
-from stipi_daemon.errors import SessionError
+from stipi_daemon.errors import DamagedSessionError, SessionError
 from stipi_daemon.storage import layout
 from stipi_daemon.storage.reader import (
     QUANTITY_PATHS,
@@ -259,7 +259,7 @@ def _checked_integrity(
     when there are some and ``allow_damaged`` is not set."""
     report = reader.integrity_check() if integrity is None else integrity
     if report.problems and not allow_damaged:
-        raise SessionError(
+        raise DamagedSessionError(
             _integrity_line(reader, report.problems)
             + " (not exported; --allow-damaged exports it as it is)"
         )

@@ -28,7 +28,7 @@ from typing import TYPE_CHECKING, Any, Final, Self
 import numpy as np
 import numpy.typing as npt
 
-from stipi_daemon.errors import SessionError
+from stipi_daemon.errors import DamagedSessionError, SessionError
 from stipi_daemon.storage import layout
 from stipi_daemon.storage.lock import read_owner, writer_alive
 from stipi_daemon.storage.metadata import Metadata, matches, metadata_of
@@ -82,7 +82,7 @@ class IntegrityReport:
     def raise_if_bad(self) -> None:
         """Raise :class:`SessionError` (one line, every problem) unless the check passed."""
         if self.problems:
-            raise SessionError("; ".join(self.problems))
+            raise DamagedSessionError("; ".join(self.problems))
 
 
 def _damage_problem(check: VideoCheck, rows: list[tuple[int, int, int, float]]) -> list[str]:
@@ -140,7 +140,7 @@ class SessionReader:
         if not db.is_file():
             raise SessionError(f"{db}: session database is missing")
         if db.stat().st_size == 0:
-            raise SessionError(f"{db}: session database is empty (0 bytes)")
+            raise DamagedSessionError(f"{db}: session database is empty (0 bytes)")
         #: Private copy of the database and its WAL when it lies on read-only media
         #: (:func:`_open_read_only`); removed on close.
         self._copy_dir: Path | None = None
@@ -149,7 +149,7 @@ class SessionReader:
             problem = self._schema_problem()
         except sqlite3.DatabaseError as exc:
             self.close()
-            raise SessionError(_unreadable(db, exc)) from None
+            raise DamagedSessionError(_unreadable(db, exc)) from None
         if problem is not None:
             self.close()
             raise SessionError(f"{db}: {problem}")
@@ -205,7 +205,7 @@ class SessionReader:
         try:
             return self._conn.execute(sql, params).fetchall()
         except sqlite3.DatabaseError as exc:
-            raise SessionError(f"{self.db_path}: cannot read ({exc})") from None
+            raise DamagedSessionError(f"{self.db_path}: cannot read ({exc})") from None
 
     def _schema_problem(self) -> str | None:
         """A one-line description of what is wrong with the schema, or None."""
@@ -277,7 +277,7 @@ class SessionReader:
         try:
             self._conn.execute("BEGIN")
         except sqlite3.DatabaseError as exc:
-            raise SessionError(f"{self.db_path}: cannot read ({exc})") from None
+            raise DamagedSessionError(f"{self.db_path}: cannot read ({exc})") from None
         try:
             yield self
         finally:
@@ -309,7 +309,9 @@ class SessionReader:
             while batch := cursor.fetchmany(batch_size):
                 yield from batch
         except sqlite3.DatabaseError as exc:
-            raise SessionError(f"{self.db_path}: cannot read table {t.name} ({exc})") from None
+            raise DamagedSessionError(
+                f"{self.db_path}: cannot read table {t.name} ({exc})"
+            ) from None
 
     def array(self, table: str | Table) -> npt.NDArray[np.void]:
         """Whole ``table`` as a structured array (NULL reals are NaN, text is ``object``)."""
@@ -662,7 +664,7 @@ def _open_read_only(db: Path) -> tuple[sqlite3.Connection, Path | None]:
             conn.close()
         shm = db.with_name(db.name + "-shm")
         if _is_corrupt(exc) or shm.exists() or os.access(db.parent, os.W_OK):
-            raise SessionError(_unreadable(db, exc)) from None
+            raise DamagedSessionError(_unreadable(db, exc)) from None
     wal = db.with_name(db.name + "-wal")
     copy_dir: Path | None = None
     try:
@@ -681,7 +683,7 @@ def _open_read_only(db: Path) -> tuple[sqlite3.Connection, Path | None]:
             raise SessionError(
                 f"{db}: read-only media: cannot copy it to read its WAL ({exc})"
             ) from None
-        raise SessionError(_unreadable(db, exc)) from None
+        raise DamagedSessionError(_unreadable(db, exc)) from None
     return conn, copy_dir
 
 
