@@ -105,8 +105,16 @@ class RunSettings(_Model):
     Attributes
     ----------
     speed : float
-        Session seconds per wall second. 1 for real devices; simulated devices (emulated
-        probe, simulator camera) may run faster (the demo uses 4). ``--realtime`` forces 1.
+        Session seconds per wall second at most. 1 for real devices. A run whose every
+        device is simulated in the daemon's process (the emulated probe and the simulator
+        camera or a paced video file) runs on a clock that waits for the daemon
+        (:class:`~stipi_daemon.clock.VirtualClock`): ``speed`` only caps how far ahead of
+        real time it may run, and its rows and results are the same at any speed and on
+        any machine. ``--realtime`` forces 1.
+    clock : {"auto", "wall"}
+        ``auto``: that waiting clock for such a run, wall time times ``speed`` otherwise;
+        ``wall``: wall time times ``speed`` always (a simulated run then meets what the
+        machine does as real devices do: lag, gaps, faults).
     max_lag_s : float
         Longest the daemon may fall behind the camera [s of session time]: the lag is the
         session time when a frame is measured minus its capture time. Frames measured more
@@ -117,6 +125,7 @@ class RunSettings(_Model):
     """
 
     speed: float = Field(1.0, gt=0.0, le=1000.0, allow_inf_nan=False)
+    clock: Literal["auto", "wall"] = "auto"
     max_lag_s: float = Field(5.0, gt=0.0, le=60.0, allow_inf_nan=False)
 
 

@@ -8,9 +8,11 @@ before the first frame after the outage. When every retry fails it raises
 :class:`~stipi_daemon.errors.CameraError` (one line naming the camera). It does not read
 devices itself.
 
-Time base. All timeouts are in session time, waited as ``timeout / clock.speed`` of wall
-time. Real cameras run at speed 1, so their stall timeout is wall time, as it must be for a
-driver; simulated cameras pace themselves on the session clock, so at speed 4 their
+Time base. All timeouts are in session time (:meth:`~stipi_daemon.clock.SessionClock.timeout`):
+on a wall clock ``timeout / clock.speed`` of wall time, on a simulated run's clock (which
+waits for the daemon) the session time itself. Real cameras run at speed 1, so their stall
+timeout is wall time, as it must be for a driver; simulated cameras pace themselves on the
+session clock, so at speed 4 their
 timeout shrinks with their frame period and a stall is detected after the same number of
 missed frames as in real time. The stall timeout is never shorter than three nominal frame
 periods (a 2 fps camera is not "stalled" after 0.5 s), nor than

@@ -99,8 +99,13 @@ def _first_frame_committed(root: Path) -> Path | None:
 def _kill_one(workdir: Path, scene: Path, seed: int, codec: str) -> Kill:
     rng = random.Random(seed)
     root = workdir / "sessions"
+    # on wall time: what a kill loses is measured against the wall instant of the kill
     cfg = write_config(
-        workdir / "config.yaml", scene, root, speed=SPEED, run={"max_lag_s": MAX_LAG_S}
+        workdir / "config.yaml",
+        scene,
+        root,
+        speed=SPEED,
+        run={"max_lag_s": MAX_LAG_S, "clock": "wall"},
     )
     proc = subprocess.Popen(
         [PYTHON, "-m", "stipi_daemon", "--config", str(cfg), "--quiet"],
