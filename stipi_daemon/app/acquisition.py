@@ -24,8 +24,9 @@ with four asyncio tasks until the state machine finishes:
 Falling behind. On a simulated run's clock (:class:`~stipi_daemon.clock.VirtualClock`)
 the daemon is never behind: session time waits until every frame and sample due has been
 handled, so the lag is 0 but where a scene's ``processing_stall`` holds frames back on
-purpose. On wall time (real devices) it is what the machine makes it. The queue is bounded (:data:`QUEUE_MAX_EVENTS`; images never enter it),
-so memory stays bounded at any ``run.speed``: a full queue holds the pumps back, and the
+purpose. On wall time (real devices) it is what the machine makes it. The queue is
+bounded (:data:`QUEUE_MAX_EVENTS`; images never enter it), so memory stays bounded at any
+``run.speed``: a full queue holds the pumps back, and the
 camera's own bounded hand-off then drops (a live camera, counted) or waits (a simulated
 one). The lag - session time when a frame is handled minus its capture time - is measured
 on every frame and stored (``summary.json`` ``run.lag_s``). Samples and ticks reach the

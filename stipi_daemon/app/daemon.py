@@ -47,6 +47,7 @@ from stipi_daemon.app.devices import (
 )
 from stipi_daemon.app.finish import (
     finish_session,
+    note_video_left_out,
     percentiles,
     print_results,
     run_stats,
@@ -345,6 +346,10 @@ async def _run_daemon(
             merge_released_by_timeout=acquisition.merger.released_by_timeout,
             keeper=keeper,
         ) | {"lag_s": percentiles(acquisition.lag_s), "max_lag_s": config.run.max_lag_s}
+        left_out = 0 if devices.recorder is None else devices.recorder.left_out
+        if left_out:  # a fact of the session: an event and its verdict, not a failure
+            writer.add_event(clock.now(), "video_frames_left_out", {"count": left_out})
+            summary = note_video_left_out(summary, left_out)
         wall = {"wall_s": repr(time.monotonic() - wall0), "clock": type(clock).__name__}
         if isinstance(clock, VirtualClock):
             wall |= {"pace": repr(clock.pace), "clock_steps": str(clock.steps)}

@@ -146,6 +146,24 @@ def run_stats(
     }
 
 
+def note_video_left_out(summary: dict[str, Any], left_out: int) -> dict[str, Any]:
+    """``summary`` with the frames left out of the session video (the encoders could not
+    keep up on a real device's wall time) said in its verdict line and notes: their S_k is
+    stored and in the results, but the video cannot show or count them again. The
+    verdict's status stays (the results do not change); unchanged when none was left out.
+    """
+    if left_out <= 0:
+        return summary
+    said = (
+        f"{left_out} frame{'s' if left_out != 1 else ''} left out of the session video (the "
+        "encoder could not keep up): their S_k are stored and in the results, but a recount "
+        "or the report cannot show them"
+    )
+    verdict = dict(summary.get("verdict") or {})
+    verdict["line"] = f"{verdict.get('line', '').rstrip()} Video: {said}.".strip()
+    return summary | {"verdict": verdict, "notes": [*summary.get("notes", []), said]}
+
+
 def store_frames(keeper: RepresentativeFrames, session_dir: Path) -> list[str] | dict[str, str]:
     """Store the representative frames; a failure is recorded, never raised."""
     try:
