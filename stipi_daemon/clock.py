@@ -242,12 +242,7 @@ class VirtualClock:
                 waiter.cancelled = True
 
     async def wait_event(self, event: asyncio.Event, session_s: float) -> bool:
-        try:
-            async with self.timeout(session_s):
-                await event.wait()
-        except TimeoutError:
-            return event.is_set()
-        return True
+        return await _wait_within(event, self.timeout(session_s))
 
     # -- threads, holds, data in flight -----------------------------------------------------
 
@@ -429,8 +424,15 @@ async def wait_event(event: asyncio.Event, wall_s: float) -> bool:
     the event: Python 3.11's ``asyncio.wait_for`` returns the inner result then and drops
     the cancel. ``asyncio.timeout`` turns only its own deadline into ``TimeoutError``.
     """
+    return await _wait_within(event, asyncio.timeout(wall_s))
+
+
+async def _wait_within(
+    event: asyncio.Event, timeout: contextlib.AbstractAsyncContextManager[object]
+) -> bool:
+    """Wait for ``event`` inside ``timeout``; whether it was set."""
     try:
-        async with asyncio.timeout(wall_s):
+        async with timeout:
             await event.wait()
     except TimeoutError:
         return event.is_set()

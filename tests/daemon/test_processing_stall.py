@@ -50,15 +50,20 @@ async def _run(directory: Path, max_lag_s: float) -> tuple[dict[str, Any], int]:
     return session_record(outcome.session_dir), outcome.exit_code
 
 
+async def _twice(directory: Path, max_lag_s: float) -> tuple[dict[str, Any], int]:
+    """The run made twice: its record (identical both times) and exit status."""
+    first, code = await _run(directory / "a", max_lag_s)
+    again, _ = await _run(directory / "b", max_lag_s)
+    assert again == first
+    return first, code
+
+
 @pytest.mark.timeout(600)
 async def test_frames_late_beyond_half_the_lag_bound_are_gaps(tmp_path: Path) -> None:
-    first, code = await _run(tmp_path / "a", 12.0)
-    again, _ = await _run(tmp_path / "b", 12.0)
-    assert again == first
-    summary = first["summary"]
+    record, code = await _twice(tmp_path, 12.0)
+    summary = record["summary"]
     assert code == 0 and summary["status"] == "complete"
-    gaps = first["tables"]["gaps"]
-    behind = [g for g in gaps if g[5] == "processing_behind"]
+    behind = [g for g in record["tables"]["gaps"] if g[5] == "processing_behind"]
     assert sum(g[3] for g in behind) == 240  # frames captured 8-12 s into the scene
     assert summary["run"]["late_frames"] == 240
     assert summary["run"]["lag_s"]["max"] == pytest.approx(10.0, abs=1 / 60 + 1e-9)
@@ -67,9 +72,7 @@ async def test_frames_late_beyond_half_the_lag_bound_are_gaps(tmp_path: Path) ->
 
 @pytest.mark.timeout(600)
 async def test_a_lag_beyond_the_bound_ends_the_run_with_a_fault(tmp_path: Path) -> None:
-    first, code = await _run(tmp_path / "a", 8.0)
-    again, _ = await _run(tmp_path / "b", 8.0)
-    assert again == first
-    summary = first["summary"]
-    assert summary["status"] == "fault" and code != 0
+    record, code = await _twice(tmp_path, 8.0)
+    summary = record["summary"]
+    assert summary["status"] == "fault" and code == 1
     assert summary["end_reason"].startswith("falling behind: a frame was handled 10.0 s after")
