@@ -50,6 +50,8 @@ from stipi_daemon.errors import CameraError
 
 __all__ = ["STALL_MIN_WALL_S", "CameraStream"]
 
+#: Session time [s] below which a remaining wait is rounding, not time.
+_TIME_ROUNDING_S = 1e-9
 #: Shortest stall timeout in wall time [s] (at speed 1-4 the default 0.5 s of session time
 #: is longer; at speed 10 it becomes 1.25 s of session time).
 STALL_MIN_WALL_S = 0.125
@@ -225,7 +227,9 @@ class CameraStream:
         if silent is None:
             return None
         silent_s = float(silent())
-        return limit_s - silent_s if silent_s < limit_s else None
+        # less than the rounding of session times left: silent for the limit (on a clock
+        # that waits for the daemon, a wait for 1e-17 s would end at the same instant)
+        return limit_s - silent_s if silent_s < limit_s - _TIME_ROUNDING_S else None
 
     async def _reopen(self) -> tuple[AsyncIterator[CameraFrame], CameraFrame | None, int]:
         """Close and reopen until a first frame arrives; (frames, first frame, attempts).
