@@ -8,6 +8,7 @@ from pathlib import Path
 import pytest
 
 from stipi_daemon.cli import main
+from stipi_daemon.errors import EXIT_BAD_INPUT, EXIT_DAMAGED
 from stipi_daemon.storage import TABLES, SessionReader, SessionWriter, StorageOptions
 from tests.storage.conftest import write_full_session
 from tests.storage.test_export import assert_equal_to_reader, read_csv_table, read_parquet_table
@@ -108,10 +109,10 @@ def test_show(root: Path, capsys: pytest.CaptureFixture[str]) -> None:
 
 
 def test_show_errors(root: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    assert main(["sessions", "show", "c-bad", "--root", str(root)]) == 2
+    assert main(["sessions", "show", "c-bad", "--root", str(root)]) == EXIT_DAMAGED
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "c-bad/session.sqlite: not a readable SQLite database" in err
-    assert main(["sessions", "show", "zzz", "--root", str(root)]) == 2
+    assert main(["sessions", "show", "zzz", "--root", str(root)]) == EXIT_BAD_INPUT
     assert "no such session" in capsys.readouterr().err
 
 

@@ -10,6 +10,7 @@ import av
 import pytest
 
 from stipi_daemon.cli import main
+from stipi_daemon.errors import EXIT_DAMAGED
 from tests.storage.conftest import write_full_session
 
 
@@ -48,7 +49,7 @@ def test_damaged_session_needs_allow_damaged(
 ) -> None:
     out = tmp_path / "out"
     args = ["sessions", "export", "d-damaged", "--root", str(root), "--format", fmt]
-    assert main([*args, "--out", str(out)]) == 2
+    assert main([*args, "--out", str(out)]) == EXIT_DAMAGED
     captured = capsys.readouterr()
     assert captured.out == "" and captured.err.count("\n") == 1
     assert "integrity check failed" in captured.err and "--allow-damaged" in captured.err
