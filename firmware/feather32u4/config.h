@@ -102,7 +102,14 @@
 #define STIPI_SDEP_PACKETS_PER_POLL 2        // SPI transactions per loop pass (~0.2 ms each)
 #define STIPI_BLE_RESET_PULSE_US 20000UL     // RST low time [us]
 #define STIPI_BLE_BOOT_US 1000000UL          // wait after reset before the first command [us]
-#define STIPI_BLE_PROBE_ATTEMPTS 2           // "AT" attempts before the module is declared absent
+#define STIPI_BLE_PROBE_ATTEMPTS 2           // "ATE=0" attempts that nothing answered (not even
+                                             // 0xFE, "busy") before the module counts as absent
+#define STIPI_BLE_BOOT_MAX_US 10000000UL     // still answering only 0xFE this long after its
+                                             // reset: the module is reset again [us]
+#define STIPI_BLE_RETRY_MIN_US 1000000UL     // absent: reset and probe again after this [us],
+#define STIPI_BLE_RETRY_MAX_US 32000000UL    // doubling up to this, for as long as we run [us]
+#define STIPI_BLE_SILENT_TO_REPROBE 3        // commands in a row without any answer: the module
+                                             // restarted or hung; probe it again
 #define STIPI_BLE_CONN_POLL_US 1000000UL     // AT+GAPGETCONN interval [us]
 #define STIPI_BLE_RX_POLL_US 20000UL         // BLE UART RX poll interval while connected [us]
 #define STIPI_BLE_RX_FIFO 64                 // received BLE bytes buffered [B]

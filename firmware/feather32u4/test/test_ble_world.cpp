@@ -5,6 +5,7 @@
 //   make -C firmware/feather32u4 host-test | grep 'ble world'
 #include <cstdio>
 #include <string>
+#include <utility>
 #include <vector>
 
 #include "../src/core/frame.h"
@@ -32,6 +33,7 @@ struct Stream {
   uint32_t samples = 0, gaps = 0, lost = 0, frames = 0;
   uint32_t next_index = 0;
   bool started = false;
+  std::vector<std::pair<uint32_t, uint8_t>> batches;  // (first_index, count) as received
   void feed(std::vector<uint8_t>& wire) {
     for (const fakes::HostFrame& f : fakes::take_frames(wire)) {
       if (!f.crc_ok || f.type != kMsgSamples) continue;
@@ -45,6 +47,7 @@ struct Stream {
       started = true;
       next_index = first + f.body[6];
       samples += f.body[6];
+      batches.emplace_back(first, f.body[6]);
     }
   }
 };
@@ -164,4 +167,83 @@ TEST(ble_world_250hz_reports_what_ble_sustains) {
   const Result f = stream(250, 15000, 80, "250 Hz fast central");  // 4 notifications / 15 ms
   check_lossless_wired(f);
   CHECK_EQ(f.ble, f.taken);
+}
+
+namespace {
+// Samples the central got with index >= `from`, and whether they are all consecutive.
+struct After {
+  uint32_t samples = 0, gaps = 0;
+};
+After received_after(const Stream& s, uint32_t from) {
+  After a;
+  uint32_t next = from;
+  for (const std::pair<uint32_t, uint8_t>& b : s.batches) {
+    const uint32_t first = b.first, end = b.first + b.second;
+    if (end <= from) continue;
+    if (first > next) ++a.gaps;  // samples between next and first never arrived
+    a.samples += end - (first > from ? first : from);
+    next = end;
+  }
+  return a;
+}
+}  // namespace
+
+TEST(ble_world_slow_booting_module_gets_every_sample) {
+  // 1.6 s of 0xFE after reset used to end the BLE link for the whole run (0 of 2,000).
+  World w(15000, 80);  // 4 notifications per 15 ms: BLE keeps up with 200 Hz
+  w.port.m.boot_us = 1600000;
+  w.ble.begin();  // reset it again with the slow boot
+  w.command(1, kCmdSetRate, {200, 0});
+  w.command(2, kCmdStreamStart, {});
+  w.run(4000000);
+  CHECK(w.ble.is_open());
+  const uint32_t from = w.sampler.taken();  // every sample from here on must reach the central
+  w.run(10000000);
+  w.command(3, kCmdStreamStop, {});
+  w.run(3000000);
+  const uint32_t taken = w.sampler.taken() - from;
+  const After a = received_after(w.s_ble, from);
+  std::printf("ble world slow boot 1.6 s: 200 Hz, %u samples taken after the link came up, "
+              "%u at the central, %u gaps\n", taken, a.samples, a.gaps);
+  CHECK(taken >= 1990u);
+  CHECK_EQ(a.samples, taken);
+  CHECK_EQ(a.gaps, 0u);
+  CHECK_EQ(w.sampler.dropped(), 0u);
+  CHECK(w.max_pass_us <= 1000);
+}
+
+TEST(ble_world_module_restarting_mid_stream_gets_every_later_sample) {
+  World w(15000, 80);  // 4 notifications per 15 ms: BLE keeps up with 200 Hz
+  w.run(STIPI_BLE_BOOT_US + 200000);
+  CHECK(w.ble.is_open());
+  w.command(1, kCmdSetRate, {200, 0});
+  w.command(2, kCmdStreamStart, {});
+  w.run(5000000);
+  nrf51_sim_reset(&w.port.m, 1);  // the module restarts by itself; its central drops
+  nrf51_sim_set_connected(&w.port.m, 0);
+  w.port.m.boot_us = 1600000;
+  nrf51_sim_reset(&w.port.m, 0);
+  const uint32_t restart_index = w.sampler.taken();
+  w.run(1600000);
+  nrf51_sim_set_connected(&w.port.m, 1);  // and reconnects once it advertises again
+  w.run(3000000);  // the probe sees the restart and probes the module again
+  CHECK(w.ble.is_open());
+  const uint32_t from = w.sampler.taken();
+  w.run(10000000);
+  w.command(3, kCmdStreamStop, {});
+  w.run(3000000);
+  const uint32_t taken = w.sampler.taken() - from;
+  const After a = received_after(w.s_ble, from);
+  std::printf("ble world module restart: 200 Hz, restart at sample %u, %u samples taken after "
+              "the link was back, %u at the central, %u gaps, %u module resets seen; usb %u "
+              "uart %u of %u\n", restart_index, taken, a.samples, a.gaps,
+              w.ble.module_resets(), w.s_usb.samples, w.s_uart.samples, w.sampler.taken());
+  CHECK_EQ(w.ble.module_resets(), 1u);
+  CHECK(taken >= 1990u);
+  CHECK_EQ(a.samples, taken);
+  CHECK_EQ(a.gaps, 0u);
+  CHECK_EQ(w.sampler.dropped(), 0u);
+  CHECK_EQ(w.s_usb.gaps, 0u);
+  CHECK_EQ(w.s_uart.gaps, 0u);
+  CHECK(w.max_pass_us <= 1000);
 }

@@ -62,17 +62,86 @@ TEST(ble_link_boots_with_echo_off_and_sees_the_central) {
   CHECK(r.max_pass_us <= 1000);
 }
 
-TEST(ble_link_gives_up_on_absent_module_without_blocking) {
+TEST(ble_link_backs_off_from_an_absent_module_without_blocking) {
   Rig r;
   r.port.m.present = 0;
   r.run(STIPI_BLE_RESET_PULSE_US + STIPI_BLE_BOOT_US +
         STIPI_BLE_PROBE_ATTEMPTS * STIPI_SDEP_TIMEOUT_US + 20000);
   CHECK_EQ(r.link.state(), BleUartLink::kAbsent);
+  CHECK_EQ(r.link.health(), kBleAbsent);
   CHECK(!r.link.is_open());
   CHECK(r.max_pass_us <= 1000);  // the probe waits across passes, never inside one
   const uint64_t bytes = r.port.bytes;
-  r.run(1000000);
-  CHECK_EQ(r.port.bytes, bytes);  // absent: no more SPI traffic
+  r.run(STIPI_BLE_RETRY_MIN_US - 30000);
+  CHECK_EQ(r.port.bytes, bytes);  // absent: no SPI traffic during the back-off
+  // The module appears later (plugged, powered, or slow): the next retry resets and finds it.
+  r.port.m.present = 1;
+  nrf51_sim_set_connected(&r.port.m, 1);
+  r.run(30000 + STIPI_BLE_RESET_PULSE_US + STIPI_BLE_BOOT_US + 100000);
+  CHECK_EQ(r.link.state(), BleUartLink::kReady);
+  CHECK_EQ(r.link.health(), kBleUp);
+  CHECK_EQ(r.port.m.echo, 0);
+  CHECK(r.max_pass_us <= 1000);
+}
+
+TEST(ble_link_back_off_doubles_up_to_its_limit_and_never_stops) {
+  Rig r;
+  r.port.m.present = 0;
+  r.run(200000000UL);  // 200 s
+  // begin(), then retries after 1, 2, 4, 8, 16, 32, 32 ... s (each plus ~1.5 s of boot wait
+  // and probing): 1 + 9 resets in 200 s, and more for as long as it runs.
+  CHECK_EQ(r.port.rst_pulses, 10u);
+  CHECK(r.max_pass_us <= 1000);
+}
+
+TEST(ble_link_waits_for_a_module_that_boots_slowly) {
+  // A module answering 0xFE for 1.6 s after reset is booting, not absent (SDEP.md, "SDEP
+  // Packet and SPI Error Identifier"): 2,453 of those once made the link give up for good.
+  Rig r;
+  r.port.m.boot_us = 1600000;
+  nrf51_sim_set_connected(&r.port.m, 1);
+  bool ever_absent = false;
+  for (int i = 0; i < 40; ++i) {
+    r.run(100000);
+    ever_absent = ever_absent || r.link.state() == BleUartLink::kAbsent;
+    if (r.link.state() != BleUartLink::kReady) CHECK_EQ(r.link.health(), kBleBooting);
+  }
+  CHECK(!ever_absent);
+  CHECK(r.port.m.not_ready > 0u);  // it did answer "busy" on the way
+  CHECK_EQ(r.link.state(), BleUartLink::kReady);
+  CHECK(r.link.is_open());
+  CHECK(r.max_pass_us <= 1000);
+}
+
+TEST(ble_link_gives_up_on_a_module_busy_forever_and_retries) {
+  Rig r;
+  r.port.m.boot_us = 2000000000UL;  // 2000 s: 0xFE for the whole test
+  r.run(STIPI_BLE_BOOT_MAX_US + 1000000);
+  CHECK_EQ(r.link.state(), BleUartLink::kAbsent);  // reset again after the back-off
+  r.port.m.boot_us = 1000;                         // the next reset works
+  nrf51_sim_set_connected(&r.port.m, 1);
+  r.run(STIPI_BLE_RETRY_MIN_US + STIPI_BLE_RESET_PULSE_US + STIPI_BLE_BOOT_US + 100000);
+  CHECK_EQ(r.link.state(), BleUartLink::kReady);
+}
+
+TEST(ble_link_probes_again_after_the_module_restarts) {
+  for (uint32_t boot_us : {5000u, 1600000u}) {  // quick restart (echo back on) and a slow one
+    Rig r;
+    r.boot();
+    CHECK(r.link.is_open());
+    CHECK_EQ(r.link.module_resets(), 0u);
+    nrf51_sim_reset(&r.port.m, 1);  // the module resets itself (brown-out, its watchdog)
+    nrf51_sim_set_connected(&r.port.m, 0);
+    r.port.m.boot_us = boot_us;
+    nrf51_sim_reset(&r.port.m, 0);
+    nrf51_sim_set_connected(&r.port.m, 1);  // the central reconnects
+    r.run(boot_us + 2 * STIPI_BLE_CONN_POLL_US + 3 * STIPI_SDEP_TIMEOUT_US);
+    CHECK_EQ(r.link.module_resets(), 1u);
+    CHECK_EQ(r.link.state(), BleUartLink::kReady);
+    CHECK_EQ(r.port.m.echo, 0);  // ATE=0 again
+    CHECK(r.link.is_open());
+    CHECK(r.max_pass_us <= 1000);
+  }
 }
 
 TEST(ble_link_sends_a_frame_as_one_command_with_one_response) {

@@ -17,6 +17,7 @@ SdepStatus SdepDriver::send_packet(uint16_t id, const uint8_t* payload, uint8_t 
   if (len > kSdepMaxPayload) return kSdepBadPacket;
   begin_transaction();
   if (spi_.transfer(kSdepCommand) == kSdepNotReady) {  // busy: the packet was not taken
+    ++not_ready_;
     spi_.select(false);
     return kSdepAgain;
   }
@@ -34,6 +35,7 @@ SdepStatus SdepDriver::read_packet(SdepPacket& out) {
   const uint8_t type = spi_.transfer(kSdepNoData);
   // 0xFE: still processing; 0xFF: IRQ was still high after the last packet (SDEP.md "IRQ Pin").
   if (type == kSdepNotReady || type == kSdepNoData) {
+    if (type == kSdepNotReady) ++not_ready_;
     spi_.select(false);
     return kSdepAgain;
   }
@@ -67,7 +69,8 @@ const char kAtGetConn[] = "AT+GAPGETCONN";
 
 BleUartLink::BleUartLink(SdepDriver& sdep, SpiPort& spi, Clock& clock)
     : sdep_(sdep), spi_(spi), clock_(clock), state_(kReset), connected_(false), attempts_(0),
-      since_us_(0), last_conn_poll_us_(0), last_rx_poll_us_(0), tx_failures_(0),
+      silent_(0), module_resets_(0), busy_mark_(0), since_us_(0),
+      backoff_us_(STIPI_BLE_RETRY_MIN_US), last_conn_poll_us_(0), last_rx_poll_us_(0), tx_failures_(0),
       frames_lost_(0), job_(kJobNone), last_job_(kJobNone), awaiting_(false), failed_(false), job_id_(0),
       job_len_(0), job_sent_(0), job_start_us_(0), job_text_(0), reply_len_(0), tx_head_(0),
       tx_count_(0), rx_head_(0), rx_count_(0) {}
@@ -82,13 +85,33 @@ void BleUartLink::begin() {
   job_ = kJobNone;
 }
 
+BleHealth BleUartLink::health() const {
+  if (state_ == kReady) return kBleUp;
+  return state_ == kAbsent ? kBleAbsent : kBleBooting;
+}
+
+// RST released: the module boots; it may answer 0xFE for a while after STIPI_BLE_BOOT_US.
+void BleUartLink::start_boot(uint32_t now) {
+  since_us_ = now;
+  attempts_ = 0;
+  silent_ = 0;
+  state_ = kBooting;
+}
+
 void BleUartLink::poll() {
   const uint32_t now = clock_.micros();
+  if (state_ == kAbsent) {  // back-off over: reset the module and look again, forever
+    if (static_cast<uint32_t>(now - since_us_) < backoff_us_) return;
+    backoff_us_ = backoff_us_ >= STIPI_BLE_RETRY_MAX_US / 2 ? STIPI_BLE_RETRY_MAX_US
+                                                             : backoff_us_ * 2;
+    spi_.reset(true);
+    since_us_ = now;
+    state_ = kReset;
+  }
   if (state_ == kReset) {
     if (static_cast<uint32_t>(now - since_us_) < STIPI_BLE_RESET_PULSE_US) return;
     spi_.reset(false);
-    since_us_ = now;
-    state_ = kBooting;
+    start_boot(now);
   }
   if (state_ == kBooting) {
     if (static_cast<uint32_t>(now - since_us_) < STIPI_BLE_BOOT_US) return;
@@ -132,6 +155,7 @@ void BleUartLink::start_job(Job job, uint16_t id, uint16_t len) {
   failed_ = false;
   reply_len_ = 0;
   job_start_us_ = clock_.micros();
+  busy_mark_ = sdep_.not_ready_seen();
 }
 
 // One UART TX command carries whole frames only (up to the last 0x00 in the first
@@ -154,7 +178,11 @@ void BleUartLink::step() {
     step_send(now);
   }
   if (job_ != kJobNone && static_cast<uint32_t>(now - job_start_us_) >= STIPI_SDEP_TIMEOUT_US) {
-    finish(false);  // no module, or no answer in time: bounded, and nothing waited for it
+    // No module, a busy one, or no answer in time: bounded, and nothing waited for it. A
+    // module that was up and now answers nothing (or only 0xFE) several times restarted.
+    const bool was_ready = state_ == kReady;
+    finish(false);
+    if (was_ready && ++silent_ >= STIPI_BLE_SILENT_TO_REPROBE) module_lost();
   }
 }
 
@@ -214,19 +242,48 @@ void BleUartLink::drop_tx(uint16_t bytes) {
   tx_count_ = static_cast<uint16_t>(tx_count_ - bytes);
 }
 
+// An "ATE=0" probe failed. 0xFE answers mean the module is there and still booting (SDEP.md,
+// "SDEP Packet and SPI Error Identifier"): keep probing, up to STIPI_BLE_BOOT_MAX_US. Nothing
+// at all, STIPI_BLE_PROBE_ATTEMPTS times: absent until the back-off ends.
+void BleUartLink::probe_failed(uint32_t now, bool busy) {
+  const bool booting_too_long = static_cast<uint32_t>(now - since_us_) >= STIPI_BLE_BOOT_MAX_US;
+  if ((busy && !booting_too_long) || ++attempts_ < STIPI_BLE_PROBE_ATTEMPTS) return;
+  state_ = kAbsent;  // no SPI traffic until the back-off ends
+  since_us_ = now;
+}
+
+// A module that was up restarted (its echo is back) or stopped answering: what was queued for
+// its central is lost (counted), and it is probed again as after a reset.
+void BleUartLink::module_lost() {
+  ++module_resets_;
+  for (uint16_t i = 0; i < tx_count_; ++i) frames_lost_ += tx_at(i) == 0;
+  drop_tx(tx_count_);
+  connected_ = false;
+  job_ = kJobNone;
+  start_boot(static_cast<uint32_t>(clock_.micros() - STIPI_BLE_BOOT_US));  // probe at once
+  state_ = kProbing;
+}
+
 void BleUartLink::finish(bool ok) {
   const Job job = job_;
   job_ = kJobNone;
   last_job_ = job;
+  if (ok) silent_ = 0;
   if (job == kJobEcho) {
     if (ok && reply_ok()) {
       state_ = kReady;
+      backoff_us_ = STIPI_BLE_RETRY_MIN_US;
       last_conn_poll_us_ = static_cast<uint32_t>(clock_.micros() - STIPI_BLE_CONN_POLL_US);
-    } else if (++attempts_ >= STIPI_BLE_PROBE_ATTEMPTS) {
-      state_ = kAbsent;  // no module answers: the link stays closed, no more SPI traffic
+    } else {
+      probe_failed(clock_.micros(), sdep_.not_ready_seen() != busy_mark_);
     }
   } else if (job == kJobConn) {
-    // "1\r\nOK\r\n" when a central is connected (the last 7 bytes even if echo were on).
+    // "0\r\nOK\r\n" / "1\r\nOK\r\n" (7 bytes). Longer: the command was echoed, so echo is on
+    // again, which only a restart of the module does: probe it again (ATE=0).
+    if (ok && reply_ok() && reply_len_ > 7) {
+      module_lost();
+      return;
+    }
     const bool now_conn = ok && reply_ok() && reply_len_ >= 7 && reply_[reply_len_ - 7] == '1';
     if (now_conn && !connected_ && tx_count_ < STIPI_BLE_TX_RING) {
       tx_[(tx_head_ + tx_count_) % STIPI_BLE_TX_RING] = 0;  // new central: frame boundary
