@@ -11,7 +11,7 @@
 
 // ---- firmware identity (reported by GET_INFO) ---------------------------------------------
 #define STIPI_FW_MAJOR 1
-#define STIPI_FW_MINOR 0
+#define STIPI_FW_MINOR 1
 #define STIPI_FW_PATCH 0
 
 // ---- links --------------------------------------------------------------------------------
@@ -91,6 +91,12 @@
 
 // ---- timing -------------------------------------------------------------------------------
 #define STIPI_HEARTBEAT_PERIOD_US 500000UL   // STATUS period [us]; protocol requires <= 1 s
+// Watchdog: a main-loop pass takes < 1 ms; a loop stuck for the first period marks "watchdog"
+// in RAM from the watchdog interrupt and the second period resets the MCU (1 s in all).
+#ifndef STIPI_WATCHDOG
+#define STIPI_WATCHDOG 1
+#endif
+#define STIPI_WATCHDOG_PERIOD_MS 500         // WDTO_500MS: interrupt after it, reset after 2x
 #define STIPI_LINK_READ_BUDGET 32            // bytes read per link per loop pass [B]
 #define STIPI_USB_TX_RING 160                // USB CDC frames waiting for the endpoint [B]
 #define STIPI_UART1_TX_RING 128              // Serial1 frames waiting for its TX buffer [B]

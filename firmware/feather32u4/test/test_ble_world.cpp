@@ -34,10 +34,17 @@ struct Stream {
   uint32_t next_index = 0;
   bool started = false;
   std::vector<std::pair<uint32_t, uint8_t>> batches;  // (first_index, count) as received
+  std::vector<uint8_t> last_status;                    // body of the latest STATUS
+  uint16_t next_seq = 0;
+  uint32_t seq_gaps_after_last_batch = 0;  // frames lost after the newest SAMPLES received
   void feed(std::vector<uint8_t>& wire) {
     for (const fakes::HostFrame& f : fakes::take_frames(wire)) {
+      if (f.crc_ok && f.type == kMsgStatus) last_status = f.body;
+      if (f.crc_ok && frames > 0 && f.seq != next_seq) ++seq_gaps_after_last_batch;
+      if (f.crc_ok) next_seq = static_cast<uint16_t>(f.seq + 1);
       if (!f.crc_ok || f.type != kMsgSamples) continue;
       ++frames;
+      seq_gaps_after_last_batch = 0;
       const uint32_t first = f.body[0] | f.body[1] << 8 | f.body[2] << 16 |
                              static_cast<uint32_t>(f.body[3]) << 24;
       if (started && first != next_index) {
@@ -88,6 +95,7 @@ struct World {
     while (static_cast<int32_t>(end - clock.now_us) > 0) {
       const uint32_t t0 = clock.now_us;
       ble.poll();
+      probe.set_ble_health(ble.health(), ble.module_resets());
       probe.poll();
       board.advance(100);
       port.sync();
@@ -123,6 +131,12 @@ Result stream(uint16_t rate_hz, uint32_t interval_us, uint16_t bytes_per_event, 
   r.ble = w.s_ble.samples;
   r.ble_gaps = w.s_ble.gaps;
   r.ble_lost = w.s_ble.lost;
+  // Batches lost after the last one the central got show as a seq gap on a later STATUS.
+  const uint32_t trailing = first + r.taken - w.s_ble.next_index;
+  if (trailing > 0) {
+    CHECK(w.s_ble.seq_gaps_after_last_batch > 0);
+    r.ble_lost += trailing;
+  }
   r.dropped = w.sampler.dropped();
   r.frames_lost = w.ble.frames_lost();
   r.link_drops = w.probe.link_drops(kLinkBle);
@@ -239,6 +253,10 @@ TEST(ble_world_module_restarting_mid_stream_gets_every_later_sample) {
               "uart %u of %u\n", restart_index, taken, a.samples, a.gaps,
               w.ble.module_resets(), w.s_usb.samples, w.s_uart.samples, w.sampler.taken());
   CHECK_EQ(w.ble.module_resets(), 1u);
+  // STATUS tells the host: BLE up again, one module restart seen.
+  CHECK_EQ(w.s_usb.last_status.size(), 14u);
+  CHECK_EQ(w.s_usb.last_status[10], kBleUp);
+  CHECK_EQ(w.s_usb.last_status[11] | w.s_usb.last_status[12] << 8, 1);
   CHECK(taken >= 1990u);
   CHECK_EQ(a.samples, taken);
   CHECK_EQ(a.gaps, 0u);
