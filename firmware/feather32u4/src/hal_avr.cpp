@@ -6,6 +6,7 @@
 #include <avr/wdt.h>
 
 #include "../config.h"
+#include "core/cdc_write.h"
 #include "core/frame.h"
 #include "core/oversample.h"
 
@@ -309,12 +310,28 @@ bool UsbCdcLink::is_open() { return USBDevice.configured() && Serial.dtr(); }
 int16_t UsbCdcLink::read() { return static_cast<int16_t>(Serial.read()); }
 
 namespace {
+// The Arduino core's Serial (USB CDC) for core/cdc_write.h: at most room - 1 bytes with the
+// SOF interrupt (which flushes the bank, USBCore.cpp USB_Flush) held off, so USB_Send never
+// waits for the other bank and never fails after queuing (tests/firmware/usb_core_model).
+struct AvrCdc {
+  uint8_t sofe = 0;
+  void hold_sof(bool hold) {
+    IrqGuard guard;  // UDIEN is also written by the core's USB interrupt
+    if (hold) {
+      sofe = UDIEN & _BV(SOFE);
+      UDIEN &= static_cast<uint8_t>(~_BV(SOFE));
+    } else {
+      UDIEN |= sofe;
+    }
+  }
+  int available_for_write() { return Serial.availableForWrite(); }
+  size_t write(const uint8_t* data, uint16_t n) { return Serial.write(data, n); }
+};
+
 struct CdcWriter {
   uint16_t operator()(const uint8_t* data, uint16_t n) {
-    const int room = Serial.availableForWrite();
-    if (room <= 0) return 0;
-    const uint16_t k = n < static_cast<uint16_t>(room) ? n : static_cast<uint16_t>(room);
-    return static_cast<uint16_t>(Serial.write(data, k));  // fits: does not wait
+    AvrCdc cdc;
+    return cdc_write(cdc, data, n);
   }
 };
 }  // namespace
