@@ -103,8 +103,12 @@
 
 // ---- BLE / SDEP ---------------------------------------------------------------------------
 #define STIPI_SDEP_CS_SETUP_US 100           // wait after asserting CS [us] (hardware.md)
-#define STIPI_SDEP_TIMEOUT_US 250000UL       // a command without an answer by then failed [us];
-                                             // the module answers ERROR after 200 ms when full
+// A command without an answer by then failed [us]. The module's own longest wait is the 200 ms
+// a UART TX waits for FIFO room before it answers ERROR (hardware.md), plus its processing
+// (a few ms); 500 ms leaves 300 ms (2.5x the wait) of margin, so a slow answer is never taken
+// for a dead module and no new command goes over an answer still coming. With the flow
+// control below a TX never waits for room at all.
+#define STIPI_SDEP_TIMEOUT_US 500000UL
 #define STIPI_SDEP_PACKETS_PER_POLL 2        // SPI transactions per loop pass (~0.2 ms each)
 #define STIPI_BLE_RESET_PULSE_US 20000UL     // RST low time [us]
 #define STIPI_BLE_BOOT_US 1000000UL          // wait after reset before the first command [us]
@@ -119,7 +123,8 @@
 #define STIPI_BLE_CONN_POLL_US 1000000UL     // AT+GAPGETCONN interval [us]
 #define STIPI_BLE_RX_POLL_US 20000UL         // BLE UART RX poll interval while connected [us]
 #define STIPI_BLE_RX_FIFO 64                 // received BLE bytes buffered [B]
-#define STIPI_BLE_TX_RING 256                // whole frames waiting for BLE [B]
+#define STIPI_BLE_TX_RING 224                // whole frames waiting for BLE [B]
+#define STIPI_BLE_FIFO_POLL_US 20000UL       // ask AT+BLEUARTFIFO=TX again while short of room [us]
 #define STIPI_BLE_TX_CHUNK 128               // most bytes in one UART TX command [B]
 
 // ---- EEPROM -------------------------------------------------------------------------------

@@ -112,18 +112,22 @@ struct World {
 
 struct Result {
   uint32_t taken, usb, uart, ble, ble_gaps, ble_lost, dropped, frames_lost, link_drops, max_pass;
+  uint32_t room_waits, module_tx_errors, discarded, stale;
 };
 
-Result stream(uint16_t rate_hz, uint32_t interval_us, uint16_t bytes_per_event, const char* name) {
+Result stream(uint16_t rate_hz, uint32_t interval_us, uint16_t bytes_per_event, const char* name,
+              uint32_t process_us = 5000, bool old_module_firmware = false) {
   World w(interval_us, bytes_per_event);
-  w.run(STIPI_BLE_BOOT_US + 200000);
+  w.port.m.process_us = process_us;
+  w.port.m.no_fifo_command = old_module_firmware ? 1 : 0;
+  w.run(STIPI_BLE_BOOT_US + 200000 + 4 * process_us);  // reset, ATE=0, AT+GAPGETCONN
   CHECK(w.ble.is_open());
   w.command(1, kCmdSetRate, {static_cast<uint8_t>(rate_hz), static_cast<uint8_t>(rate_hz >> 8)});
   w.command(2, kCmdStreamStart, {});
   const uint32_t first = w.sampler.taken();
   w.run(60000000);  // 60 s simulated
   w.command(3, kCmdStreamStop, {});
-  w.run(3000000);   // the BLE backlog drains (or is refused)
+  w.run(6000000);   // the BLE backlog (module FIFO 1 KB at 400 B/s, and the ring) drains
   Result r;
   r.taken = w.sampler.taken() - first;
   r.usb = w.s_usb.samples;
@@ -141,12 +145,18 @@ Result stream(uint16_t rate_hz, uint32_t interval_us, uint16_t bytes_per_event, 
   r.frames_lost = w.ble.frames_lost();
   r.link_drops = w.probe.link_drops(kLinkBle);
   r.max_pass = w.max_pass_us;
+  r.room_waits = w.port.m.room_waits;
+  r.module_tx_errors = w.port.m.tx_errors;
+  r.discarded = w.port.m.responses_discarded;
+  r.stale = w.ble.stale_answers();
   std::printf(
-      "ble world %s: %u Hz 60 s, central %u B per %u us: taken %u, usb %u, uart %u, ble %u "
-      "(%u gaps, %u samples missing; %u frames refused by the full module, %u not queued), "
-      "dropped %u, BLE %.0f samples/s, longest loop pass %u us\n",
-      name, rate_hz, bytes_per_event, interval_us, r.taken, r.usb, r.uart, r.ble, r.ble_gaps,
-      r.ble_lost, r.frames_lost, r.link_drops, r.dropped, r.ble / 60.0, r.max_pass);
+      "ble world %s: %u Hz 60 s, central %u B per %u us, module %u ms per command: taken %u, "
+      "usb %u, uart %u, ble %u (%u gaps, %u samples missing; %u frames refused by the full "
+      "module, %u not queued), dropped %u, BLE %.0f samples/s, longest loop pass %u us; "
+      "module waited for room %u times, %u answers discarded unread, %u read stale\n",
+      name, rate_hz, bytes_per_event, interval_us, process_us / 1000, r.taken, r.usb, r.uart,
+      r.ble, r.ble_gaps, r.ble_lost, r.frames_lost, r.link_drops, r.dropped, r.ble / 60.0,
+      r.max_pass, r.room_waits, r.discarded, r.stale);
   return r;
 }
 
@@ -172,6 +182,37 @@ TEST(ble_world_100hz_slow_central_losses_are_counted_gaps) {
   CHECK(r.ble_gaps >= 1u);
   // Every missing sample is in a gap the host sees (first_index jumps), none silently.
   CHECK_EQ(r.ble + r.ble_lost, r.taken);
+  // Flow control from the module's FIFO room (AT+BLEUARTFIFO=TX): no TX waits for room or is
+  // refused; what BLE cannot carry stays out of the module (the ring refuses whole frames).
+  CHECK_EQ(r.room_waits, 0u);
+  CHECK_EQ(r.module_tx_errors, 0u);
+  CHECK_EQ(r.frames_lost, 0u);
+  CHECK(r.link_drops > 0u);
+}
+
+TEST(ble_world_slow_module_answers_are_never_abandoned) {
+  // A module taking 60-120 ms per command (the old 250 ms timeout left 50 ms over its 200 ms
+  // wait): no command times out, no answer is left unread or read stale, BLE loses only what
+  // the central cannot take, in exact gaps.
+  for (uint32_t process_us : {60000u, 120000u}) {
+    const Result r = stream(100, 50000, 20, "slow module", process_us);
+    check_lossless_wired(r);
+    CHECK_EQ(r.ble + r.ble_lost, r.taken);
+    CHECK_EQ(r.discarded, 0u);
+    CHECK_EQ(r.stale, 0u);
+    CHECK_EQ(r.room_waits, 0u);
+    CHECK_EQ(r.module_tx_errors, 0u);
+  }
+}
+
+TEST(ble_world_module_without_fifo_command_falls_back_to_its_errors) {
+  // Bluefruit firmware before 0.6.7 answers ERROR to AT+BLEUARTFIFO: TX as before, the
+  // module's 200 ms ERROR when full loses whole frames, still counted in exact gaps.
+  const Result r = stream(100, 50000, 20, "old module firmware", 5000, true);
+  check_lossless_wired(r);
+  CHECK_EQ(r.ble + r.ble_lost, r.taken);
+  CHECK(r.room_waits > 0u);
+  CHECK(r.frames_lost > 0u);
 }
 
 TEST(ble_world_250hz_reports_what_ble_sustains) {

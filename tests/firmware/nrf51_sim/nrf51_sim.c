@@ -1,6 +1,7 @@
 /* nrf51_sim.c -- simulated Bluefruit nRF51822 SDEP slave (see nrf51_sim.h for what it follows). */
 #include "nrf51_sim.h"
 
+#include <stdio.h>
 #include <string.h>
 
 #define T_CMD 0x10
@@ -100,6 +101,18 @@ static void at_command(nrf51_sim* m) {
     reply_text(m, 0x0A00, m->connected ? "1\r\nOK\r\n" : "0\r\nOK\r\n");
   } else if (strcmp(line, "ATI") == 0) {
     reply_text(m, 0x0A00, "BLEFRIEND32\r\nnRF51822 QFACA10\r\nSIM\r\n0.8.1\r\nOK\r\n");
+  } else if (strncmp(line, "AT+BLEUARTFIFO", 14) == 0) {
+    /* Adafruit's AT command reference, "AT+BLEUARTFIFO" (firmware 0.6.7 on): free bytes of the
+       BLE UART FIFOs, "TX,RX" without a parameter, one of them with "=TX" / "=RX". */
+    char out[32];
+    const unsigned tx_free = (unsigned)(m->tx_fifo_cap_b - m->tx_count);
+    const unsigned rx_free = (unsigned)(NRF51_SIM_RX_FIFO - m->rx_count);
+    if (strcmp(line + 14, "") == 0) snprintf(out, sizeof out, "%u,%u\r\nOK\r\n", tx_free, rx_free);
+    else if (strcmp(line + 14, "=TX") == 0) snprintf(out, sizeof out, "%u\r\nOK\r\n", tx_free);
+    else if (strcmp(line + 14, "=RX") == 0) snprintf(out, sizeof out, "%u\r\nOK\r\n", rx_free);
+    else snprintf(out, sizeof out, "ERROR\r\n");
+    if (m->no_fifo_command) snprintf(out, sizeof out, "ERROR\r\n");
+    reply_text(m, 0x0A00, out);
   } else if (strcmp(line, "ATZ") == 0) {
     reply_text(m, 0x0A00, "OK\r\n");
   } else {
@@ -140,6 +153,7 @@ static void process(nrf51_sim* m) {
     case 0x0A02: uart_rx(m); break;
     case 0x0A01:
       if (!uart_tx_try(m)) {
+        ++m->room_waits;
         m->waiting_room = 1;
         m->wait_since_us = m->now_us;
       }

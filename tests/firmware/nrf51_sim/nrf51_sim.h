@@ -25,6 +25,8 @@
  *    conn_interval_us); a UART TX that does not fit waits for room and answers "ERROR\r\n"
  *    after tx_full_timeout_us (200 ms) -- its bytes are then discarded, none half-queued.
  *  - connect / disconnect events from the test (AT+GAPGETCONN; a disconnect empties the FIFO).
+ *  - Adafruit's AT command reference, "AT+BLEUARTFIFO": the FIFOs' free bytes (0.6.7 on;
+ *    no_fifo_command models an older firmware answering ERROR).
  */
 #ifndef NRF51_SIM_H
 #define NRF51_SIM_H
@@ -51,6 +53,7 @@ typedef struct nrf51_sim {
   uint32_t conn_interval_us;   /* central's connection interval [us] */
   uint16_t tx_per_event_b;     /* bytes the central takes per connection event [B] */
   uint16_t tx_fifo_cap_b;      /* <= NRF51_SIM_TX_FIFO */
+  int no_fifo_command;         /* firmware before 0.6.7: AT+BLEUARTFIFO answers ERROR */
   nrf51_sim_notify_fn on_notify; /* bytes delivered to the central */
   void* notify_ctx;
   /* ---- state ---- */
@@ -82,6 +85,7 @@ typedef struct nrf51_sim {
   /* ---- statistics ---- */
   uint32_t commands, packets_in, packets_out, not_ready, overreads, tx_errors;
   uint32_t bytes_notified, cmd_errors, responses_discarded, protocol_errors;
+  uint32_t room_waits;         /* UART TX commands that had to wait for FIFO room */
 } nrf51_sim;
 
 void nrf51_sim_init(nrf51_sim* m);

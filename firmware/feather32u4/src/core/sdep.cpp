@@ -65,14 +65,16 @@ SdepStatus SdepDriver::read_packet(SdepPacket& out) {
 namespace {
 const char kAtEchoOff[] = "ATE=0";  // also the boot probe: echo is on after every reset
 const char kAtGetConn[] = "AT+GAPGETCONN";
+const char kAtFifoTx[] = "AT+BLEUARTFIFO=TX";  // "<free bytes>\r\nOK\r\n" (firmware 0.6.7 on)
 }  // namespace
 
 BleUartLink::BleUartLink(SdepDriver& sdep, SpiPort& spi, Clock& clock)
     : sdep_(sdep), spi_(spi), clock_(clock), state_(kReset), connected_(false), attempts_(0),
       silent_(0), module_resets_(0), busy_mark_(0), since_us_(0),
-      backoff_us_(STIPI_BLE_RETRY_MIN_US), last_conn_poll_us_(0), last_rx_poll_us_(0), tx_failures_(0),
-      frames_lost_(0), job_(kJobNone), last_job_(kJobNone), awaiting_(false), failed_(false), job_id_(0),
-      job_len_(0), job_sent_(0), job_start_us_(0), job_text_(0), reply_len_(0), tx_head_(0),
+      backoff_us_(STIPI_BLE_RETRY_MIN_US), last_fifo_poll_us_(0), fifo_room_(0),
+      fifo_supported_(true), last_conn_poll_us_(0), last_rx_poll_us_(0), tx_failures_(0),
+      stale_answers_(0), frames_lost_(0), job_(kJobNone), last_job_(kJobNone), awaiting_(false),
+      failed_(false), job_id_(0), job_len_(0), job_sent_(0), job_start_us_(0), job_text_(0), reply_len_(0), tx_head_(0),
       tx_count_(0), rx_head_(0), rx_count_(0) {}
 
 void BleUartLink::begin() {
@@ -141,8 +143,13 @@ void BleUartLink::choose_job(uint32_t now) {
     // RX polls and TX commands alternate when both are due: neither starves the other.
     last_rx_poll_us_ = now;
     start_job(kJobRx, kSdepCmdUartRx, 0);
-  } else if (connected_ && tx_count_ > 0) {
-    start_tx();
+  } else if (connected_ && tx_count_ > 0 && !start_tx(false) &&
+             static_cast<uint32_t>(now - last_fifo_poll_us_) >= STIPI_BLE_FIFO_POLL_US) {
+    // Short of room as far as we know: ask the module (AT+BLEUARTFIFO=TX) rather than let a
+    // UART TX wait 200 ms for room and fail; the frames wait in the ring meanwhile.
+    last_fifo_poll_us_ = now;
+    job_text_ = kAtFifoTx;
+    start_job(kJobFifo, kSdepCmdAtWrapper, sizeof(kAtFifoTx) - 1);
   }
 }
 
@@ -159,15 +166,45 @@ void BleUartLink::start_job(Job job, uint16_t id, uint16_t len) {
 }
 
 // One UART TX command carries whole frames only (up to the last 0x00 in the first
-// STIPI_BLE_TX_CHUNK bytes), so a refused command loses whole frames: seq gaps, no fragments.
-void BleUartLink::start_tx() {
-  const uint16_t limit = tx_count_ < STIPI_BLE_TX_CHUNK ? tx_count_ : STIPI_BLE_TX_CHUNK;
+// STIPI_BLE_TX_CHUNK bytes, and, with flow control, in the FIFO room the module reported), so
+// the module never truncates one and a refused command loses whole frames: seq gaps.
+bool BleUartLink::start_tx(bool dry_run) {
+  uint16_t limit = tx_count_ < STIPI_BLE_TX_CHUNK ? tx_count_ : STIPI_BLE_TX_CHUNK;
+  if (fifo_supported_ && fifo_room_ < limit) limit = fifo_room_;
   uint16_t len = 0;
   for (uint16_t i = 0; i < limit; ++i) {
     if (tx_at(i) == 0) len = static_cast<uint16_t>(i + 1);
   }
-  if (len == 0) return;
+  if (len == 0 || dry_run) return len != 0;
   start_job(kJobTx, kSdepCmdUartTx, len);
+  return true;
+}
+
+// "<free>\r\nOK\r\n": the digits before the status line. "ERROR": a module firmware without the
+// command (before 0.6.7): no flow control, as before.
+void BleUartLink::on_fifo_reply(bool ok) {
+  if (ok && reply_len_ >= 5 && memcmp(reply_, "ERROR", 5) == 0) {
+    fifo_supported_ = false;
+    return;
+  }
+  if (!ok || !reply_ok()) return;
+  uint32_t room = 0;
+  for (uint8_t i = 0; i + 6 < reply_len_; ++i) {  // the digits before "\r\nOK\r\n"
+    const uint8_t c = reply_[i];
+    room = (c >= '0' && c <= '9') ? room * 10 + (c - '0') : 0;
+  }
+  fifo_room_ = room > 0xFFFF ? 0xFFFF : static_cast<uint16_t>(room);
+}
+
+// SDEP.md "IRQ Pin": a packet waiting before our command goes out is an answer to an earlier
+// one that timed out; read it (and drop it) rather than send over it. True while one was read.
+bool BleUartLink::drain_stale_answer() {
+  if (!spi_.irq()) return false;
+  SdepPacket p;
+  const SdepStatus st = sdep_.read_packet(p);
+  if (st == kSdepAgain) return false;  // IRQ's lag after the last packet (0xFF): nothing there
+  if (p.type != kSdepAlert) ++stale_answers_;
+  return true;
 }
 
 void BleUartLink::step() {
@@ -187,6 +224,7 @@ void BleUartLink::step() {
 }
 
 void BleUartLink::step_send(uint32_t) {
+  if (job_sent_ == 0 && drain_stale_answer()) return;  // the command goes on a later pass
   uint8_t buf[kSdepMaxPayload];
   const uint16_t left = static_cast<uint16_t>(job_len_ - job_sent_);
   const uint8_t n = left > kSdepMaxPayload ? kSdepMaxPayload : static_cast<uint8_t>(left);
@@ -259,6 +297,8 @@ void BleUartLink::module_lost() {
   for (uint16_t i = 0; i < tx_count_; ++i) frames_lost_ += tx_at(i) == 0;
   drop_tx(tx_count_);
   connected_ = false;
+  fifo_room_ = 0;
+  fifo_supported_ = true;  // a restarted module may have other firmware: ask again
   job_ = kJobNone;
   start_boot(static_cast<uint32_t>(clock_.micros() - STIPI_BLE_BOOT_US));  // probe at once
   state_ = kProbing;
@@ -285,6 +325,7 @@ void BleUartLink::finish(bool ok) {
       return;
     }
     const bool now_conn = ok && reply_ok() && reply_len_ >= 7 && reply_[reply_len_ - 7] == '1';
+    if (now_conn && !connected_) fifo_room_ = 0;  // a new central: ask for the room first
     if (now_conn && !connected_ && tx_count_ < STIPI_BLE_TX_RING) {
       tx_[(tx_head_ + tx_count_) % STIPI_BLE_TX_RING] = 0;  // new central: frame boundary
       ++tx_count_;
@@ -301,8 +342,13 @@ void BleUartLink::finish(bool ok) {
     if (refused) {
       ++tx_failures_;
       for (uint16_t i = 0; i < job_len_; ++i) frames_lost_ += tx_at(i) == 0;
+      fifo_room_ = 0;  // ask again before the next one
+    } else {
+      fifo_room_ = fifo_room_ > job_len_ ? static_cast<uint16_t>(fifo_room_ - job_len_) : 0;
     }
     drop_tx(job_len_);
+  } else if (job == kJobFifo) {
+    on_fifo_reply(ok);
   }
 }
 

@@ -95,10 +95,15 @@ class BleUartLink : public ByteLink {
   bool connected() const { return connected_; }
   uint16_t tx_failures() const { return tx_failures_; }  // UART TX commands the module refused
   uint32_t frames_lost() const { return frames_lost_; }  // queued frames lost that way
+  // Flow control: the module's TX FIFO room as last reported (AT+BLEUARTFIFO=TX) minus what
+  // was sent since; false while the module does not support the command (then TX relies on
+  // the module's ERROR after 200 ms, as before).
+  bool fifo_flow_control() const { return fifo_supported_; }
+  uint16_t stale_answers() const { return stale_answers_; }
   uint16_t tx_queued() const { return tx_count_; }
 
  private:
-  enum Job : uint8_t { kJobNone, kJobEcho, kJobConn, kJobRx, kJobTx };
+  enum Job : uint8_t { kJobNone, kJobEcho, kJobConn, kJobRx, kJobTx, kJobFifo };
   void start_job(Job job, uint16_t id, uint16_t len);
   void start_boot(uint32_t now);
   void probe_failed(uint32_t now, bool busy);
@@ -109,7 +114,9 @@ class BleUartLink : public ByteLink {
   void finish(bool ok);
   void on_payload(const SdepPacket& p);
   void choose_job(uint32_t now);
-  void start_tx();
+  bool start_tx(bool dry_run);
+  void on_fifo_reply(bool ok);
+  bool drain_stale_answer();
   void drop_tx(uint16_t bytes);
   bool reply_ok() const;
   uint8_t tx_at(uint16_t i) const { return tx_[(tx_head_ + i) % STIPI_BLE_TX_RING]; }
@@ -125,9 +132,13 @@ class BleUartLink : public ByteLink {
   uint16_t busy_mark_;       // sdep_.not_ready_seen() when the job started
   uint32_t since_us_;        // reset, boot start, or absent since
   uint32_t backoff_us_;      // next wait in kAbsent
+  uint32_t last_fifo_poll_us_;
+  uint16_t fifo_room_;       // TX FIFO bytes free, as far as we know
+  bool fifo_supported_;
   uint32_t last_conn_poll_us_;
   uint32_t last_rx_poll_us_;
   uint16_t tx_failures_;
+  uint16_t stale_answers_;   // answers read after their command had timed out
   uint32_t frames_lost_;
   // command in flight
   Job job_;
