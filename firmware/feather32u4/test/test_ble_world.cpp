@@ -147,7 +147,7 @@ Result stream(uint16_t rate_hz, uint32_t interval_us, uint16_t bytes_per_event, 
   r.max_pass = w.max_pass_us;
   r.room_waits = w.port.m.room_waits;
   r.module_tx_errors = w.port.m.tx_errors;
-  r.discarded = w.port.m.responses_discarded;
+  r.discarded = w.port.m.unread_at_command;
   r.stale = w.ble.stale_answers();
   std::printf(
       "ble world %s: %u Hz 60 s, central %u B per %u us, module %u ms per command: taken %u, "

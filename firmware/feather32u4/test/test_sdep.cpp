@@ -157,7 +157,7 @@ TEST(ble_link_sends_a_frame_as_one_command_with_one_response) {
   CHECK(r.port.m.packets_out - out >= 1u);
   CHECK(r.central.find(std::string(f.begin(), f.end())) != std::string::npos);
   CHECK_EQ(r.port.m.protocol_errors, 0u);
-  CHECK_EQ(r.port.m.responses_discarded, 0u);
+  CHECK_EQ(r.port.m.unread_at_command, 0u);
 }
 
 TEST(ble_link_survives_processing_delays_and_stale_irq) {
@@ -243,4 +243,187 @@ TEST(ble_link_disconnect_and_reconnect) {
   r.run(200000);
   CHECK(r.central.size() == 21u);
   CHECK_EQ(r.central[0], '\0');  // a new central starts on a frame boundary
+}
+
+// ---- the simulated module against SDEP.md (each test names the section it checks) ---------
+// These hold the model to the spec where neither the vendor's driver nor the link would notice
+// (tests/firmware/test_sim_mutations.py switches each violation on and expects a failure).
+namespace {
+struct Bench {  // the SDEP driver alone against the module, no link polling it
+  fakes::FakeClock clock;
+  fakes::SimNrf51Port port{clock};
+  SdepDriver sdep{port, clock};
+  Bench() { port.m.echo = 0; }
+  void wait(uint32_t us) {
+    clock.now_us += us;
+    port.sync();
+  }
+  void send(uint16_t id, const std::string& payload) {  // all packets, back to back
+    size_t at = 0;
+    do {
+      const size_t n = payload.size() - at > 16 ? 16 : payload.size() - at;
+      const bool more = at + n < payload.size();
+      CHECK_EQ(sdep.send_packet(id, reinterpret_cast<const uint8_t*>(payload.data()) + at,
+                                static_cast<uint8_t>(n), more), kSdepOk);
+      at += n;
+    } while (at < payload.size());
+  }
+  // Every packet of one answer: (status, packet) until one without more-data.
+  std::vector<SdepPacket> answer(SdepStatus* last) {
+    std::vector<SdepPacket> got;
+    for (int tries = 0; tries < 1000; ++tries) {
+      SdepPacket p;
+      const SdepStatus st = sdep.read_packet(p);
+      *last = st;
+      if (st == kSdepAgain) {
+        wait(50);
+        continue;
+      }
+      got.push_back(p);
+      if (st != kSdepOk || !p.more) break;
+    }
+    return got;
+  }
+};
+std::string text_of(const std::vector<SdepPacket>& ps) {
+  std::string s;
+  for (const SdepPacket& p : ps) s.append(reinterpret_cast<const char*>(p.payload), p.len);
+  return s;
+}
+}  // namespace
+
+TEST(nrf51_sim_answers_once_after_the_last_packet_with_irq_low_before) {
+  // SDEP.md "Command Messages" (one answer, after the packet with More data == 0) and
+  // "IRQ Pin" (asserted only while a whole packet waits).
+  Bench b;
+  nrf51_sim_set_connected(&b.port.m, 1);
+  const std::string data(40, 'x');  // 3 packets
+  b.send(kSdepCmdUartTx, data);
+  CHECK(!b.port.irq());  // processing: nothing to read yet
+  b.wait(b.port.m.process_us + 100);
+  CHECK(b.port.irq());
+  SdepStatus st;
+  const std::vector<SdepPacket> a = b.answer(&st);
+  CHECK_EQ(st, kSdepOk);
+  CHECK_EQ(a.size(), 1u);
+  CHECK_EQ(a[0].id, kSdepCmdUartTx);
+  b.wait(100);  // past the IRQ's lag
+  CHECK(!b.port.irq());
+  CHECK_EQ(b.port.m.out_count, 0);
+}
+
+TEST(nrf51_sim_keeps_irq_high_between_packets_of_one_answer) {
+  // SDEP.md "IRQ Pin": stays asserted while more packets wait; "Response Messages".
+  Bench b;
+  nrf51_sim_set_connected(&b.port.m, 1);
+  const std::string msg = "central says hello over several SDEP packets!";  // 45 B
+  nrf51_sim_central_write(&b.port.m, reinterpret_cast<const uint8_t*>(msg.data()),
+                          static_cast<uint16_t>(msg.size()));
+  b.send(kSdepCmdUartRx, "");
+  b.wait(b.port.m.process_us + 100);
+  SdepPacket p;
+  CHECK_EQ(b.sdep.read_packet(p), kSdepOk);
+  CHECK(p.more);
+  CHECK(b.port.irq());  // the next packet is there: IRQ did not drop
+  SdepStatus st;
+  const std::vector<SdepPacket> rest = b.answer(&st);
+  CHECK_EQ(st, kSdepOk);
+  CHECK(std::string(reinterpret_cast<const char*>(p.payload), p.len) + text_of(rest) == msg);
+}
+
+TEST(nrf51_sim_answers_not_ready_while_busy) {
+  // SDEP.md "SDEP Packet and SPI Error Identifier": 0xFE while the slave is not ready.
+  Bench b;
+  b.send(kSdepCmdAtWrapper, "ATI");
+  const uint16_t before = b.sdep.not_ready_seen();
+  const uint8_t x = 'A';
+  CHECK_EQ(b.sdep.send_packet(kSdepCmdAtWrapper, &x, 1, false), kSdepAgain);  // busy: 0xFE
+  CHECK_EQ(b.sdep.not_ready_seen(), before + 1);
+  CHECK_EQ(b.port.m.commands, 0u);
+}
+
+TEST(nrf51_sim_unknown_command_gets_an_error_message) {
+  // SDEP.md "Error Messages": type 0x80, error id 0x0001 Invalid Cmd ID.
+  Bench b;
+  b.send(0x1234, "x");
+  b.wait(b.port.m.process_us + 100);
+  SdepStatus st;
+  const std::vector<SdepPacket> a = b.answer(&st);
+  CHECK_EQ(st, kSdepErrorReply);
+  CHECK_EQ(a.size(), 1u);
+  CHECK_EQ(a.back().id, 0x0001);
+}
+
+TEST(nrf51_sim_answers_a_malformed_packet_with_invalid_payload) {
+  // SDEP.md "Error Messages": 0x0003 Invalid Payload -- a packet announcing 20 bytes (> 16).
+  Bench b;
+  b.port.select(true);
+  b.wait(100);  // "SPI Bus Hardware Requirements"
+  b.port.transfer(kSdepCommand);
+  b.port.transfer(0x00);
+  b.port.transfer(0x0A);
+  b.port.transfer(20);
+  for (int i = 0; i < 16; ++i) b.port.transfer('A');
+  b.port.select(false);
+  b.wait(100);
+  SdepStatus st;
+  const std::vector<SdepPacket> a = b.answer(&st);
+  CHECK_EQ(st, kSdepErrorReply);
+  CHECK(!a.empty() && a.back().id == 0x0003);
+}
+
+TEST(nrf51_sim_keeps_an_unread_answer_when_a_new_command_comes) {
+  // SDEP.md "SDEP Data Transactions": every command gets its answer.
+  Bench b;
+  b.send(kSdepCmdAtWrapper, "AT");
+  b.wait(b.port.m.process_us + 100);  // answered, not read
+  b.send(kSdepCmdAtWrapper, "ATI");
+  b.wait(b.port.m.process_us + 100);
+  SdepStatus st;
+  CHECK(text_of(b.answer(&st)) == "OK\r\n");  // the first answer, first
+  CHECK(text_of(b.answer(&st)).find("BLEFRIEND32") == 0);
+}
+
+TEST(nrf51_sim_refuses_uart_tx_without_a_central) {
+  // Nothing to notify: the module answers ERROR rather than drop the bytes as sent.
+  Bench b;
+  b.send(kSdepCmdUartTx, "hello");
+  b.wait(b.port.m.process_us + 100);
+  SdepStatus st;
+  CHECK(text_of(b.answer(&st)) == "ERROR\r\n");
+}
+
+TEST(nrf51_sim_ignores_bytes_clocked_before_the_cs_setup_time) {
+  // SDEP.md "SPI Bus Hardware Requirements": 100 us from CS asserted to the first byte.
+  Bench b;
+  b.port.select(true);
+  CHECK_EQ(b.port.transfer(kSdepCommand), kSdepNotReady);  // too early: not ready
+  for (int i = 0; i < 5; ++i) b.port.transfer(0x41);
+  b.port.select(false);
+  CHECK_EQ(b.port.m.packets_in, 0u);
+  CHECK_EQ(b.port.m.cs_early, 1u);
+  b.send(kSdepCmdAtWrapper, "AT");  // with the 100 us: taken
+  CHECK_EQ(b.port.m.packets_in, 1u);
+}
+
+TEST(nrf51_sim_sends_alerts_and_the_link_skips_them) {
+  // SDEP.md "Alert Messages": 0x40, alert id, payload (0x0002 Battery Low).
+  Bench b;
+  const uint8_t level = 7;
+  nrf51_sim_alert(&b.port.m, 0x0002, &level, 1);
+  CHECK(b.port.irq());
+  SdepPacket p;
+  CHECK_EQ(b.sdep.read_packet(p), kSdepOk);
+  CHECK_EQ(p.type, kSdepAlert);
+  CHECK_EQ(p.id, 0x0002);
+  CHECK(p.len == 1 && p.payload[0] == 7);
+  // An alert in the middle of a stream is not an answer: the link carries on.
+  Rig r;
+  r.boot();
+  nrf51_sim_alert(&r.port.m, 0x0002, &level, 1);
+  r.run(STIPI_BLE_CONN_POLL_US + 100000);
+  CHECK(r.link.is_open());
+  CHECK_EQ(r.link.stale_answers(), 0u);
+  CHECK_EQ(r.link.module_resets(), 0u);
+  CHECK_EQ(r.port.m.alerts, 1u);
 }
