@@ -42,6 +42,10 @@ class FlashError(StipiError, RuntimeError):
     """A flashing step failed; str() is one line for the operator."""
 
 
+class ImageError(FlashError):
+    """The firmware image is bad input (unreadable, damaged, too large): nothing was touched."""
+
+
 @dataclass(frozen=True)
 class FirmwareImage:
     """A checked Intel HEX image: ``data`` maps byte address -> value."""
@@ -58,15 +62,15 @@ class FirmwareImage:
 def _parse_record(line: str, where: str) -> tuple[int, int, bytes]:
     """(record type, 16-bit address, data) of one Intel HEX record, checked completely."""
     if not line.startswith(":"):
-        raise FlashError(f"{where}: not an Intel HEX record (does not start with ':')")
+        raise ImageError(f"{where}: not an Intel HEX record (does not start with ':')")
     try:
         raw = bytes.fromhex(line[1:])
     except ValueError:
-        raise FlashError(f"{where}: not an Intel HEX record (non-hex characters)") from None
+        raise ImageError(f"{where}: not an Intel HEX record (non-hex characters)") from None
     if len(raw) < 5 or len(raw) != 5 + raw[0]:
-        raise FlashError(f"{where}: record length does not match its byte count")
+        raise ImageError(f"{where}: record length does not match its byte count")
     if sum(raw) & 0xFF:
-        raise FlashError(f"{where}: checksum error (the file is damaged)")
+        raise ImageError(f"{where}: checksum error (the file is damaged)")
     return raw[3], int.from_bytes(raw[1:3], "big"), raw[4:-1]
 
 
@@ -76,9 +80,9 @@ def read_image(hex_path: Path, limit_b: int = APP_SECTION_B) -> FirmwareImage:
     try:
         text = Path(hex_path).read_bytes().decode("ascii")
     except OSError as exc:
-        raise FlashError(f"cannot read firmware image {hex_path}: {exc.strerror}") from None
+        raise ImageError(f"cannot read firmware image {hex_path}: {exc.strerror}") from None
     except UnicodeDecodeError as exc:
-        raise FlashError(
+        raise ImageError(
             f"{hex_path}: not an Intel HEX file (non-ASCII byte at offset {exc.start})"
         ) from None
     data: dict[int, int] = {}
@@ -90,26 +94,26 @@ def read_image(hex_path: Path, limit_b: int = APP_SECTION_B) -> FirmwareImage:
             continue
         where = f"{hex_path}:{number}"
         if ended:
-            raise FlashError(f"{where}: data after the end-of-file record")
+            raise ImageError(f"{where}: data after the end-of-file record")
         rtype, address, payload = _parse_record(line, where)
         if rtype == 0:
             for i, value in enumerate(payload):
                 if base + address + i in data:
-                    raise FlashError(f"{where}: address 0x{base + address + i:04X} given twice")
+                    raise ImageError(f"{where}: address 0x{base + address + i:04X} given twice")
                 data[base + address + i] = value
         elif rtype == 1:
             ended = True
         elif rtype in (2, 4) and len(payload) == 2:
             base = int.from_bytes(payload, "big") << (4 if rtype == 2 else 16)
         elif rtype not in (3, 5):
-            raise FlashError(f"{where}: unknown Intel HEX record type {rtype:02X}")
+            raise ImageError(f"{where}: unknown Intel HEX record type {rtype:02X}")
     if not ended:
-        raise FlashError(f"{hex_path}: no end-of-file record (the file is cut short)")
+        raise ImageError(f"{hex_path}: no end-of-file record (the file is cut short)")
     if not data:
-        raise FlashError(f"{hex_path}: the image holds no data")
+        raise ImageError(f"{hex_path}: the image holds no data")
     image = FirmwareImage(Path(hex_path), data)
     if image.end_b > limit_b:
-        raise FlashError(
+        raise ImageError(
             f"{hex_path}: image ends at byte {image.end_b:,}, beyond the {limit_b:,} B "
             f"application section (0x0000-0x{limit_b - 1:04X}); writing it would overwrite "
             "the bootloader: make the firmware smaller"
@@ -311,7 +315,7 @@ def flash(
     if hex_path is None:
         hex_path = build_hex() if build else FIRMWARE_DIR / HEX_NAME
     if not Path(hex_path).is_file():
-        raise FlashError(f"no firmware hex at {hex_path}: build it (make -C firmware/feather32u4)")
+        raise ImageError(f"no firmware hex at {hex_path}: build it (make -C firmware/feather32u4)")
     image = read_image(Path(hex_path))  # all of it, before anything touches the board
     log(f"{image.path.name}: {image.end_b:,} of {APP_SECTION_B:,} B of the application section")
     if not os.path.exists(port):
@@ -336,7 +340,7 @@ def main(argv: list[str] | None = None) -> int:
         flash(args.port, args.hex, timeout_s=args.timeout)
     except FlashError as exc:
         print(f"flash: {exc}", file=sys.stderr)
-        return 1
+        return 2 if isinstance(exc, ImageError) else 1
     return 0
 
 
