@@ -201,6 +201,72 @@ INFO = InfoResult(
 )
 
 
+def _status_health_vectors() -> list[Vector]:
+    """STATUS with the probe's health (firmware 1.1 on): the 14-byte body."""
+    v: list[Vector] = []
+    v.append(
+        msg_vector(
+            "status_health_ble_up_power_on",
+            Status(0, 100, 0, 5000, StatusFlags.NONE, BleState.UP, 0, ResetCause.POWER_ON),
+            13,
+            4_000_000,
+        )
+    )
+    v.append(
+        msg_vector(
+            "status_health_watchdog_ble_booting",
+            Status(
+                0,
+                200,
+                7,
+                4900,
+                StatusFlags.STREAMING,
+                BleState.BOOTING,
+                513,
+                ResetCause.WATCHDOG,
+            ),
+            14,
+            5_000_000,
+        )
+    )
+    v.append(
+        msg_vector(
+            "status_health_ble_absent_external_or_brown_out",
+            Status(
+                0,
+                100,
+                0,
+                3700,
+                StatusFlags.NONE,
+                BleState.ABSENT,
+                65_535,
+                ResetCause.EXTERNAL | ResetCause.BROWN_OUT,
+            ),
+            15,
+            6_000_000,
+        )
+    )
+    v.append(
+        msg_vector(
+            "status_health_no_ble_link",
+            Status(0, 100, 0, 5000, StatusFlags.NONE, BleState.NOT_BUILT, 0, ResetCause.UNKNOWN),
+            16,
+            7_000_000,
+        )
+    )
+    up = Status(1, 100, 0, 5000, StatusFlags.NONE, BleState.UP, 0, ResetCause.POWER_ON)
+    health = pack_frame(up, 22, 22_000)
+    v.append(_invalid("invalid_status_body_12_bytes", "body", _crc_frame(health[:-4])))
+    v.append(
+        _invalid(
+            "invalid_status_ble_state_4",
+            "body",
+            _crc_frame(health[:-6] + b"\x04" + health[-5:-2]),
+        )
+    )
+    return v
+
+
 def build_vectors() -> list[Vector]:
     """Every vector, in file order."""
     v: list[Vector] = []
@@ -303,57 +369,7 @@ def build_vectors() -> list[Vector]:
             3_000_000,
         )
     )
-    # STATUS with the probe's health (firmware 1.1 on)
-    v.append(
-        msg_vector(
-            "status_health_ble_up_power_on",
-            Status(0, 100, 0, 5000, StatusFlags.NONE, BleState.UP, 0, ResetCause.POWER_ON),
-            13,
-            4_000_000,
-        )
-    )
-    v.append(
-        msg_vector(
-            "status_health_watchdog_ble_booting",
-            Status(
-                0,
-                200,
-                7,
-                4900,
-                StatusFlags.STREAMING,
-                BleState.BOOTING,
-                513,
-                ResetCause.WATCHDOG,
-            ),
-            14,
-            5_000_000,
-        )
-    )
-    v.append(
-        msg_vector(
-            "status_health_ble_absent_external_or_brown_out",
-            Status(
-                0,
-                100,
-                0,
-                3700,
-                StatusFlags.NONE,
-                BleState.ABSENT,
-                65_535,
-                ResetCause.EXTERNAL | ResetCause.BROWN_OUT,
-            ),
-            15,
-            6_000_000,
-        )
-    )
-    v.append(
-        msg_vector(
-            "status_health_no_ble_link",
-            Status(0, 100, 0, 5000, StatusFlags.NONE, BleState.NOT_BUILT, 0, ResetCause.UNKNOWN),
-            16,
-            7_000_000,
-        )
-    )
+    v.extend(_status_health_vectors())
     # COMMAND
     commands: list[tuple[str, Message]] = [
         ("command_stream_start", StreamStart()),
@@ -449,16 +465,6 @@ def build_vectors() -> list[Vector]:
     v.append(_invalid("invalid_samples_period_0", "body", _crc_frame(good[:12] + good[14:-2])))
     status = pack_frame(Status(1, 100, 0, 5000), 21, 21_000)
     v.append(_invalid("invalid_status_body_9_bytes", "body", _crc_frame(status[:-3])))
-    up = Status(1, 100, 0, 5000, StatusFlags.NONE, BleState.UP, 0, ResetCause.POWER_ON)
-    health = pack_frame(up, 22, 22_000)
-    v.append(_invalid("invalid_status_body_12_bytes", "body", _crc_frame(health[:-4])))
-    v.append(
-        _invalid(
-            "invalid_status_ble_state_4",
-            "body",
-            _crc_frame(health[:-6] + b"\x04" + health[-5:-2]),
-        )
-    )
     ack_head = pack_frame(Ack(3, CmdId.STREAM_START), 22, 22_000)[:8]
     v.append(_invalid("invalid_ack_status_5", "body", _crc_frame(ack_head + b"\x03\x00\x01\x05")))
     v.append(

@@ -121,6 +121,7 @@ const uint8_t kWatchdogMarked = 0xA5;
 uint32_t g_ram_mark __attribute__((section(".noinit")));
 uint8_t g_watchdog_mark __attribute__((section(".noinit")));
 uint8_t g_mcusr_at_start __attribute__((section(".noinit")));
+#if STIPI_WATCHDOG
 const uint8_t kOurPrescaler = WDTO_500MS;  // STIPI_WATCHDOG_PERIOD_MS
 static_assert(STIPI_WATCHDOG_PERIOD_MS == 500, "kOurPrescaler is WDTO_500MS");
 const uint8_t kPrescalerBits = _BV(WDP3) | _BV(WDP2) | _BV(WDP1) | _BV(WDP0);
@@ -132,6 +133,7 @@ void watchdog_arm() {  // interrupt + reset mode (ATmega32u4 datasheet 10.9.2)
   WDTCSR = static_cast<uint8_t>(_BV(WDIE) | _BV(WDE) | (kOurPrescaler & 0x07) |
                                 ((kOurPrescaler & 0x08) ? _BV(WDP3) : 0));
 }
+#endif
 }  // namespace
 
 // Before the C runtime sets up RAM (.init3): read and clear MCUSR and stop a watchdog left
