@@ -86,7 +86,15 @@ from stipi_daemon.measurement.state_machine import (
     PhaseChanged,
     Tick,
 )
-from stipi_daemon.probe.link import ClockProbe, ForceRows, Gap, LinkDown, LinkUp
+from stipi_daemon.probe.link import (
+    ClockProbe,
+    ForceRows,
+    Gap,
+    LinkDown,
+    LinkUp,
+    ProbeHealth,
+    StatusReport,
+)
 
 __all__ = [
     "COMMIT_SPACING_WALL_S",
@@ -225,6 +233,7 @@ class Acquisition:
             ["force", "frame"], max_hold_s=MERGE_HOLD_S
         )
         self.stop_error: BaseException | None = None
+        self._probe_health = ProbeHealth()
         self._handlers: dict[type[Any], Callable[[Any], list[Output]]] = {
             ForceRows: self._on_force,
             FrameResult: self._on_frame,
@@ -234,6 +243,7 @@ class Acquisition:
             ClockProbe: self._on_clock_probe,
             LinkDown: self._on_link_down,
             LinkUp: self._on_link_up,
+            StatusReport: self._on_status,
             CamStalled: self._on_camera_stalled,
             CamRecovered: self._on_camera_recovered,
             Tick: self._on_tick,
@@ -517,7 +527,14 @@ class Acquisition:
         self._writer.add_event(ev.t_s, "link_down", {"reason": ev.reason})
         return self._pipeline.feed(LinkLost(ev.t_s))
 
+    def _on_status(self, ev: StatusReport) -> list[Output]:
+        detail = self._probe_health.observe(ev)
+        if detail is not None:  # why the probe started, its BLE module: when it changes
+            self._writer.add_event(ev.t_host_s, "probe_health", detail)
+        return []
+
     def _on_link_up(self, ev: LinkUp) -> list[Output]:
+        self._probe_health.forget()  # a restarted probe says again why it started
         self._writer.add_event(ev.t_s, "link_up", {})
         return self._pipeline.feed(LinkRestored(ev.t_s))
 
