@@ -8,6 +8,8 @@ stderr with exit status 2, never as a traceback; Ctrl-C is one line and exit sta
 from __future__ import annotations
 
 import argparse
+import contextlib
+import errno
 import signal
 import sys
 from collections.abc import Sequence
@@ -17,6 +19,9 @@ from stipi_daemon import __version__
 from stipi_daemon.commands import register_all
 from stipi_daemon.errors import ConfigError, StipiError, Terminated
 from stipi_daemon.storage.metadata import FIELD_DOCS, METADATA_FIELDS
+
+#: errno of a write to standard output that failed: disk full, quota, file too large, I/O.
+_WRITE_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EIO})
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -114,9 +119,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     except StipiError as exc:
         print(f"stipi-daemon: error: {exc}", file=sys.stderr)
         return 2
-    except Terminated:
-        print("stipi-daemon: terminated (SIGTERM)", file=sys.stderr)
-        return 128 + signal.SIGTERM
+    except Terminated as exc:  # SIGTERM, SIGHUP, standard output failed: as after Ctrl-C
+        with contextlib.suppress(OSError):  # one line, if stderr can still be written
+            print(f"stipi-daemon: {exc.reason}", file=sys.stderr)
+        return exc.exit_code
     except KeyboardInterrupt:
         # Ctrl-C: the daemon has already closed its devices and finished the session as
         # 'aborted' (asyncio.run cancels it and re-raises the interrupt here).
@@ -130,6 +136,27 @@ def main(argv: Sequence[str] | None = None) -> int:
 
         stdout_to_devnull()
         return 128 + signal.SIGPIPE
+    except OSError as exc:
+        if not _stdout_failed(exc):
+            raise
+        # Standard output cannot be written (``>/dev/full``, an I/O error): one line.
+        with contextlib.suppress(OSError):
+            print(f"stipi-daemon: error: cannot write the output: {exc}", file=sys.stderr)
+        return 1
+
+
+def _stdout_failed(exc: OSError) -> bool:
+    """Whether ``exc`` is standard output failing (a print to a full disk, an I/O error:
+    no file name, an errno of writing), in which case stdout now points at /dev/null so
+    that Python's flush at exit does not fail again. Files the commands write raise
+    StipiError naming the file instead."""
+    from stipi_daemon.app.console import stdout_to_devnull
+
+    if exc.filename is not None or exc.errno not in _WRITE_ERRNOS or sys.stdout is None:
+        return False
+    with contextlib.suppress(OSError, ValueError):
+        stdout_to_devnull()
+    return True
 
 
 if __name__ == "__main__":  # pragma: no cover
