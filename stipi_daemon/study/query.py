@@ -12,6 +12,8 @@ yet is an empty view of its schema. :func:`run_query` runs one read-only stateme
 
 from __future__ import annotations
 
+import contextlib
+import os
 from pathlib import Path
 from typing import TYPE_CHECKING, Final
 
@@ -220,7 +222,9 @@ def result_format(path: Path) -> str:
 
 
 def write_result(result: pa.Table, path: Path) -> None:
-    """Write a query result as CSV (header, empty for null) or Parquet, per the suffix.
+    """Write a query result as CSV (header, empty for null) or Parquet, per the suffix,
+    atomically: a hidden temporary file beside it, renamed over it when whole (removed
+    when the write fails: a full disk leaves no partial result).
 
     Raises
     ------
@@ -231,12 +235,16 @@ def write_result(result: pa.Table, path: Path) -> None:
     import pyarrow.parquet as pq
 
     fmt = result_format(path)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
     try:
         if fmt == "csv":
-            pacsv.write_csv(result, path)
+            pacsv.write_csv(result, tmp)
         else:
-            pq.write_table(result, path)
+            pq.write_table(result, tmp)
+        os.replace(tmp, path)
     except (OSError, pa.ArrowException) as exc:
+        with contextlib.suppress(OSError):
+            tmp.unlink(missing_ok=True)
         raise StudyError(f"{path}: cannot write the result: {exc}") from None
 
 

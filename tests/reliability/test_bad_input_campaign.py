@@ -73,7 +73,13 @@ def _session(w: Path) -> Path:
 
 
 def _query(sql: Callable[[Path], str], *more: str) -> Callable[[Path], list[str]]:
-    return lambda w: ["study", "query", str(w / "ds"), sql(w), *more]
+    """``study query`` of ``sql``; ``more`` may name {w}, {dataset_file} and {session}."""
+
+    def make(w: Path) -> list[str]:
+        names = {"w": w, "dataset_file": _dataset_file(w), "session": _session(w)}
+        return ["study", "query", str(w / "ds"), sql(w), *(m.format(**names) for m in more)]
+
+    return make
 
 
 def _dataset_file(w: Path) -> Path:
@@ -185,6 +191,62 @@ CASES = [
         _query(lambda w: "SELECT * FROM read_csv('/etc/passwd')"),
         ("SQL: Permission Error", "/etc/passwd", "dataset's own files"),
     ),
+    # ---- no command writes into a session, a dataset, or over a file without --overwrite
+    Case(
+        "query-out-over-a-dataset-file",
+        _query(lambda w: "SELECT 1 AS a", "--overwrite", "--out", "{dataset_file}"),
+        ("--out", "inside the dataset"),
+    ),
+    Case(
+        "query-out-into-the-dataset",
+        _query(lambda w: "SELECT 1 AS a", "--out", "{w}/ds/mine.csv"),
+        ("--out", "inside the dataset"),
+    ),
+    Case(
+        "query-out-over-a-file",
+        _query(lambda w: "SELECT 1 AS a", "--out", "{w}/old.csv"),
+        ("--out", "old.csv", "exists already", "--overwrite"),
+    ),
+    Case(
+        "query-out-into-a-session",
+        _query(lambda w: "SELECT 1 AS a", "--out", "{session}/result.csv"),
+        ("--out", "inside the session directory"),
+    ),
+    Case(
+        "diff-out-over-a-file",
+        lambda w: ["study", "diff", str(w / "ds"), "recorded", "recorded", "--out", "old.csv"],
+        ("--out", "old.csv", "exists already"),
+    ),
+    Case(
+        "export-out-empty",
+        lambda w: ["sessions", "export", str(_session(w)), "--out", ""],
+        ("--out ''", "empty"),
+    ),
+    Case(
+        "export-out-into-a-session",
+        lambda w: ["sessions", "export", str(_session(w)), "--out", str(_session(w) / "x")],
+        ("--out", "inside the session directory"),
+    ),
+    Case(
+        "export-out-over-a-file",
+        lambda w: ["sessions", "export", str(_session(w)), "--out", str(w / "export")],
+        ("frames.csv", "exists already", "--overwrite"),
+    ),
+    Case(
+        "table-out-empty",
+        lambda w: ["sessions", "table", "--root", str(w / "sessions"), "--out", ""],
+        ("--out ''", "empty"),
+    ),
+    Case(
+        "simulate-out-empty",
+        lambda w: ["simulate", str(w / "scene.yaml"), "--out", ""],
+        ("--out ''", "empty"),
+    ),
+    Case(
+        "index-out-empty",
+        lambda w: ["study", "index", str(w / "sessions"), "--out", ""],
+        ("--out ''", "empty"),
+    ),
     Case(
         "query-read-text-user-file",
         _query(lambda w: f"SELECT * FROM read_text('{w}/config.yaml')"),
@@ -214,6 +276,9 @@ def good_tree(tmp_path_factory: pytest.TempPathFactory) -> Path:
     for i in range(2):
         write_session(w / "sessions", i, rng)
     index_sessions([w / "sessions"], w / "ds")
+    (w / "old.csv").write_text("a\n1\n")
+    (w / "export").mkdir()
+    (w / "export" / "frames.csv").write_text("mine\n")
     return w
 
 
@@ -223,10 +288,15 @@ def test_cases_are_unique() -> None:
 
 @pytest.mark.parametrize("case", CASES, ids=[c.id for c in CASES])
 def test_bad_input_is_one_line_and_changes_nothing(
-    case: Case, good_tree: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+    case: Case,
+    good_tree: Path,
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+    monkeypatch: pytest.MonkeyPatch,
 ) -> None:
     w = tmp_path / "w"
     shutil.copytree(good_tree, w)
+    monkeypatch.chdir(w)  # a relative or empty output would land in the tree and be seen
     (w / "config.yaml").write_text(yaml.safe_dump(_good_config(w)))
     state = json.loads((w / "ds" / "study.json").read_text())
     argv = case.make(w)
