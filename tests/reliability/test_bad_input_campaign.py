@@ -30,7 +30,7 @@ from stipi_daemon.sim.scene import load_scene
 from stipi_daemon.study.index import index_sessions
 
 from ..study._synthetic import write_session
-from .conftest import SCENES
+from .conftest import REPO_ROOT, SCENES
 from .test_bad_inputs import _good_config
 
 LATIN1 = "caf\xe9".encode("latin-1")  # one Latin-1 character: not UTF-8
@@ -80,6 +80,13 @@ def _query(sql: Callable[[Path], str], *more: str) -> Callable[[Path], list[str]
         return ["study", "query", str(w / "ds"), sql(w), *(m.format(**names) for m in more)]
 
     return make
+
+
+def _calibrate(*more: str) -> list[str]:
+    """``calibrate`` of the example pairs (configs/calibration) and ``more`` options."""
+    examples = REPO_ROOT / "configs" / "calibration"
+    depth, force = examples / "example_depth_pairs.csv", examples / "example_force_pairs.csv"
+    return ["calibrate", "--depth-pairs", str(depth), "--force-pairs", str(force), *more]
 
 
 def _dataset_file(w: Path) -> Path:
@@ -246,6 +253,42 @@ CASES = [
         "index-out-empty",
         lambda w: ["study", "index", str(w / "sessions"), "--out", ""],
         ("--out ''", "empty"),
+    ),
+    Case(
+        "calibrate-out-over-a-session-summary",
+        lambda w: [*_calibrate(), "--out", str(_session(w) / "summary.json"), "--overwrite"],
+        ("--out", "summary.json", "inside the session directory"),
+    ),
+    Case(
+        "calibrate-out-into-a-session",
+        lambda w: [*_calibrate(), "--out", str(_session(w) / "cal.json")],
+        ("--out", "inside the session directory"),
+    ),
+    Case(
+        "calibrate-roi-outside-its-frame",
+        lambda w: [
+            *_calibrate(),
+            "--out",
+            str(w / "new.json"),
+            "--frame-size",
+            "640x480",
+            "--roi",
+            "circle:900,100,50",
+        ],
+        ("--roi", "outside the 640x480 frame"),
+    ),
+    Case(
+        "calibrate-roi-partly-outside-its-frame",
+        lambda w: [
+            *_calibrate(),
+            "--out",
+            str(w / "new.json"),
+            "--frame-size",
+            "640x480",
+            "--roi",
+            "rect:600,400,100,100",
+        ],
+        ("--roi", "partly outside the 640x480 frame"),
     ),
     Case(
         "query-read-text-user-file",
