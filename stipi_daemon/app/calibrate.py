@@ -386,6 +386,8 @@ def calibrate(request: CalibrateRequest, emit: Emit) -> tuple[Calibration, Path]
         check_export_target(request.out, [], is_file=True, what="a calibration")
     except SessionError as exc:
         raise ConfigError(str(exc)) from None
+    if request.out.is_dir():
+        raise ConfigError(f"--out {request.out}: is a directory (give a file name, CAL.json)")
     seen = _Seen()
     s0, d_s = _depth_points(request, seen, emit)
     s_px, f_n = _force_points(request, seen, emit)
@@ -440,7 +442,10 @@ def calibrate(request: CalibrateRequest, emit: Emit) -> tuple[Calibration, Path]
             "warning: no ROI recorded (--roi): the daemon cannot tell S counted in another "
             "ROI, whose S values are not comparable"
         )
-    path = save_calibration(request.out, cal)
+    try:
+        path = save_calibration(request.out, cal)
+    except OSError as exc:  # a full disk, no permission: no partial file is left
+        raise ConfigError(f"--out {request.out}: cannot write: {exc.strerror or exc}") from None
     load_calibration(path)  # what was written reads back
     emit(f"\ncalibration written to {path}")
     return cal, path

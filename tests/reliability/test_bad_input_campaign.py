@@ -291,6 +291,21 @@ CASES = [
         ("--roi", "partly outside the 640x480 frame"),
     ),
     Case(
+        "calibrate-out-empty",
+        lambda w: _calibrate("--out", "", "--overwrite"),
+        ("--out ''", "empty"),
+    ),
+    Case(
+        "calibrate-out-a-directory",
+        lambda w: _calibrate("--out", str(w / "export"), "--overwrite"),
+        ("--out", "is a directory"),
+    ),
+    Case(
+        "analyze-out-empty",
+        lambda w: ["analyze", str(_session(w)), "--out", ""],
+        ("--out", "is a directory"),
+    ),
+    Case(
         "query-read-text-user-file",
         _query(lambda w: f"SELECT * FROM read_text('{w}/config.yaml')"),
         ("SQL: Permission Error", "config.yaml"),
