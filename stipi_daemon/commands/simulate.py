@@ -12,7 +12,8 @@ import sys
 from pathlib import Path
 
 from stipi_daemon.commands import frame_size_arg, given_path
-from stipi_daemon.errors import ConfigError
+from stipi_daemon.errors import ConfigError, SessionError
+from stipi_daemon.storage.export import check_export_target
 
 
 def _coding(codec: str, jpeg_quality: int | None) -> str:
@@ -60,6 +61,10 @@ def run(args: argparse.Namespace) -> int:
         except ValueError as exc:
             raise ConfigError(f"{args.scene_file.name}: camera override: {exc}") from exc
     out = given_path(args.out)
+    try:  # a simulation's files never land in a session (video.mkv, frames.csv...)
+        check_export_target(out, [], what="a simulation")
+    except SessionError as exc:
+        raise ConfigError(str(exc)) from None
     show = not args.quiet and sys.stdout is not None and sys.stdout.isatty()
     if show:
         from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn

@@ -250,6 +250,11 @@ CASES = [
         ("--out ''", "empty"),
     ),
     Case(
+        "simulate-out-into-a-session",
+        lambda w: ["simulate", str(w / "scene.yaml"), "--out", str(_session(w) / "sim")],
+        ("--out", "inside the session directory"),
+    ),
+    Case(
         "index-out-empty",
         lambda w: ["study", "index", str(w / "sessions"), "--out", ""],
         ("--out ''", "empty"),

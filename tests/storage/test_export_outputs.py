@@ -21,6 +21,7 @@ from pathlib import Path
 
 import pytest
 
+from stipi_daemon.app.offline_io import read_frame_times_csv
 from stipi_daemon.cli import main
 from stipi_daemon.storage import SessionReader, SessionWriter, StorageOptions, export_session
 from tests.storage.conftest import write_full_session
@@ -134,4 +135,7 @@ def test_exported_frames_are_in_capture_order(tmp_path: Path) -> None:
         export_session(reader, tmp_path / "out", "csv")
     with open(tmp_path / "out" / "frames.csv", newline="") as f:
         assert [int(r["seq"]) for r in csv.DictReader(f)] == [0, 1, 2, 3, 4]
+    # what analyze --video reads of an export: frame times that increase
+    times, _ = read_frame_times_csv(tmp_path / "out" / "frames.csv")
+    assert list(times) == sorted(times)
     shutil.rmtree(tmp_path / "out")
