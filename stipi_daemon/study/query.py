@@ -43,11 +43,13 @@ def _sql_text(value: str) -> str:
 
 
 def _parquet_files(dataset: Path, table: str) -> list[Path]:
-    """The table's Parquet files (absolute, resolved), hidden temporary files left out."""
+    """The table's Parquet files (absolute: under the resolved table directory), hidden
+    temporary files left out."""
     directory = dataset / table
     if not directory.is_dir():
         return []
-    return sorted(p.resolve() for p in directory.rglob("*.parquet") if not p.name.startswith("."))
+    base = directory.resolve()
+    return sorted(p for p in base.rglob("*.parquet") if not p.name.startswith("."))
 
 
 def _create_view(con: duckdb.DuckDBPyConnection, table: str, files: list[Path]) -> None:
