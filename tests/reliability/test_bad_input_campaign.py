@@ -311,6 +311,22 @@ CASES = [
         ("--out", "is a directory"),
     ),
     Case(
+        "diff-with-a-damaged-dataset-file",
+        lambda w: (
+            _dataset_file(w).write_bytes(b"a,b\n1,2\n"),
+            ["study", "diff", str(w / "ds"), "recorded", "recorded"],
+        )[1],
+        ("a dataset file is unreadable", "study index"),
+    ),
+    Case(
+        "query-with-a-truncated-dataset-file",
+        lambda w: (
+            _dataset_file(w).write_bytes(_dataset_file(w).read_bytes()[:64]),
+            ["study", "query", str(w / "ds"), "SELECT count(*) FROM results"],
+        )[1],
+        ("a dataset file is unreadable", "study index"),
+    ),
+    Case(
         "query-read-text-user-file",
         _query(lambda w: f"SELECT * FROM read_text('{w}/config.yaml')"),
         ("SQL: Permission Error", "config.yaml"),
