@@ -45,7 +45,7 @@ from stipi_daemon.measurement.state_machine import MeasurementConfig
 from stipi_daemon.probe.transports import TransportConfig
 from stipi_daemon.storage.layout import DEFAULT_ROOT
 from stipi_daemon.storage.metadata import metadata_problem
-from stipi_daemon.yamlfile import load_yaml
+from stipi_daemon.yamlfile import load_yaml, read_utf8
 
 __all__ = [
     "CONFIG_FORMAT",
@@ -445,11 +445,7 @@ def parse_config(data: Any, source: str, overrides: Sequence[Override] = ()) -> 
 
 def read_config_data(path: Path) -> Any:
     """The parsed YAML of a config file (duplicate keys refused, naming the line)."""
-    try:
-        text = path.read_text(encoding="utf-8")
-    except OSError as exc:
-        raise ConfigError(f"{path}: cannot read config file: {exc.strerror or exc}") from None
-    return load_yaml(text, str(path))
+    return load_yaml(read_utf8(path, "config file"), str(path))
 
 
 def load_config(
