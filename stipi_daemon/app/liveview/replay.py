@@ -11,7 +11,8 @@ the frame list the page scrubs through and the frames that set the results:
 
 A frame's picture is read from the session video by its ``seq`` with the project's reader
 (:func:`~stipi_daemon.storage.video_readback.read_video_image`), only when the page asks
-for it. All times are on the session clock [s]; nothing is written.
+for it; a video that stores only the ROI's box is placed at its offset in the camera
+frame (the rest :data:`NOT_STORED_FILL`), so the ROI is drawn where S_k was counted. All times are on the session clock [s]; nothing is written.
 """
 
 from __future__ import annotations
@@ -31,10 +32,12 @@ from stipi_daemon.app.liveview.server import ViewServer, is_loopback
 from stipi_daemon.app.liveview.state import PreviewFrame, roi_dict
 from stipi_daemon.errors import SessionError
 from stipi_daemon.storage import SessionReader
-from stipi_daemon.storage.video_readback import read_video_image
+from stipi_daemon.storage.video_readback import probe_video, read_video_image
 
-__all__ = ["MARK_LABELS", "ReplaySource", "result_marks", "serve_session"]
+__all__ = ["MARK_LABELS", "NOT_STORED_FILL", "ReplaySource", "result_marks", "serve_session"]
 
+#: Gray level of the part of a frame an ROI-cropped video did not store [8-bit].
+NOT_STORED_FILL = 255
 #: Captions of the marked frames.
 MARK_LABELS = {"s0": "S_0 (T_0)", "s_max": "S_max", "t_r": "T_r (T_s)"}
 
@@ -95,9 +98,9 @@ class ReplaySource:
             manifest = reader.manifest
             self._session_id = reader.session_id
             self._metadata = {k: v for k, v in reader.metadata.items()}
-        order = np.argsort(frames["t_capture_s"], kind="stable")
+        order = np.argsort(frames["t_capture_host_s"], kind="stable")
         self._seq = np.asarray(frames["seq"])[order].astype(np.int64)
-        self._t_s = np.asarray(frames["t_capture_s"], dtype=np.float64)[order]
+        self._t_s = np.asarray(frames["t_capture_host_s"], dtype=np.float64)[order]
         self._s_k = np.asarray(frames["s_k"], dtype=np.float64)[order]
         self._index_of_seq: dict[int, int] = {}
         if video_rows is not None:
@@ -110,6 +113,12 @@ class ReplaySource:
         cal = manifest.get("calibration") or {}
         self._threshold_p = int(cal.get("threshold_p", 0))
         self._roi = roi_dict(roi_from_record(cal.get("roi")))
+        self._crop: tuple[int, int, int, int] | None = None
+        self._frame_size: tuple[int, int] | None = None
+        if self._video is not None and self._video.is_file():
+            with contextlib.suppress(SessionError):
+                video_info = probe_video(self._video)
+                self._crop, self._frame_size = video_info.crop, video_info.frame_size
         results = summary.get("results") or {}
         self._pitting = results.get("pitting")
         self._summary = summary
@@ -170,6 +179,18 @@ class ReplaySource:
             msg["marks"] = self.marks()
         return msg
 
+    def _camera_frame(self, image: npt.NDArray[np.uint8]) -> npt.NDArray[np.uint8]:
+        """A stored image in camera coordinates: a cropped one placed at its offset."""
+        if self._crop is None or self._frame_size is None:
+            return image
+        x0, y0, x1, y1 = self._crop
+        width, height = self._frame_size
+        if image.shape[:2] != (y1 - y0, x1 - x0) or x1 > width or y1 > height:
+            raise SessionError(f"the video's crop {self._crop} does not fit its frames")
+        canvas = np.full((height, width, *image.shape[2:]), NOT_STORED_FILL, dtype=np.uint8)
+        canvas[y0:y1, x0:x1] = image
+        return canvas
+
     def preview_frame(self, seq: int | None) -> PreviewFrame | None:
         """Frame ``seq`` read from the session video (None: the first frame); None when the
         session has no such frame or its video does not hold it."""
@@ -181,7 +202,7 @@ class ReplaySource:
         if i.size == 0 or k is None:
             return None
         try:
-            image = read_video_image(self._video, k)
+            image = self._camera_frame(read_video_image(self._video, k))
         except SessionError:
             return None
         return PreviewFrame(seq, float(self._t_s[i[0]]), int(self._s_k[i[0]]), image)

@@ -108,6 +108,7 @@
     const line = el("polyline", { points: coords.join(" "), class: "line" });
     svg.appendChild(line);
     svg.dataset.points = String(pts.length);
+    svg.dataset.cursorT = st.cursorT === null ? "" : String(st.cursorT);
     if (st.cursorT !== null) svg.appendChild(el("line", { x1: x(st.cursorT), x2: x(st.cursorT), y1: 0, y2: H, class: "cursor" }));
     const t = el("text", { x: 4, y: 14 });
     t.textContent = label + "  " + fmt(lo, 4) + " .. " + fmt(hi, 4);
