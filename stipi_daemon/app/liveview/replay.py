@@ -12,7 +12,8 @@ the frame list the page scrubs through and the frames that set the results:
 A frame's picture is read from the session video by its ``seq`` with the project's reader
 (:func:`~stipi_daemon.storage.video_readback.read_video_image`), only when the page asks
 for it; a video that stores only the ROI's box is placed at its offset in the camera
-frame (the rest :data:`NOT_STORED_FILL`), so the ROI is drawn where S_k was counted. All times are on the session clock [s]; nothing is written.
+frame (the rest :data:`NOT_STORED_FILL`), so the ROI is drawn where S_k was counted.
+All times are on the session clock [s]; nothing is written.
 """
 
 from __future__ import annotations
