@@ -10,6 +10,8 @@ viewer asked for, and never on the daemon's loop or capture thread.
 
 from __future__ import annotations
 
+import functools
+import json
 import math
 from typing import Any
 
@@ -20,45 +22,50 @@ import numpy.typing as npt
 __all__ = ["JPEG_QUALITY", "PREVIEW_MAX_WIDTH_PX", "preview_jpeg"]
 
 #: Widest preview image [px]; larger frames are subsampled by an integer step.
-PREVIEW_MAX_WIDTH_PX = 640
+PREVIEW_MAX_WIDTH_PX = 480
 #: JPEG quality of preview images (0-100).
-JPEG_QUALITY = 80
+JPEG_QUALITY = 75
 #: Tint of counted pixels (BGR) and how much of it covers the pixel [-].
-_TINT_BGR = np.array([40, 40, 230], dtype=np.float32)
+_TINT_BGR = (40, 40, 230)
 _TINT_ALPHA = 0.55
+#: Per channel (B, G, R), the tinted level of each gray level [8-bit].
+_TINT_LUTS = [
+    np.round(np.arange(256) * (1.0 - _TINT_ALPHA) + c * _TINT_ALPHA).astype(np.uint8)
+    for c in _TINT_BGR
+]
 
 
 def _gray(image: npt.NDArray[np.uint8]) -> npt.NDArray[np.uint8]:
     if image.ndim == 2:
-        return image
+        return np.ascontiguousarray(image)
     code = {3: cv2.COLOR_BGR2GRAY, 4: cv2.COLOR_BGRA2GRAY}.get(image.shape[2])
     if code is None:  # another layout: its first channel as luminance
         return np.ascontiguousarray(image[..., 0])
-    return np.asarray(cv2.cvtColor(image, code), dtype=np.uint8)
+    return np.asarray(cv2.cvtColor(np.ascontiguousarray(image), code), dtype=np.uint8)
 
 
-def _roi_mask(
-    shape: tuple[int, int], step: int, roi: dict[str, Any] | None
-) -> npt.NDArray[np.bool_]:
-    """Which pixels of the subsampled frame lie in the ROI (camera coordinates / step)."""
+@functools.lru_cache(maxsize=4)
+def _roi_mask(shape: tuple[int, int], step: int, roi_key: str) -> npt.NDArray[np.uint8]:
+    """255 where a pixel of the subsampled frame lies in the ROI (``roi_key``: its JSON;
+    camera coordinates, pixel ``(i, j)`` shown is camera pixel ``(i * step, j * step)``)."""
+    roi = json.loads(roi_key)
     h, w = shape
     if roi is None:
-        return np.ones((h, w), dtype=bool)
+        return np.full((h, w), 255, dtype=np.uint8)
     ys = (np.arange(h) * step)[:, None]
     xs = (np.arange(w) * step)[None, :]
     if roi.get("kind") == "circle":
         r = float(roi["radius_px"])
-        return bool_array(
-            (xs - float(roi["cx_px"])) ** 2 + (ys - float(roi["cy_px"])) ** 2 <= r * r
-        )
-    x0, y0 = int(roi["x_px"]), int(roi["y_px"])
-    x1, y1 = x0 + int(roi["width_px"]), y0 + int(roi["height_px"])
-    return bool_array((xs >= x0) & (xs < x1) & (ys >= y0) & (ys < y1))
+        inside = (xs - float(roi["cx_px"])) ** 2 + (ys - float(roi["cy_px"])) ** 2 <= r * r
+    else:
+        x0, y0 = int(roi["x_px"]), int(roi["y_px"])
+        x1, y1 = x0 + int(roi["width_px"]), y0 + int(roi["height_px"])
+        inside = (xs >= x0) & (xs < x1) & (ys >= y0) & (ys < y1)
+    return np.where(inside, 255, 0).astype(np.uint8)
 
 
-def bool_array(a: Any) -> npt.NDArray[np.bool_]:
-    """``a`` as a boolean array."""
-    return np.asarray(a, dtype=bool)
+def _roi_key(roi: dict[str, Any] | None) -> str:
+    return json.dumps(roi, sort_keys=True)
 
 
 def preview_jpeg(
@@ -70,13 +77,17 @@ def preview_jpeg(
     ``threshold_p`` are tinted red.
     """
     step = max(1, math.ceil(image.shape[1] / PREVIEW_MAX_WIDTH_PX))
-    small = image[::step, ::step]
-    gray = _gray(small)
-    counted = (gray <= threshold_p) & _roi_mask(gray.shape[:2], step, roi)
-    bgr = cv2.cvtColor(gray, cv2.COLOR_GRAY2BGR)
-    if counted.any():
-        px = bgr[counted].astype(np.float32)
-        bgr[counted] = (px * (1.0 - _TINT_ALPHA) + _TINT_BGR * _TINT_ALPHA).astype(np.uint8)
+    gray = _gray(image[::step, ::step])
+    h, w = gray.shape[:2]
+    # counted: at or below p (Eq. (1), inverted) and inside the ROI (Eq. (2))
+    _, below = cv2.threshold(gray, threshold_p, 255, cv2.THRESH_BINARY_INV)
+    counted = cv2.bitwise_and(below, _roi_mask((h, w), step, _roi_key(roi)))
+    channels = []
+    for lut in _TINT_LUTS:  # B, G, R: gray, and the tinted level where counted
+        channel = gray.copy()
+        cv2.copyTo(cv2.LUT(gray, lut), counted, channel)
+        channels.append(channel)
+    bgr = cv2.merge(channels)
     ok, buf = cv2.imencode(".jpg", bgr, [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])
     if not ok:
         raise ValueError("the preview frame could not be encoded as JPEG")

@@ -10,15 +10,18 @@ What it serves, all ``GET``:
 
 * ``/`` the page, ``/static/view.js`` and ``/static/view.css`` (package data, no build);
 * ``/ws`` a websocket on which the server sends the state as JSON at most
-  :data:`STATE_RATE_HZ` times a second (the traces' new points only); it reads nothing
-  but the close;
+  :data:`STATE_RATE_HZ` times a second (the traces' new points only) and a frame as a
+  binary message when the page asks for one (``next``: the newest, once it has shown the
+  last; ``seq:N``: frame N of a stored session); it reads nothing else;
 * ``/frame.jpg`` the newest frame (live) or frame ``seq`` (replay) as a preview JPEG
-  (:mod:`.preview`), made in a worker thread when a viewer asks for it and shared by every
-  viewer: at most :data:`PREVIEW_RATE_HZ` new encodings a second, however many watch.
+  (:mod:`.preview`), as on the websocket. A preview is made in a worker thread when a
+  viewer asks for it and shared by every viewer: at most :data:`PREVIEW_RATE_HZ` new
+  encodings a second, however many watch.
 
 A viewer that stops reading costs nothing: the page asks for the next frame only when it
 has shown the last one, and a websocket whose peer does not read holds its sender at the
-socket's bounded buffer (the state is sent again from where it stopped, never queued).
+socket's bounded buffer (the state is sent again from where it stopped, never queued);
+one that stalls a send for :data:`SEND_TIMEOUT_WALL_S` is disconnected.
 
 Who may see it: every request must carry the run's random token (``?token=``, in the
 printed address); its ``Host`` must be the served one (a name that resolves to this
@@ -33,6 +36,7 @@ import asyncio
 import contextlib
 import hmac
 import ipaddress
+import json
 import secrets
 import threading
 import time
@@ -57,9 +61,9 @@ __all__ = [
 ]
 
 #: Most state messages a viewer is sent per second [1/s].
-STATE_RATE_HZ = 15.0
+STATE_RATE_HZ = 5.0
 #: Most preview frames encoded per second, for all viewers together [1/s].
-PREVIEW_RATE_HZ = 15.0
+PREVIEW_RATE_HZ = 10.0
 #: Wall time a websocket send may take before the viewer is dropped [s].
 SEND_TIMEOUT_WALL_S = 60.0
 #: Files the page is made of (package data).
@@ -198,6 +202,11 @@ class _Previews:
                 self._cached, self._cached_wall_s = made, time.monotonic()
                 self.encoded += 1
             return made
+
+    def next_in(self) -> float:
+        """Wall time until a newer frame may be encoded [s] (at least 5 ms)."""
+        due = self._cached_wall_s + 1.0 / PREVIEW_RATE_HZ - time.monotonic()
+        return max(0.005, due)
 
     def close(self) -> None:
         self._pool.shutdown(wait=False, cancel_futures=True)
@@ -351,17 +360,22 @@ class ViewServer:
         return web.Response(body=jpeg, content_type="image/jpeg", headers=headers)
 
     async def _websocket(self, request: web.Request) -> web.WebSocketResponse:
-        ws = web.WebSocketResponse(heartbeat=None, max_msg_size=4096)
+        # no per-message deflate: JPEGs do not shrink, and deflating costs the daemon's CPU
+        ws = web.WebSocketResponse(heartbeat=None, max_msg_size=256, compress=False)
         for k, v in _SECURITY_HEADERS.items():
             ws.headers[k] = v
         await ws.prepare(request)
         self._sockets.add(ws)
         self.viewers += 1
-        sender = asyncio.create_task(self._send_state(ws))
+        viewer = _Viewer()
+        sender = asyncio.create_task(self._send(ws, viewer))
         try:
-            async for msg in ws:  # nothing is read but the close: the view is read-only
-                if msg.type in (WSMsgType.ERROR, WSMsgType.CLOSE):
+            # What a page sends only chooses which frame it is sent next: "next" (the newest
+            # after the one it has; it asks once it has shown the last) or "seq:N" (replay).
+            async for msg in ws:
+                if msg.type != WSMsgType.TEXT:
                     break
+                viewer.ask(str(msg.data))
         finally:
             sender.cancel()
             with contextlib.suppress(asyncio.CancelledError, Exception):
@@ -370,16 +384,64 @@ class ViewServer:
             self._sockets.discard(ws)
         return ws
 
-    async def _send_state(self, ws: web.WebSocketResponse) -> None:
-        """The info once, then the state at most :data:`STATE_RATE_HZ` times a second."""
+    async def _send(self, ws: web.WebSocketResponse, viewer: _Viewer) -> None:
+        """The info once, then the state at most :data:`STATE_RATE_HZ` times a second and
+        the frame the viewer asked for, when there is one it has not been sent."""
         cursor: dict[str, int] = {}
+        loop = asyncio.get_running_loop()
+        next_state = loop.time()
         try:
             async with asyncio.timeout(SEND_TIMEOUT_WALL_S):
                 await ws.send_json({"info": self.source.info()})
             while not ws.closed:
-                msg = self.source.snapshot(cursor)
-                async with asyncio.timeout(SEND_TIMEOUT_WALL_S):  # a stalled viewer waits here
-                    await ws.send_json(msg)
-                await asyncio.sleep(1.0 / STATE_RATE_HZ)
+                if loop.time() >= next_state:
+                    next_state = loop.time() + 1.0 / STATE_RATE_HZ
+                    async with asyncio.timeout(SEND_TIMEOUT_WALL_S):  # a stalled viewer waits
+                        await ws.send_json(self.source.snapshot(cursor))
+                wait = next_state - loop.time()
+                if viewer.wants is not None:
+                    live = viewer.wants == "next"
+                    made = await self._previews.get(None if live else int(viewer.wants))
+                    if made is not None and not (live and made[0] == viewer.sent_seq):
+                        viewer.wants, viewer.sent_seq = None, made[0]
+                        async with asyncio.timeout(SEND_TIMEOUT_WALL_S):
+                            await ws.send_bytes(_frame_message(made))
+                    elif live:  # no newer frame yet (or one made just now): look again soon
+                        wait = min(wait, self._previews.next_in())
+                    else:
+                        viewer.wants = None  # no such frame
+                await viewer.wait(max(0.0, wait))
         except (TimeoutError, ConnectionError):
             await ws.close()
+
+
+class _Viewer:
+    """One page's request for its next frame (``"next"``, a ``seq``, or None)."""
+
+    def __init__(self) -> None:
+        self.wants: str | None = None
+        self.sent_seq: int | None = None
+        self._asked = asyncio.Event()
+
+    def ask(self, text: str) -> None:
+        if text == "next":
+            self.wants = "next"
+        elif text.startswith("seq:") and text[4:].isdigit():
+            self.wants = text[4:]
+        else:
+            return
+        self._asked.set()
+
+    async def wait(self, wall_s: float) -> None:
+        with contextlib.suppress(TimeoutError):
+            async with asyncio.timeout(wall_s):
+                await self._asked.wait()
+        self._asked.clear()
+
+
+def _frame_message(made: tuple[int, float, int, bytes, int]) -> bytes:
+    """A frame as one binary websocket message: a 4-byte big-endian length, a JSON header
+    (``seq``, ``t_s``, ``s_k``, ``step``), the JPEG."""
+    seq, t_s, s_k, jpeg, step = made
+    head = json.dumps({"seq": seq, "t_s": t_s, "s_k": s_k, "step": step}).encode()
+    return len(head).to_bytes(4, "big") + head + jpeg

@@ -46,7 +46,7 @@ def _page_state(driver: Any) -> dict[str, Any]:
 
 @pytest.mark.timeout(300)
 def test_the_live_page_follows_the_run(tmp_path: Path) -> None:
-    cfg = short_config(tmp_path, {}, speed=1.5, measurement={"stop_when_settled": True})
+    cfg = short_config(tmp_path, {}, speed=1.0, measurement={"stop_when_settled": True})
     config = load_config(cfg, overrides=[])
     config = config.model_copy(update={"view": config.view.model_copy(update={"enabled": True})})
     out = io.StringIO()
@@ -54,10 +54,10 @@ def test_the_live_page_follows_the_run(tmp_path: Path) -> None:
     run = threading.Thread(
         target=lambda: result.append(run_measurement(config, out=out, live=False)), daemon=True
     )
-    run.start()
-    url = wait_for(lambda: (m := URL_LINE.search(out.getvalue())) and m.group(1), 60, "url")
     samples: list[dict[str, Any]] = []
-    with chromium(tmp_path / "profile") as driver:
+    with chromium(tmp_path / "profile") as driver:  # started before the run: it takes a while
+        run.start()
+        url = wait_for(lambda: (m := URL_LINE.search(out.getvalue())) and m.group(1), 60, "url")
         driver.get(url)
         wait_for(lambda: text(driver, "mode") == "live", why="the page's websocket")
         shot = False

@@ -147,3 +147,23 @@ def test_another_interface_is_an_explicit_choice_the_host_must_match() -> None:
         )
     finally:
         server.stop()
+
+
+async def test_a_frame_is_sent_on_the_websocket_when_asked_for() -> None:
+    import aiohttp
+
+    state = _state()
+    with served(state) as server:
+        url = f"http://127.0.0.1:{server.port}/ws?token={server.token}"
+        async with (
+            aiohttp.ClientSession() as session,
+            session.ws_connect(url, origin=f"http://{_host(server)}") as ws,
+        ):
+            for _ in range(3):  # info, state, state: no frame unless asked
+                assert (await ws.receive(timeout=5)).type == aiohttp.WSMsgType.TEXT
+            await ws.send_str("next")
+            while (msg := await ws.receive(timeout=5)).type != aiohttp.WSMsgType.BINARY:
+                pass
+            n = int.from_bytes(msg.data[:4], "big")
+            head = json.loads(msg.data[4 : 4 + n])
+            assert head["seq"] == 4 and msg.data[4 + n : 6 + n] == b"\xff\xd8"

@@ -5,7 +5,7 @@
   const token = new URLSearchParams(location.search).get("token") || "";
   const q = "token=" + encodeURIComponent(token);
   const SVG = "http://www.w3.org/2000/svg";
-  const MIN_FRAME_INTERVAL_MS = 1000 / 15;
+  const MIN_FRAME_INTERVAL_MS = 1000 / 10;
   const PARAMS = [
     ["depth_mm", "D_p", "mm"], ["rebound_force_n", "F_r", "N"],
     ["recovery_time_s", "T_r", "s"], ["elasticity_kpa", "E", "kPa"],
@@ -14,7 +14,7 @@
   const st = {
     info: null, force: [], sk: [], transitions: [], notes: [], now: 0, phase: "-",
     phaseSince: 0, prompt: "", t0: null, params: null, health: {}, frameSeq: null,
-    shownSeq: null, fetching: false, lastFetch: 0, frames: [], marks: {}, cursorT: null,
+    shownSeq: null, fetching: false, lastFetch: 0, ws: null, asked: null, step: 1, frames: [], marks: {}, cursorT: null,
     finished: false,
   };
   const $ = (id) => document.getElementById(id);
@@ -29,37 +29,36 @@
 
   // ---------------------------------------------------------------- frames
   function wantFrame() {
-    if (st.fetching || st.frameSeq === null || st.frameSeq === st.shownSeq) return;
+    if (st.fetching && performance.now() - st.lastFetch > 2000) st.fetching = false;  // none came
+    if (st.fetching || !st.ws || st.ws.readyState !== 1) return;
+    const replay = st.info && st.info.mode === "replay";
+    if (st.frameSeq === null || st.frameSeq === st.shownSeq) return;
     const wait = st.lastFetch + MIN_FRAME_INTERVAL_MS - performance.now();
     if (wait > 0) { setTimeout(wantFrame, wait); return; }
-    fetchFrame(st.info && st.info.mode === "replay" ? st.frameSeq : null);
-  }
-
-  function fetchFrame(seq) {
     st.fetching = true;
     st.lastFetch = performance.now();
-    const url = "/frame.jpg?" + q + (seq === null ? "" : "&seq=" + seq);
-    fetch(url, { cache: "no-store" }).then((r) => {
-      if (!r.ok) throw new Error("frame " + r.status);
-      const hdr = (k) => r.headers.get(k);
-      return r.blob().then((b) => ({ b, seq: +hdr("X-Frame-Seq"), t: +hdr("X-Frame-T-S"),
-        sk: +hdr("X-Frame-S-K"), step: +hdr("X-Preview-Step") || 1 }));
-    }).then((f) => {
-      const img = $("frame");
-      const old = img.src;
-      img.onload = () => {
-        if (old.startsWith("blob:")) URL.revokeObjectURL(old);
-        st.shownSeq = f.seq;
-        st.step = f.step;
-        img.dataset.seq = String(f.seq);
-        drawRoi();
-        st.fetching = false;
-        wantFrame();
-      };
-      img.src = URL.createObjectURL(f.b);
-      text("frame-info", "frame " + f.seq + "   t = " + f.t.toFixed(3) + " s   S_k = " + f.sk + " px");
-      if (st.info && st.info.mode === "replay") { st.cursorT = f.t; drawTraces(); }
-    }).catch(() => { st.fetching = false; setTimeout(wantFrame, 500); });
+    st.asked = replay ? st.frameSeq : null;
+    st.ws.send(replay ? "seq:" + st.frameSeq : "next");
+  }
+
+  function showFrame(buf) {
+    const n = new DataView(buf).getUint32(0);
+    const f = JSON.parse(new TextDecoder().decode(new Uint8Array(buf, 4, n)));
+    const blob = new Blob([new Uint8Array(buf, 4 + n)], { type: "image/jpeg" });
+    const img = $("frame");
+    const old = img.src;
+    img.onload = () => {
+      if (old.startsWith("blob:")) URL.revokeObjectURL(old);
+      st.shownSeq = f.seq;
+      st.step = f.step;
+      img.dataset.seq = String(f.seq);
+      drawRoi();
+      st.fetching = false;
+      wantFrame();
+    };
+    img.src = URL.createObjectURL(blob);
+    text("frame-info", "frame " + f.seq + "   t = " + f.t_s.toFixed(3) + " s   S_k = " + f.s_k + " px");
+    if (st.info && st.info.mode === "replay") { st.cursorT = f.t_s; drawTraces(); }
   }
 
   function drawRoi() {
@@ -158,7 +157,8 @@
       const d = document.createElement("div");
       const v = h[k];
       d.dataset.key = k;
-      d.textContent = k + ": " + (typeof v === "number" ? fmt(v, 4) : (v === null ? "-" : String(v)));
+      const shown = typeof v === "number" ? (Number.isInteger(v) ? String(v) : fmt(v, 4)) : v;
+      d.textContent = k + ": " + (shown === null ? "-" : String(shown));
       if ((k === "dropped_frames" || k === "gaps" || k === "late_frames") && v > 0) d.className = "bad";
       box.appendChild(d);
     }
@@ -234,7 +234,12 @@
   // ---------------------------------------------------------------- connection
   function connect() {
     const ws = new WebSocket("ws://" + location.host + "/ws?" + q);
-    ws.onmessage = (ev) => apply(JSON.parse(ev.data));
+    ws.binaryType = "arraybuffer";
+    st.ws = ws;
+    st.fetching = false;
+    ws.onmessage = (ev) => {
+      if (typeof ev.data === "string") apply(JSON.parse(ev.data)); else showFrame(ev.data);
+    };
     ws.onclose = () => {
       if (!st.finished) text("mode", (st.info ? st.info.mode : "") + " (disconnected)");
       if (!st.info || st.info.mode !== "replay") setTimeout(connect, 1000);
