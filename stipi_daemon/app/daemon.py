@@ -377,8 +377,8 @@ async def _run_daemon(
         wall = {"wall_s": repr(time.monotonic() - wall0), "clock": type(clock).__name__}
         if isinstance(clock, VirtualClock):
             wall |= {"pace": repr(clock.pace), "clock_steps": str(clock.steps)}
-        finish_session(writer, status, summary, storage_error, wall)
-        view.close()
+        with view:  # the live view stops once the session is finished, whatever happens
+            finish_session(writer, status, summary, storage_error, wall)
         if status == "aborted" or storage_error is not None:  # did not end: say so, and where
             how = "aborted" if storage_error is None else "stopped: storing failed"
             console.line(f"measurement {how}; what was recorded is in {writer.directory}")
