@@ -4,8 +4,8 @@ The page shows the camera frame with the pixels S_k counts tinted: those at or b
 threshold p of Eq. (1) inside the ROI (Eq. (2)). The frame is first reduced to at most
 :data:`PREVIEW_MAX_WIDTH_PX` wide by taking every n-th pixel (nearest neighbour: each
 shown pixel is a camera pixel, unblended, so its tint is exactly whether S_k counts it),
-then tinted and encoded. This runs in a view server's worker thread, only for a frame a
-viewer asked for, and never on the daemon's loop or capture thread.
+then tinted and encoded. This runs in the view server's thread, only for a frame a viewer
+asked for, and never on the daemon's loop or capture thread.
 """
 
 from __future__ import annotations
@@ -24,7 +24,7 @@ __all__ = ["JPEG_QUALITY", "PREVIEW_MAX_WIDTH_PX", "preview_jpeg"]
 #: Widest preview image [px]; larger frames are subsampled by an integer step.
 PREVIEW_MAX_WIDTH_PX = 480
 #: JPEG quality of preview images (0-100).
-JPEG_QUALITY = 75
+JPEG_QUALITY = 60
 #: Tint of counted pixels (BGR) and how much of it covers the pixel [-].
 _TINT_BGR = (40, 40, 230)
 _TINT_ALPHA = 0.55

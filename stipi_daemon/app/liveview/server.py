@@ -14,9 +14,10 @@ What it serves, all ``GET``:
   binary message when the page asks for one (``next``: the newest, once it has shown the
   last; ``seq:N``: frame N of a stored session); it reads nothing else;
 * ``/frame.jpg`` the newest frame (live) or frame ``seq`` (replay) as a preview JPEG
-  (:mod:`.preview`), as on the websocket. A preview is made in a worker thread when a
-  viewer asks for it and shared by every viewer: at most :data:`PREVIEW_RATE_HZ` new
-  encodings a second, however many watch.
+  (:mod:`.preview`), as on the websocket. A preview is made in the view's thread (a stored
+  frame: in a worker thread, as the video is read) when a viewer asks for it and shared by
+  every viewer: at most :data:`PREVIEW_RATE_HZ` new encodings a second, however many
+  watch.
 
 A viewer that stops reading costs nothing: the page asks for the next frame only when it
 has shown the last one, and a websocket whose peer does not read holds its sender at the
@@ -61,7 +62,7 @@ __all__ = [
 ]
 
 #: Most state messages a viewer is sent per second [1/s].
-STATE_RATE_HZ = 5.0
+STATE_RATE_HZ = 4.0
 #: Most preview frames encoded per second, for all viewers together [1/s].
 PREVIEW_RATE_HZ = 10.0
 #: Wall time a websocket send may take before the viewer is dropped [s].
@@ -93,7 +94,7 @@ class ViewSource(Protocol):
 
     def preview_frame(self, seq: int | None) -> PreviewFrame | None:
         """Frame ``seq`` (None: the newest), or None when there is none. May block (a
-        stored video is read): the server calls it in a worker thread."""
+        stored video is read): never called on the daemon's loop."""
         ...
 
 
@@ -170,8 +171,9 @@ def _static_text(name: str) -> str:
 
 
 class _Previews:
-    """Preview JPEGs made in a worker thread and shared by every viewer, at most
-    :data:`PREVIEW_RATE_HZ` new ones a second."""
+    """Preview JPEGs shared by every viewer, at most :data:`PREVIEW_RATE_HZ` new ones a
+    second: the newest frame encoded in the view's thread (about a millisecond at 720p,
+    never on the daemon's loop), a stored one read and encoded in a worker thread."""
 
     def __init__(self, source: ViewSource, threshold_p: int, roi: dict[str, Any] | None) -> None:
         self._source = source
@@ -196,8 +198,11 @@ class _Previews:
             fresh = time.monotonic() - self._cached_wall_s < 1.0 / PREVIEW_RATE_HZ
             if cached is not None and (cached[0] == seq or (seq is None and fresh)):
                 return cached
-            loop = asyncio.get_running_loop()
-            made = await loop.run_in_executor(self._pool, self._make, seq)
+            if seq is None:  # the newest frame, in memory: encoded here, in the view's thread
+                made = self._make(seq)
+            else:  # a stored frame is read from the video first: in a worker thread
+                loop = asyncio.get_running_loop()
+                made = await loop.run_in_executor(self._pool, self._make, seq)
             if made is not None:
                 self._cached, self._cached_wall_s = made, time.monotonic()
                 self.encoded += 1
