@@ -57,6 +57,7 @@ __all__ = [
     "RunSettings",
     "SessionSettings",
     "StorageSettings",
+    "ViewSettings",
     "find_session",
     "load_config",
     "parse_override",
@@ -223,6 +224,28 @@ class SessionSettings(_Model):
         return value
 
 
+class ViewSettings(_Model):
+    """The live view in the browser (:mod:`stipi_daemon.app.liveview`).
+
+    Attributes
+    ----------
+    enabled : bool or None
+        Serve the view while measuring. None (the default): when the console is a terminal
+        and not ``--quiet`` (an interactive run); a script's or a service's run serves it
+        only with ``true``.
+    host : str
+        Address to listen on. Loopback (the default) lets only this machine's browser
+        connect; another address is an explicit choice and the daemon warns when it starts.
+    port : int
+        TCP port; 0 (the default): a free one the system chooses (the printed address has
+        it, with the run's random token).
+    """
+
+    enabled: bool | None = None
+    host: str = Field("127.0.0.1", min_length=1)
+    port: int = Field(0, ge=0, le=65535)
+
+
 class DaemonConfig(_Model):
     """The whole configuration file."""
 
@@ -237,6 +260,7 @@ class DaemonConfig(_Model):
     storage: StorageSettings = StorageSettings()
     run: RunSettings = RunSettings()
     session: SessionSettings = SessionSettings()
+    view: ViewSettings = ViewSettings()
 
     @field_validator("analysis")
     @classmethod

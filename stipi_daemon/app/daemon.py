@@ -57,6 +57,8 @@ from stipi_daemon.app.finish import (
 )
 from stipi_daemon.app.frame_measurer import FrameMeasurer
 from stipi_daemon.app.imaging import resolve_imaging
+from stipi_daemon.app.liveview.live import serving_live_view
+from stipi_daemon.app.liveview.state import ViewInfo, roi_dict
 from stipi_daemon.app.memory import hold_heap, return_free_memory
 from stipi_daemon.clock import ScaledClock, SessionClock, VirtualClock
 from stipi_daemon.errors import EXIT_FAULT, EXIT_OK, SessionError, Terminated
@@ -142,6 +144,25 @@ def _frame_measurer(
     )
     measurer.recorder = devices.recorder  # the session video (storage.video)
     return measurer
+
+
+def _view_info(
+    config: DaemonConfig, writer: SessionWriter, threshold: int, roi: CircleROI | RectROI | None
+) -> ViewInfo:
+    """What the live view shows that does not change during the run."""
+    m = config.measurement
+    return ViewInfo(
+        session_id=writer.session_id,
+        metadata=config.session.model_dump(),
+        threshold_p=threshold,
+        roi=roi_dict(roi),
+        pitting_duration_s=m.pitting_duration_s,
+        recovery_max_s=m.recovery_max_s,
+        force_band_n=(
+            m.target_force_n - m.force_tolerance_n,
+            m.target_force_n + m.force_tolerance_n,
+        ),
+    )
 
 
 def run_measurement(
@@ -344,6 +365,14 @@ async def _run_daemon(
     # the session's frames are the measurement's: none captured after its end is stored
     pipeline.on_end_known = measurer.store_until
     acquisition = Acquisition(config, devices, pipeline, console, measurer)
+    # The live view in the browser, when asked for: it reads what the acquisition publishes.
+    view = contextlib.ExitStack()
+    served = view.enter_context(
+        serving_live_view(config.view, _view_info(config, writer, threshold, roi), console)
+    )
+    if served is not None:
+        acquisition.live = served[0]
+        measurer.preview = served[0].frame
     status = "aborted"
     # Until the measurement ends: an interruption (Ctrl-C) or an unexpected error leaves
     # this summary, whose verdict is incomplete.
@@ -383,7 +412,8 @@ async def _run_daemon(
         wall = {"wall_s": repr(time.monotonic() - wall0), "clock": type(clock).__name__}
         if isinstance(clock, VirtualClock):
             wall |= {"pace": repr(clock.pace), "clock_steps": str(clock.steps)}
-        finish_session(writer, status, summary, storage_error, wall)
+        with view:  # the live view stops once the session is finished, whatever happens
+            finish_session(writer, status, summary, storage_error, wall)
         _say_how_it_ended(console, status, storage_error, writer.directory)
     if storage_error is not None:
         raise storage_failure(writer, storage_error) from storage_error

@@ -30,6 +30,7 @@ COMMAND_MODULES: tuple[str, ...] = (
     "sessions",
     "simulate",
     "study",
+    "view",
 )
 
 
