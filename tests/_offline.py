@@ -66,10 +66,9 @@ def record_session(
     cfg: dict[str, object] = {
         "probe": {"transport": {"kind": "emulated", "scene": scene_path}},
         "camera": {"kind": "simulator", "scene": scene_path},
-        # the video as the demo keeps it, the ROI's gray box: whole BGR frames encoded at
-        # speed 8 fall behind on a 2-CPU machine (late frames stored as gaps)
+        # the video as the demo keeps it, the ROI's gray box; as fast as the daemon goes
         "storage": {"root": str(directory / "sessions"), "min_free_mb": 0, "video_roi_only": True},
-        "run": {"speed": 8.0},
+        "run": {"speed": 0.0},
     }
     if calibration is not None:
         cfg["calibration"] = str(calibration)

@@ -56,7 +56,7 @@ MINIMAL = (
             MINIMAL + "probe: {rate_hz: 5}\n",
             "line 3: duplicate key 'probe' (already given at line 1",
         ),
-        (MINIMAL + "run: {speed: 0}\n", "field 'run.speed'"),
+        (MINIMAL + "run: {speed: -1}\n", "field 'run.speed'"),
         (MINIMAL + "measurement: {target_force_n: -1}\n", "field 'measurement.target_force_n'"),
         (MINIMAL + "imaging: {threshold_p: 300}\n", "field 'imaging.threshold_p'"),
         (MINIMAL + "storage: {commit_interval_s: 2}\n", "field 'storage.commit_interval_s'"),
@@ -100,3 +100,20 @@ def test_shipped_configs_load(name: str) -> None:
         assert cfg.camera.kind == "v4l2"
         assert cfg.run.speed == 1.0
         assert cfg.calibration == (REPO_ROOT / "configs" / "calibration" / "probe.json")
+
+
+def test_speed_0_runs_a_simulated_world_as_fast_as_the_daemon_goes(tmp_path: Path) -> None:
+    ok = tmp_path / "sim.yaml"
+    ok.write_text(MINIMAL + "run: {speed: 0}\n")
+    assert load_config(ok).run.speed == 0.0
+    real = tmp_path / "real.yaml"
+    real.write_text(
+        "probe: {transport: {kind: serial, port: /dev/ttyACM0}}\n"
+        "camera: {kind: simulator, scene: s.yaml}\nrun: {speed: 0}\n"
+    )
+    with pytest.raises(ConfigError, match=r"run.speed 0 \(as fast as the daemon goes\) needs"):
+        load_config(real)
+    wall = tmp_path / "wall.yaml"
+    wall.write_text(MINIMAL + "run: {speed: 0, clock: wall}\n")
+    with pytest.raises(ConfigError, match="run.clock auto"):
+        load_config(wall)

@@ -98,7 +98,7 @@ def _config(directory: Path, scene: Path, **sections: object) -> Path:
         "probe": {"transport": {"kind": "emulated", "scene": str(scene)}},
         "camera": {"kind": "simulator", "scene": str(scene)},
         "storage": {"root": "sessions", "min_free_mb": 0, "video": "off"},
-        "run": {"speed": 8.0},
+        "run": {"speed": 0.0},
         **sections,
     }
     path = directory / "config.yaml"

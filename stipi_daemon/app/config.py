@@ -106,7 +106,8 @@ class RunSettings(_Model):
     Attributes
     ----------
     speed : float
-        Session seconds per wall second at most. 1 for real devices. A run whose every
+        Session seconds per wall second at most, >= 0. 1 for real devices; 0: as fast as
+        the daemon goes (only where every device is simulated). A run whose every
         device is simulated in the daemon's process (the emulated probe and the simulator
         camera or a paced video file) runs on a clock that waits for the daemon
         (:class:`~stipi_daemon.clock.VirtualClock`): ``speed`` only caps how far ahead of
@@ -125,7 +126,7 @@ class RunSettings(_Model):
         than the camera, so the session never ends while frames of its window are queued.
     """
 
-    speed: float = Field(1.0, gt=0.0, le=1000.0, allow_inf_nan=False)
+    speed: float = Field(1.0, ge=0.0, le=1000.0, allow_inf_nan=False)
     clock: Literal["auto", "wall"] = "auto"
     max_lag_s: float = Field(5.0, gt=0.0, le=60.0, allow_inf_nan=False)
 
@@ -246,6 +247,12 @@ class ViewSettings(_Model):
     port: int = Field(0, ge=0, le=65535)
 
 
+def _simulated_world(probe: ProbeSettings, camera: CameraConfig) -> bool:
+    """See :attr:`DaemonConfig.simulated_world`."""
+    plays_scene = camera.kind == "simulator" or (camera.kind == "file" and camera.pace)
+    return probe.transport.kind == "emulated" and plays_scene
+
+
 class DaemonConfig(_Model):
     """The whole configuration file."""
 
@@ -279,6 +286,29 @@ class DaemonConfig(_Model):
                 "stops early by the analysis' settling rule (Eq. (6))"
             )
         return analysis
+
+    @field_validator("run")
+    @classmethod
+    def _unpaced_needs_a_simulated_world(
+        cls, run: RunSettings, info: ValidationInfo
+    ) -> RunSettings:
+        probe, camera = info.data.get("probe"), info.data.get("camera")
+        if run.speed == 0.0 and probe is not None and camera is not None:
+            if run.clock == "wall" or not _simulated_world(probe, camera):
+                raise ValueError(
+                    "run.speed 0 (as fast as the daemon goes) needs every device simulated "
+                    "in the daemon's process (probe.transport.kind emulated, camera.kind "
+                    "simulator or a paced file) and run.clock auto; real devices run at 1"
+                )
+        return run
+
+    @property
+    def simulated_world(self) -> bool:
+        """Whether every device of a run is simulated in the daemon's process: the emulated
+        probe on a pty and a camera that plays the scene (the simulator, a paced video
+        file). Such a run's clock waits for the daemon
+        (:class:`~stipi_daemon.clock.VirtualClock`)."""
+        return _simulated_world(self.probe, self.camera)
 
     def resolved(self, base: Path) -> DaemonConfig:
         """The same config with relative paths made absolute against ``base``."""

@@ -43,7 +43,6 @@ from stipi_daemon.app.devices import (
     Devices,
     close_devices,
     open_devices,
-    simulated_world,
 )
 from stipi_daemon.app.finish import (
     finish_session,
@@ -326,8 +325,8 @@ def session_clock(config: DaemonConfig, speed: float | None = None) -> SessionCl
     probe and a scene-playing camera), which waits for the daemon; wall time times
     ``speed`` otherwise (a real device cannot wait) and with ``run.clock: wall``."""
     pace = speed if speed is not None else config.run.speed
-    if config.run.clock == "auto" and simulated_world(config):
-        return VirtualClock(pace)
+    if config.run.clock == "auto" and config.simulated_world:
+        return VirtualClock(pace or None)  # run.speed 0: as fast as the daemon goes
     return ScaledClock(pace)
 
 

@@ -190,14 +190,6 @@ def plays_scene_from_stream_start(config: DaemonConfig) -> bool:
     return _plays_scene(config) and not in_process
 
 
-def simulated_world(config: DaemonConfig) -> bool:
-    """Whether every device of a run of ``config`` is simulated in this process: the
-    emulated probe on a pty and a camera that plays the scene (the simulator, a paced
-    video file). Such a run's clock waits for the daemon
-    (:class:`~stipi_daemon.clock.VirtualClock`)."""
-    return config.probe.transport.kind == "emulated" and _plays_scene(config)
-
-
 def _plays_scene(config: DaemonConfig) -> bool:
     """Whether the camera plays the scene on the session clock (simulator, paced file)."""
     # A paced video file replays the scene too (e.g. the simulator's rendering of it).

@@ -51,7 +51,7 @@ def record(directory: Path, camera: dict[str, Any], storage: dict[str, Any]) -> 
         "probe": {"transport": {"kind": "emulated", "scene": str(scene)}},
         "camera": cam,
         "measurement": SHORT_MEASUREMENT,
-        "run": {"speed": 2.0},
+        "run": {"speed": 0.0},
     }
     path = write_config(directory, doc)
     cfg = yaml.safe_load(path.read_text())

@@ -90,7 +90,7 @@ def short_config(
     storage: dict[str, Any],
     *,
     pixel_format: str | None = None,
-    speed: float = 2.0,
+    speed: float = 0.0,
     measurement: dict[str, Any] | None = None,
 ) -> Path:
     """Write the config of one short measurement of the 160x120 short scene
@@ -122,7 +122,7 @@ def short_session(
     storage: dict[str, Any],
     *,
     pixel_format: str | None = None,
-    speed: float = 2.0,
+    speed: float = 0.0,
     measurement: dict[str, Any] | None = None,
 ) -> Path:
     """Record the measurement of :func:`short_config` (quietly); returns the session

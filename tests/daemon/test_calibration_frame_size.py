@@ -36,7 +36,7 @@ from tests.daemon._support import short_config
 def test_a_calibration_without_a_frame_size_is_used_with_a_warning_and_an_event(
     tmp_path: Path, capfd: pytest.CaptureFixture[str]
 ) -> None:
-    path = short_config(tmp_path, {}, speed=4.0)
+    path = short_config(tmp_path, {}, speed=0.0)
     doc = yaml.safe_load(path.read_text())
     scene = doc["camera"]["scene"]
     cal, _ = scaled_calibration(load_scene(scene))
@@ -92,7 +92,7 @@ def test_a_calibrations_own_roi_is_counted_in_when_the_config_gives_none(
     """``imaging.roi`` left out: S_k are counted in the ROI the calibration was made in
     (not the scene's disc; the whole frame too), as the manifest records, with no warning
     about the ROI."""
-    path = short_config(tmp_path, {}, speed=4.0)
+    path = short_config(tmp_path, {}, speed=0.0)
     doc = yaml.safe_load(path.read_text())
     cal, _ = scaled_calibration(load_scene(doc["camera"]["scene"]))
     cal_path = save_calibration(tmp_path / "cal.json", dataclasses.replace(cal, roi=own))

@@ -119,7 +119,7 @@ def test_frames_that_change_size_end_the_run_with_one_line_and_keep_what_came_be
             "camera": {"kind": "file", "path": str(joined), "pace": True},
             "calibration": str(cal),
             "measurement": SHORT_MEASUREMENT,
-            "run": {"speed": 2.0},
+            "run": {"speed": 0.0},
         },
     )
     out = io.StringIO()

@@ -35,7 +35,7 @@ def test_non_kelvin_voigt_run_carries_model_comparison(tmp_path: Path) -> None:
             "camera": {"kind": "simulator", "scene": str(scene)},
             "measurement": SHORT_MEASUREMENT,
             "analysis": {"bootstrap_replicates": 100},
-            "run": {"speed": 4.0},
+            "run": {"speed": 0.0},
         },
     )
     session = run_measurement(load_config(config), quiet=True).session_dir

@@ -30,7 +30,7 @@ def _run(
     measurement: dict[str, Any] | None = None,
 ) -> Path:
     return short_session(
-        directory, storage, pixel_format=pixel_format, speed=2.0, measurement=measurement
+        directory, storage, pixel_format=pixel_format, speed=0.0, measurement=measurement
     )
 
 

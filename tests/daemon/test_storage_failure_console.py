@@ -23,7 +23,7 @@ def test_a_video_failure_says_stopped_not_aborted(
     from stipi_daemon.storage import video as video_module
 
     # an MJPG camera: passthrough, muxed in the capture thread
-    config = short_config(tmp_path, {}, pixel_format="mjpg", speed=2.0)
+    config = short_config(tmp_path, {}, pixel_format="mjpg", speed=0.0)
     write, calls = video_module.write_video_frame, [0]
 
     def failing_at_the_20th(*args: Any, **kwargs: Any) -> None:

@@ -20,7 +20,7 @@ from stipi_daemon.app.config import load_config
 from stipi_daemon.storage import SessionReader
 from tests.daemon._support import short_session
 
-SPEED = 4.0
+SPEED = 0.0  # as fast as the daemon goes: every device is simulated
 
 
 def _run(directory: Path, pixel_format: str, storage: dict[str, Any]) -> Path:

@@ -45,7 +45,7 @@ def prony_session(tmp_path_factory: pytest.TempPathFactory) -> Path:
             "camera": {"kind": "simulator", "scene": str(scene)},
             "measurement": SHORT_MEASUREMENT,
             "analysis": {"bootstrap_replicates": 100},
-            "run": {"speed": 4.0},
+            "run": {"speed": 0.0},
         },
     )
     session = run_measurement(load_config(config), quiet=True).session_dir

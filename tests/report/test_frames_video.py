@@ -33,7 +33,7 @@ KINDS = ("pitting", "recovery_start", "recovered")
 def cropped_session(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A daemon session whose video holds only the ROI's gray bounding box (FFV1)."""
     directory = tmp_path_factory.mktemp("cropped")
-    return short_session(directory, {"video": "lossless", "video_roi_only": True}, speed=2.0)
+    return short_session(directory, {"video": "lossless", "video_roi_only": True}, speed=0.0)
 
 
 def _figure(session: Path) -> tuple[Figure, dict[str, AxesImage]]:

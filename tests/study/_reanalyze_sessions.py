@@ -53,7 +53,7 @@ def record_session(directory: Path, lossless: bool = False) -> Path:
         "probe": {"transport": {"kind": "emulated", "scene": str(scene)}},
         "camera": {"kind": "simulator", "scene": str(scene)},
         "measurement": SHORT_MEASUREMENT,
-        "run": {"speed": 2.0},
+        "run": {"speed": 0.0},
     }
     path = write_config(directory, doc)
     cfg = yaml.safe_load(path.read_text())
