@@ -115,5 +115,5 @@ def test_speed_0_runs_a_simulated_world_as_fast_as_the_daemon_goes(tmp_path: Pat
         load_config(real)
     wall = tmp_path / "wall.yaml"
     wall.write_text(MINIMAL + "run: {speed: 0, clock: wall}\n")
-    with pytest.raises(ConfigError, match="run.clock auto"):
+    with pytest.raises(ConfigError, match=r"run\.clock auto"):
         load_config(wall)
