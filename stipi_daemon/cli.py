@@ -8,6 +8,8 @@ stderr, never as a traceback; the exit statuses are :data:`EXIT_STATUSES`.
 from __future__ import annotations
 
 import argparse
+import contextlib
+import errno
 import signal
 import sys
 from collections.abc import Sequence
@@ -29,11 +31,15 @@ from stipi_daemon.storage.metadata import FIELD_DOCS, METADATA_FIELDS
 EXIT_STATUSES = """exit status:
   0    the command did its work; a measurement was made, whatever its verdict (the
        verdict is in the output and in summary.json)
-  1    a fault stopped the measurement before it had results (analyze: no results)
+  1    a fault stopped the measurement before it had results (analyze: no results);
+       the output could not be written (a full disk)
   2    bad input: arguments, a config, scene or data file, a session not found
   3    analyze --recompute-sk: the recount did not reproduce the stored S_k
   4    a session's stored data is damaged (corrupt database, failed integrity check)
-  130  interrupted (Ctrl-C); 143 terminated (SIGTERM); 141 the output was closed"""
+  129  the terminal closed (SIGHUP); 130 interrupted (Ctrl-C, or the measurement's
+       output closed or full); 143 terminated (SIGTERM); 141 the output was closed"""
+#: errno of a write to standard output that failed: disk full, quota, file too large, I/O.
+_WRITE_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EIO})
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -137,9 +143,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     except StipiError as exc:
         print(f"stipi-daemon: error: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
-    except Terminated:
-        print("stipi-daemon: terminated (SIGTERM)", file=sys.stderr)
-        return 128 + signal.SIGTERM
+    except Terminated as exc:  # SIGTERM, SIGHUP, standard output failed: as after Ctrl-C
+        with contextlib.suppress(OSError):  # one line, if stderr can still be written
+            print(f"stipi-daemon: {exc.reason}", file=sys.stderr)
+        return exc.exit_code
     except KeyboardInterrupt:
         # Ctrl-C: the daemon has already closed its devices and finished the session as
         # 'aborted' (asyncio.run cancels it and re-raises the interrupt here).
@@ -153,6 +160,27 @@ def main(argv: Sequence[str] | None = None) -> int:
 
         stdout_to_devnull()
         return 128 + signal.SIGPIPE
+    except OSError as exc:
+        if not _stdout_failed(exc):
+            raise
+        # Standard output cannot be written (``>/dev/full``, an I/O error): one line.
+        with contextlib.suppress(OSError):
+            print(f"stipi-daemon: error: cannot write the output: {exc}", file=sys.stderr)
+        return 1
+
+
+def _stdout_failed(exc: OSError) -> bool:
+    """Whether ``exc`` is standard output failing (a print to a full disk, an I/O error:
+    no file name, an errno of writing), in which case stdout now points at /dev/null so
+    that Python's flush at exit does not fail again. Files the commands write raise
+    StipiError naming the file instead."""
+    from stipi_daemon.app.console import stdout_to_devnull
+
+    if exc.filename is not None or exc.errno not in _WRITE_ERRNOS or sys.stdout is None:
+        return False
+    with contextlib.suppress(OSError, ValueError):
+        stdout_to_devnull()
+    return True
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -29,8 +29,18 @@ class StipiError(Exception):
 
 
 class Terminated(KeyboardInterrupt):
-    """A measurement was stopped by SIGTERM (``kill PID``, a service manager's stop) and
-    ended as after Ctrl-C: its session finished ``aborted``, its devices closed."""
+    """A measurement was stopped by SIGTERM (``kill PID``, a service manager's stop), by
+    SIGHUP (its terminal closed) or because its standard output failed (closed, full),
+    and ended as after Ctrl-C: its session finished ``aborted``, its devices closed.
+
+    ``reason`` is the one line the CLI prints (after ``stipi-daemon: ``), ``exit_code``
+    its exit status (the shell's 128 + signal number for a signal).
+    """
+
+    def __init__(self, reason: str = "terminated (SIGTERM)", exit_code: int = 143) -> None:
+        super().__init__(reason)
+        self.reason = reason
+        self.exit_code = exit_code
 
 
 class AnalysisError(StipiError, ValueError):

@@ -5,20 +5,23 @@ PyYAML's ``safe_load`` keeps the last of two equal keys in one mapping, so a fil
 silently runs with ``false``. :func:`load_yaml` refuses such a file: the one-line
 :class:`~stipi_daemon.errors.ConfigError` names the file, the key and both lines. Merge
 keys (``<<: *anchor``) still override what they merge, as YAML defines. Syntax errors name
-the line and column. Shared by every layer (like :mod:`stipi_daemon.errors`); it reads
-text, never a file.
+the line and column. :func:`read_utf8` reads any text file a user gives (config, scene,
+settings, calibration, CSV) as UTF-8: bytes that are not UTF-8 are one line naming the
+file and the byte offset, never a traceback. Shared by every layer (like
+:mod:`stipi_daemon.errors`).
 """
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Any
 
 import yaml
 from yaml.nodes import MappingNode
 
-from stipi_daemon.errors import ConfigError
+from stipi_daemon.errors import ConfigError, StipiError
 
-__all__ = ["load_yaml"]
+__all__ = ["decode_utf8", "load_yaml", "read_utf8"]
 
 _MERGE_TAG = "tag:yaml.org,2002:merge"
 
@@ -78,3 +81,39 @@ def load_yaml(text: str, source: str) -> Any:
         where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
         problem = getattr(exc, "problem", None) or str(exc).splitlines()[0]
         raise ConfigError(f"{source}: not valid YAML{where}: {problem}") from None
+
+
+def decode_utf8(data: bytes, source: str, error: type[StipiError] = ConfigError) -> str:
+    """``data`` decoded as UTF-8 (a leading byte-order mark dropped).
+
+    Raises
+    ------
+    StipiError
+        ``error``: one line naming ``source``, the byte offset and the byte that is not
+        UTF-8.
+    """
+    try:
+        return data.decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        bom = 3 if data.startswith(b"\xef\xbb\xbf") else 0
+        offset = exc.start + bom
+        raise error(
+            f"{source}: not UTF-8 text: byte 0x{data[offset]:02x} at byte offset {offset} "
+            f"({exc.reason}); save the file as UTF-8"
+        ) from None
+
+
+def read_utf8(path: Path, what: str, error: type[StipiError] = ConfigError) -> str:
+    """The text of the file ``path`` (a ``what``: "config file", "scene file"...), as UTF-8.
+
+    Raises
+    ------
+    StipiError
+        ``error``, one line naming the file: it cannot be read (missing, a directory, no
+        permission), or it is not UTF-8 (the byte offset, :func:`decode_utf8`).
+    """
+    try:
+        data = path.read_bytes()
+    except OSError as exc:
+        raise error(f"{path}: cannot read {what}: {exc.strerror or exc}") from None
+    return decode_utf8(data, str(path), error)

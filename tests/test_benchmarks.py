@@ -146,3 +146,17 @@ def test_a_benchmark_replaces_its_own_section_and_adds_a_new_one_where_asked(
     write_section(doc, "## A", "## A\n\nnew a\n")  # replaced, the others kept
     write_section(doc, "## D", "## D\n\nd\n", after="## none")  # no such anchor: appended
     assert doc.read_text() == HEADER + ("\n## A\n\nnew a\n\n## B\n\nb\n\n## C\n\nc\n\n## D\n\nd\n")
+
+
+@pytest.mark.timeout(300)
+def test_liveview_cost_quick_writes_its_section(tmp_path: Path) -> None:
+    out = tmp_path / "performance.md"
+    out.write_text("# Performance\n\n## Demo speed\n\nkept text\n")
+    proc = run_benchmark("liveview_cost.py", "--out", str(out), timeout_s=280.0)
+    assert proc.returncode == 0, proc.stderr
+    text = out.read_text()
+    assert "## Demo speed\n\nkept text" in text
+    assert text.count("## Live view cost") == 1
+    for mode in ("off", "idle", "1 viewer", "20 viewers"):
+        assert f"\n| {mode} | " in text, mode
+    assert "One viewer: **" in text

@@ -29,11 +29,13 @@ from stipi_daemon.probe.link import (
     LinkDown,
     LinkUp,
     ProbeEvent,
+    ProbeHealth,
     ProbeLink,
     StatusReport,
     wall_floored_timeout_s,
 )
 from stipi_daemon.probe.transports.serial import SerialTransport, SerialTransportConfig
+from stipi_daemon.protocol import BleState, ResetCause, StatusFlags
 from stipi_daemon.sim import Pipeline, load_scene
 from stipi_daemon.sim.emulated_transport import EmulatedTransport, EmulatedTransportConfig
 from stipi_daemon.sim.feather import EmulatedFeather
@@ -393,3 +395,45 @@ async def test_clock_sync_follows_mcu_drift_and_wrap(probe: Factory) -> None:
         drift,
     )
     assert abs(drift - (1 / 1.003 - 1) * 1e6) < 1500, drift
+
+
+def _status(
+    t_s: float, cause: ResetCause | None, state: BleState | None, restarts: int | None
+) -> StatusReport:
+    return StatusReport(t_s, 0, 0, 100, 0, 5000, StatusFlags.NONE, state, restarts, cause)
+
+
+def test_probe_health_is_recorded_first_and_when_it_changes() -> None:
+    """STATUS of firmware 1.1 carries why the probe started and its BLE module's state; the
+    session records it once, then on every change, and again after the link came back."""
+    health = ProbeHealth()
+    wd, up, booting = ResetCause.WATCHDOG, BleState.UP, BleState.BOOTING
+    assert health.observe(_status(0.5, wd, booting, 0)) == {
+        "reset_cause": "watchdog",
+        "ble_state": "booting",
+        "ble_restarts": 0,
+    }
+    assert health.observe(_status(1.0, wd, booting, 0)) is None  # unchanged: not again
+    assert health.observe(_status(1.5, wd, up, 0)) == {
+        "reset_cause": "watchdog",
+        "ble_state": "up",
+        "ble_restarts": 0,
+    }
+    assert health.observe(_status(9.0, wd, up, 1))["ble_restarts"] == 1  # type: ignore[index]
+    health.forget()  # the link came back: a restarted probe says why again
+    either = ResetCause.EXTERNAL | ResetCause.BROWN_OUT
+    assert health.observe(_status(12.0, either, up, 0)) == {
+        "reset_cause": "external or brown_out",
+        "ble_state": "up",
+        "ble_restarts": 0,
+    }
+    assert health.observe(_status(13.0, None, None, None)) is None  # a probe before 1.1
+
+
+async def test_a_probe_without_health_fields_still_reports_status(probe: Factory) -> None:
+    """The emulated Feather speaks firmware 1.0's 10-byte STATUS: decoded as before."""
+    _link, _feather, col, _clock = await probe()
+    await col.until(lambda: len(col.of(StatusReport)) >= 2, "two STATUS heartbeats")
+    report = col.of(StatusReport)[-1]
+    assert (report.ble_state, report.ble_restarts, report.reset_cause) == (None, None, None)
+    assert ProbeHealth().observe(report) is None

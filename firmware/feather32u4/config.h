@@ -11,7 +11,7 @@
 
 // ---- firmware identity (reported by GET_INFO) ---------------------------------------------
 #define STIPI_FW_MAJOR 1
-#define STIPI_FW_MINOR 0
+#define STIPI_FW_MINOR 1
 #define STIPI_FW_PATCH 0
 
 // ---- links --------------------------------------------------------------------------------
@@ -91,22 +91,40 @@
 
 // ---- timing -------------------------------------------------------------------------------
 #define STIPI_HEARTBEAT_PERIOD_US 500000UL   // STATUS period [us]; protocol requires <= 1 s
+// Watchdog: a main-loop pass takes < 1 ms; a loop stuck for the first period marks "watchdog"
+// in RAM from the watchdog interrupt and the second period resets the MCU (1 s in all).
+#ifndef STIPI_WATCHDOG
+#define STIPI_WATCHDOG 1
+#endif
+#define STIPI_WATCHDOG_PERIOD_MS 500         // WDTO_500MS: interrupt after it, reset after 2x
 #define STIPI_LINK_READ_BUDGET 32            // bytes read per link per loop pass [B]
 #define STIPI_USB_TX_RING 160                // USB CDC frames waiting for the endpoint [B]
 #define STIPI_UART1_TX_RING 128              // Serial1 frames waiting for its TX buffer [B]
 
 // ---- BLE / SDEP ---------------------------------------------------------------------------
 #define STIPI_SDEP_CS_SETUP_US 100           // wait after asserting CS [us] (hardware.md)
-#define STIPI_SDEP_TIMEOUT_US 250000UL       // a command without an answer by then failed [us];
-                                             // the module answers ERROR after 200 ms when full
+// A command without an answer by then failed [us]. The module's own longest wait is the 200 ms
+// a UART TX waits for FIFO room before it answers ERROR (hardware.md), plus its processing
+// (a few ms); 500 ms leaves 300 ms (2.5x the wait) of margin, so a slow answer is never taken
+// for a dead module and no new command goes over an answer still coming. With the flow
+// control below a TX never waits for room at all.
+#define STIPI_SDEP_TIMEOUT_US 500000UL
 #define STIPI_SDEP_PACKETS_PER_POLL 2        // SPI transactions per loop pass (~0.2 ms each)
 #define STIPI_BLE_RESET_PULSE_US 20000UL     // RST low time [us]
 #define STIPI_BLE_BOOT_US 1000000UL          // wait after reset before the first command [us]
-#define STIPI_BLE_PROBE_ATTEMPTS 2           // "AT" attempts before the module is declared absent
+#define STIPI_BLE_PROBE_ATTEMPTS 2           // "ATE=0" attempts that nothing answered (not even
+                                             // 0xFE, "busy") before the module counts as absent
+#define STIPI_BLE_BOOT_MAX_US 10000000UL     // still answering only 0xFE this long after its
+                                             // reset: the module is reset again [us]
+#define STIPI_BLE_RETRY_MIN_US 1000000UL     // absent: reset and probe again after this [us],
+#define STIPI_BLE_RETRY_MAX_US 32000000UL    // doubling up to this, for as long as we run [us]
+#define STIPI_BLE_SILENT_TO_REPROBE 3        // commands in a row without any answer: the module
+                                             // restarted or hung; probe it again
 #define STIPI_BLE_CONN_POLL_US 1000000UL     // AT+GAPGETCONN interval [us]
 #define STIPI_BLE_RX_POLL_US 20000UL         // BLE UART RX poll interval while connected [us]
 #define STIPI_BLE_RX_FIFO 64                 // received BLE bytes buffered [B]
-#define STIPI_BLE_TX_RING 256                // whole frames waiting for BLE [B]
+#define STIPI_BLE_TX_RING 224                // whole frames waiting for BLE [B]
+#define STIPI_BLE_FIFO_POLL_US 20000UL       // ask AT+BLEUARTFIFO=TX again while short of room [us]
 #define STIPI_BLE_TX_CHUNK 128               // most bytes in one UART TX command [B]
 
 // ---- EEPROM -------------------------------------------------------------------------------

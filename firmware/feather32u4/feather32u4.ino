@@ -30,6 +30,7 @@ stipi::BleUartLink g_ble(g_sdep, g_spi, g_clock);
 }  // namespace
 
 void setup() {
+  g_board.begin_watchdog();
   g_board.begin();
 #if STIPI_LINK_USB
   Serial.begin(115200);  // baud is ignored by USB CDC
@@ -44,12 +45,15 @@ void setup() {
   g_ble.begin();
   g_probe.set_link(stipi::kLinkBle, &g_ble);
 #endif
+  g_probe.set_reset_cause(g_board.reset_cause());
   g_probe.begin();
 }
 
 void loop() {
+  g_board.kick_watchdog();
 #if STIPI_LINK_BLE
   g_ble.poll();
+  g_probe.set_ble_health(g_ble.health(), g_ble.module_resets());
 #endif
   g_probe.poll();
 }

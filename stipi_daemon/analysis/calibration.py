@@ -38,6 +38,7 @@ from pydantic import AwareDatetime, BaseModel, ConfigDict, Field, ValidationErro
 
 from stipi_daemon.analysis.imaging import ROI, CircleROI, RectROI, describe_roi, same_roi
 from stipi_daemon.errors import AnalysisError, CalibrationError
+from stipi_daemon.yamlfile import read_utf8
 
 __all__ = [
     "CALIBRATION_FORMAT",
@@ -943,10 +944,7 @@ def load_calibration(path: str | os.PathLike[str]) -> Calibration:
         ``calib.json: field 'c2_px_per_n': must be > 0 (got -1.0)``).
     """
     src = Path(path)
-    try:
-        text = src.read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError) as exc:
-        raise CalibrationError(f"{src}: cannot read calibration file ({exc})") from exc
+    text = read_utf8(src, "calibration file", CalibrationError)
     try:
         raw = json.loads(text)
     except json.JSONDecodeError as exc:

@@ -34,6 +34,7 @@ from stipi_daemon.analysis.flags import Flag
 from stipi_daemon.analysis.recovery_fit import RecoveryFit, settling_time_from_time_constant
 from stipi_daemon.analysis.vpr import KPA_PER_N_PER_MM2, VPRModel
 from stipi_daemon.errors import AnalysisError, ConfigError
+from stipi_daemon.yamlfile import read_utf8
 
 __all__ = [
     "DEFAULT_RANGE_TOLERANCE",
@@ -178,10 +179,7 @@ def load_reference(path: str | Path | None = None) -> SeverityReference:
             raise ConfigError(f"{where}: cannot read: {exc}") from exc
     else:
         where = str(path)
-        try:
-            text = Path(path).read_text(encoding="utf-8")
-        except OSError as exc:
-            raise ConfigError(f"{where}: cannot read: {exc.strerror or exc}") from exc
+        text = read_utf8(Path(path), "severity reference")
     try:
         data = yaml.safe_load(text)
     except yaml.YAMLError as exc:

@@ -68,6 +68,8 @@ from stipi_daemon.app.frame_measurer import (
     LateFrame,
     ResizedFrame,
 )
+from stipi_daemon.app.liveview.live import live_statuses
+from stipi_daemon.app.liveview.state import LiveState
 from stipi_daemon.cameras import CameraRecovered as CamRecovered
 from stipi_daemon.cameras import CameraStalled as CamStalled
 from stipi_daemon.cameras.threaded import ThreadedCamera
@@ -86,7 +88,15 @@ from stipi_daemon.measurement.state_machine import (
     PhaseChanged,
     Tick,
 )
-from stipi_daemon.probe.link import ClockProbe, ForceRows, Gap, LinkDown, LinkUp
+from stipi_daemon.probe.link import (
+    ClockProbe,
+    ForceRows,
+    Gap,
+    LinkDown,
+    LinkUp,
+    ProbeHealth,
+    StatusReport,
+)
 
 __all__ = [
     "COMMIT_SPACING_WALL_S",
@@ -219,12 +229,16 @@ class Acquisition:
         self._lag_now_s = 0.0
         self._next_console_wall_s = float("-inf")
         self.fault_line: str | None = None
+        #: What the live view shows (None: no view); written here, read by its server.
+        self.live: LiveState | None = None
+        self._clock_offset_s: float | None = None
         # Samples and frames reach the pipeline in time order (as on replay), each held at
         # most MERGE_HOLD_S for the other stream.
         self.merger: TimeOrderedMerger[tuple[float, float]] = TimeOrderedMerger(
             ["force", "frame"], max_hold_s=MERGE_HOLD_S
         )
         self.stop_error: BaseException | None = None
+        self._probe_health = ProbeHealth()
         self._handlers: dict[type[Any], Callable[[Any], list[Output]]] = {
             ForceRows: self._on_force,
             FrameResult: self._on_frame,
@@ -234,6 +248,7 @@ class Acquisition:
             ClockProbe: self._on_clock_probe,
             LinkDown: self._on_link_down,
             LinkUp: self._on_link_up,
+            StatusReport: self._on_status,
             CamStalled: self._on_camera_stalled,
             CamRecovered: self._on_camera_recovered,
             Tick: self._on_tick,
@@ -285,6 +300,8 @@ class Acquisition:
                 outputs += _feed(pipeline, kind, value)
             if outputs:
                 self._record(outputs)
+            if self.live is not None:
+                self.live.tick(pipeline.state.now_s, pipeline.state.t_release_s)
             if pipeline.finished:
                 self._measurer.stop_storing()  # frames after the end are not stored
                 await self._drain_live(wait=True)
@@ -363,6 +380,8 @@ class Acquisition:
         """Show the pipeline's outputs and store transitions, advisories, faults, prompts."""
         now = self._pipeline.state.now_s
         self._console.outputs(outputs, now)
+        if self.live is not None:
+            _publish(self.live, outputs)
         writer = self._writer
         for o in outputs:
             if isinstance(o, PhaseChanged):
@@ -406,6 +425,8 @@ class Acquisition:
             if live_params is not None:
                 self._writer.add_live_parameters(now, live_params.to_dict())
                 self._console.update(now, params=live_params)
+                if self.live is not None:
+                    self.live.live_parameters(live_params, live_statuses(live_params))
             if wait and not self._pipeline.finished:
                 return
 
@@ -425,6 +446,8 @@ class Acquisition:
                 self.merger.push("force", r.t_host_s, (r.t_host_s, r.force_n), self._clock.now())
         if rows and rows[-1].force_n is not None:
             self._console.update(self._pipeline.state.now_s, force_n=rows[-1].force_n)
+            if self.live is not None:
+                self.live.force_n(rows[-1].t_host_s, rows[-1].force_n)
         return []
 
     def _lag(self, t_capture_s: float) -> list[Output]:
@@ -502,6 +525,8 @@ class Acquisition:
             self._next_console_wall_s = wall_s + CONSOLE_FRAME_INTERVAL_WALL_S
             fps = self._devices.camera.stats.fps()
             self._console.update(self._pipeline.state.now_s, s_k=ev.s_k, fps=fps)
+            if self.live is not None:
+                self._publish_health(fps)
         return self._lag(ev.t_capture_s)
 
     def _on_gap(self, ev: Gap) -> list[Output]:
@@ -511,13 +536,36 @@ class Acquisition:
 
     def _on_clock_probe(self, ev: ClockProbe) -> list[Output]:
         self._writer.add_clock_probe(ev.mcu_raw_us, ev.mcu_unwrapped_us, ev.host_s)
+        self._clock_offset_s = ev.host_s - ev.mcu_unwrapped_us * 1e-6
         return []
+
+    def _publish_health(self, fps: float) -> None:
+        """The link's and the camera's health, for the live view."""
+        assert self.live is not None
+        counts = self.counts
+        self.live.set_health(
+            camera_fps=fps,
+            frames=counts["frames"],
+            dropped_frames=counts["dropped_frames"],
+            late_frames=counts["late_frames"],
+            gaps=counts["gaps"],
+            lag_s=self._lag_now_s,
+            clock_offset_s=self._clock_offset_s,
+            probe_battery="not reported by the probe",
+        )
 
     def _on_link_down(self, ev: LinkDown) -> list[Output]:
         self._writer.add_event(ev.t_s, "link_down", {"reason": ev.reason})
         return self._pipeline.feed(LinkLost(ev.t_s))
 
+    def _on_status(self, ev: StatusReport) -> list[Output]:
+        detail = self._probe_health.observe(ev)
+        if detail is not None:  # why the probe started, its BLE module: when it changes
+            self._writer.add_event(ev.t_host_s, "probe_health", detail)
+        return []
+
     def _on_link_up(self, ev: LinkUp) -> list[Output]:
+        self._probe_health.forget()  # a restarted probe says again why it started
         self._writer.add_event(ev.t_s, "link_up", {})
         return self._pipeline.feed(LinkRestored(ev.t_s))
 
@@ -580,6 +628,19 @@ class Acquisition:
         for kind, value in self.merger.drain():
             outputs += _feed(self._pipeline, kind, value)
         return outputs + self._pipeline.close(self._clock.now())
+
+
+def _publish(live: LiveState, outputs: list[Output]) -> None:
+    """The state machine's outputs into the live view: phases, the prompt, notes."""
+    for o in outputs:
+        if isinstance(o, PhaseChanged):
+            live.phase_changed(o.t_s, str(o.old), str(o.new), o.reason)
+        elif isinstance(o, OperatorPrompt):
+            live.set_prompt(o.text)
+        elif isinstance(o, Advisory):
+            live.note(f"[{o.t_s:.2f} s] note: {o.kind}: {o.detail}")
+        elif isinstance(o, Fault):
+            live.note(f"[{o.t_s:.2f} s] FAULT {o.kind}: {o.reason}")
 
 
 def session_clock_detail(clock: SessionClock) -> dict[str, Any]:

@@ -1008,8 +1008,8 @@ def _check_out(
 ) -> None:
     """Refuse an output file that is one of the ``protected`` input files, a directory,
     or (``explicit``: given as ``--out``) inside any session directory: the analysed
-    ``session``, a session of its sessions directory, or any directory holding a session
-    database or writer lock (:func:`~stipi_daemon.storage.export.check_export_target`,
+    ``session``, a session of its sessions directory, or any directory holding a
+    session's manifest (:func:`~stipi_daemon.storage.export.check_export_target`,
     as ``sessions export`` does), at any depth (``frames/`` too)."""
     target = out.resolve()
     for p in protected:

@@ -54,6 +54,7 @@ from stipi_daemon.analysis.imaging import (
     same_roi,
     whole_frame_roi,
 )
+from stipi_daemon.app.imaging import check_roi_fits
 from stipi_daemon.app.offline_io import (
     CsvTable,
     count_video,
@@ -63,7 +64,8 @@ from stipi_daemon.app.offline_io import (
     read_frame_times_csv,
     read_session,
 )
-from stipi_daemon.errors import CalibrationError, ConfigError, DataFileError
+from stipi_daemon.errors import CalibrationError, ConfigError, DataFileError, SessionError
+from stipi_daemon.storage.export import check_export_target
 
 __all__ = ["CalibrateRequest", "calibrate"]
 
@@ -377,8 +379,15 @@ def calibrate(request: CalibrateRequest, emit: Emit) -> tuple[Calibration, Path]
         A fit is refused, the recordings' thresholds, frame sizes or ROIs disagree (with
         each other or with the request's), or intervals are unusable.
     DataFileError, ConfigError
-        An input cannot be read or lacks what it needs.
+        An input cannot be read or lacks what it needs; ``--roi`` does not lie within the
+        frame; ``out`` is in a session directory (checked before anything is read).
     """
+    try:  # a calibration file never replaces a session's file (summary.json, ...)
+        check_export_target(request.out, [], is_file=True, what="a calibration")
+    except SessionError as exc:
+        raise ConfigError(str(exc)) from None
+    if request.out.is_dir():
+        raise ConfigError(f"--out {request.out}: is a directory (give a file name, CAL.json)")
     seen = _Seen()
     s0, d_s = _depth_points(request, seen, emit)
     s_px, f_n = _force_points(request, seen, emit)
@@ -387,6 +396,9 @@ def calibrate(request: CalibrateRequest, emit: Emit) -> tuple[Calibration, Path]
         "--frame-size", request.frame_size_px, seen.sizes, _size_text, "frames differ in size"
     )
     roi, whole_unsized = _agreed_roi(request, seen.rois, frame_size)
+    if request.roi is not None and frame_size is not None:  # (a rect holding the frame is it)
+        if not same_roi(request.roi, None, frame_size):
+            check_roi_fits(request.roi, *frame_size, "--roi")
     try:
         depth_fit = fit_depth_calibration(s0, d_s)
     except CalibrationError as exc:
@@ -430,7 +442,10 @@ def calibrate(request: CalibrateRequest, emit: Emit) -> tuple[Calibration, Path]
             "warning: no ROI recorded (--roi): the daemon cannot tell S counted in another "
             "ROI, whose S values are not comparable"
         )
-    path = save_calibration(request.out, cal)
+    try:
+        path = save_calibration(request.out, cal)
+    except OSError as exc:  # a full disk, no permission: no partial file is left
+        raise ConfigError(f"--out {request.out}: cannot write: {exc.strerror or exc}") from None
     load_calibration(path)  # what was written reads back
     emit(f"\ncalibration written to {path}")
     return cal, path

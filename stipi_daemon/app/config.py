@@ -45,7 +45,7 @@ from stipi_daemon.measurement.state_machine import MeasurementConfig
 from stipi_daemon.probe.transports import TransportConfig
 from stipi_daemon.storage.layout import DEFAULT_ROOT
 from stipi_daemon.storage.metadata import metadata_problem
-from stipi_daemon.yamlfile import load_yaml
+from stipi_daemon.yamlfile import load_yaml, read_utf8
 
 __all__ = [
     "CONFIG_FORMAT",
@@ -57,6 +57,7 @@ __all__ = [
     "RunSettings",
     "SessionSettings",
     "StorageSettings",
+    "ViewSettings",
     "find_session",
     "load_config",
     "parse_override",
@@ -224,6 +225,28 @@ class SessionSettings(_Model):
         return value
 
 
+class ViewSettings(_Model):
+    """The live view in the browser (:mod:`stipi_daemon.app.liveview`).
+
+    Attributes
+    ----------
+    enabled : bool or None
+        Serve the view while measuring. None (the default): when the console is a terminal
+        and not ``--quiet`` (an interactive run); a script's or a service's run serves it
+        only with ``true``.
+    host : str
+        Address to listen on. Loopback (the default) lets only this machine's browser
+        connect; another address is an explicit choice and the daemon warns when it starts.
+    port : int
+        TCP port; 0 (the default): a free one the system chooses (the printed address has
+        it, with the run's random token).
+    """
+
+    enabled: bool | None = None
+    host: str = Field("127.0.0.1", min_length=1)
+    port: int = Field(0, ge=0, le=65535)
+
+
 def _simulated_world(probe: ProbeSettings, camera: CameraConfig) -> bool:
     """See :attr:`DaemonConfig.simulated_world`."""
     plays_scene = camera.kind == "simulator" or (camera.kind == "file" and camera.pace)
@@ -244,6 +267,7 @@ class DaemonConfig(_Model):
     storage: StorageSettings = StorageSettings()
     run: RunSettings = RunSettings()
     session: SessionSettings = SessionSettings()
+    view: ViewSettings = ViewSettings()
 
     @field_validator("analysis")
     @classmethod
@@ -475,11 +499,7 @@ def parse_config(data: Any, source: str, overrides: Sequence[Override] = ()) -> 
 
 def read_config_data(path: Path) -> Any:
     """The parsed YAML of a config file (duplicate keys refused, naming the line)."""
-    try:
-        text = path.read_text(encoding="utf-8")
-    except OSError as exc:
-        raise ConfigError(f"{path}: cannot read config file: {exc.strerror or exc}") from None
-    return load_yaml(text, str(path))
+    return load_yaml(read_utf8(path, "config file"), str(path))
 
 
 def load_config(

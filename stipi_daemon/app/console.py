@@ -12,7 +12,9 @@ from __future__ import annotations
 import contextlib
 import math
 import os
+import signal
 import sys
+import threading
 from typing import Any, TextIO
 
 from rich.console import Console, Group
@@ -78,7 +80,13 @@ class OperatorConsole:
         quiet: bool = False,
     ) -> None:
         self.config = measurement
-        self.out = out if out is not None else sys.stdout
+        #: Why the console's output failed (closed at start, disk full, I/O error), once
+        #: it has: the measurement is then stopped as by Ctrl-C (:meth:`_output_failed`).
+        self.lost: str | None = None
+        self._measuring = False
+        stdout = out if out is not None else sys.stdout
+        self._closed_at_start = stdout is None  # started with stdout closed (``>&-``)
+        self.out: TextIO = stdout if stdout is not None else open(os.devnull, "w")
         self.quiet = quiet
         self.rich = Console(file=self.out)
         self.use_live = (self.out.isatty() if live is None else live) and not quiet
@@ -98,12 +106,14 @@ class OperatorConsole:
     # ---------------------------------------------------------------- lifecycle
 
     def __enter__(self) -> OperatorConsole:
+        self._measuring = True
         if self.use_live:
             self._live = Live(self._render(), console=self.rich, refresh_per_second=4)
             self._live.__enter__()
         return self
 
     def __exit__(self, *exc: object) -> None:
+        self._measuring = False
         if self._live is not None:
             self._live.update(self._render())
             self._live.__exit__(None, None, None)
@@ -115,6 +125,8 @@ class OperatorConsole:
         ``style`` (a rich style, e.g. ``"bold green"``) colours the line on a terminal;
         plain output (logs, pipes) gets the text alone.
         """
+        if self._closed_at_start and self.lost is None:
+            self._output_failed("standard output is closed")
         if self.quiet:
             return
         try:
@@ -126,6 +138,29 @@ class OperatorConsole:
                 print(text, file=self.out, flush=True)
         except BrokenPipeError:
             self._output_closed()
+        except OSError as exc:  # disk full (``>/dev/full``), I/O error (terminal gone)
+            self._output_failed(f"standard output failed: {exc.strerror or exc}")
+
+    def _output_failed(self, reason: str) -> None:
+        """The console's output cannot be written (closed at start, full, an I/O error):
+        the console prints nothing more and, while measuring, stops the measurement as
+        Ctrl-C does (SIGINT: asyncio cancels it, the session is finished ``aborted`` and
+        whole); :attr:`lost` says why, for the one line the command prints at the end.
+        Unlike a closed pipe (:meth:`_output_closed`), a terminal or a disk that fails
+        takes the operator's instructions with it."""
+        self.quiet = True
+        live, self._live = self._live, None
+        if live is not None:
+            with contextlib.suppress(OSError):
+                live.stop()
+        if self.out is sys.stdout and sys.stdout is not None:
+            with contextlib.suppress(OSError, ValueError):
+                stdout_to_devnull()
+        if self.lost is not None:
+            return
+        self.lost = reason
+        if self._measuring and threading.current_thread() is threading.main_thread():
+            signal.raise_signal(signal.SIGINT)  # asyncio.run's Ctrl-C: cancels the measurement
 
     def _output_closed(self) -> None:
         """What read the console's output stopped reading (``... | head``, a closed
@@ -376,7 +411,9 @@ def _severity_lines(summary: dict[str, Any], severity: dict[str, Any]) -> list[s
 def stdout_to_devnull() -> None:
     """Point the process's stdout at /dev/null, after whatever read it stopped reading:
     later prints and Python's flush at exit then succeed instead of raising
-    BrokenPipeError again."""
+    BrokenPipeError (or ENOSPC, EIO) again."""
     devnull = os.open(os.devnull, os.O_WRONLY)
     os.dup2(devnull, sys.stdout.fileno())
     os.close(devnull)
+    with contextlib.suppress(OSError):  # what could not be written goes to /dev/null now
+        sys.stdout.flush()

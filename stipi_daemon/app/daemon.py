@@ -56,6 +56,8 @@ from stipi_daemon.app.finish import (
 )
 from stipi_daemon.app.frame_measurer import FrameMeasurer
 from stipi_daemon.app.imaging import resolve_imaging
+from stipi_daemon.app.liveview.live import serving_live_view
+from stipi_daemon.app.liveview.state import ViewInfo, roi_dict
 from stipi_daemon.app.memory import hold_heap, return_free_memory
 from stipi_daemon.clock import ScaledClock, SessionClock, VirtualClock
 from stipi_daemon.errors import EXIT_FAULT, EXIT_OK, SessionError, Terminated
@@ -143,6 +145,25 @@ def _frame_measurer(
     return measurer
 
 
+def _view_info(
+    config: DaemonConfig, writer: SessionWriter, threshold: int, roi: CircleROI | RectROI | None
+) -> ViewInfo:
+    """What the live view shows that does not change during the run."""
+    m = config.measurement
+    return ViewInfo(
+        session_id=writer.session_id,
+        metadata=config.session.model_dump(),
+        threshold_p=threshold,
+        roi=roi_dict(roi),
+        pitting_duration_s=m.pitting_duration_s,
+        recovery_max_s=m.recovery_max_s,
+        force_band_n=(
+            m.target_force_n - m.force_tolerance_n,
+            m.target_force_n + m.force_tolerance_n,
+        ),
+    )
+
+
 def run_measurement(
     config: DaemonConfig,
     *,
@@ -169,7 +190,9 @@ def run_measurement(
             )
         except KeyboardInterrupt:
             if terminated:
-                raise Terminated from None
+                name = signal.Signals(terminated[0]).name
+                why = " (the terminal closed)" if terminated[0] == signal.SIGHUP else ""
+                raise Terminated(f"terminated ({name}){why}", 128 + terminated[0]) from None
             raise
 
 
@@ -181,30 +204,57 @@ def _import_scipy() -> None:
         importlib.import_module(module)
 
 
+#: Signals that stop a measurement as Ctrl-C does: SIGTERM (``kill PID``, a service
+#: manager's stop) and SIGHUP (the terminal closed).
+STOP_SIGNALS: tuple[signal.Signals, ...] = (signal.SIGTERM, signal.SIGHUP)
+
+
 @contextlib.contextmanager
 def _sigterm_as_interrupt() -> Iterator[list[int]]:
-    """While measuring, SIGTERM (``kill PID``, a service manager's stop) stops the daemon
-    as Ctrl-C does: the session is finished ``aborted`` and the devices are closed, where
-    the default action ends the process with the session left unfinished. Yields the
-    list of the SIGTERMs received. Only in the main thread (where Python handles signals)
-    and over the default action (a handler the caller set stays)."""
+    """While measuring, SIGTERM (``kill PID``, a service manager's stop) and SIGHUP (its
+    terminal closed) stop the daemon as Ctrl-C does: the session is finished ``aborted``
+    and the devices are closed, where the default action ends the process with the
+    session left unfinished. Yields the list of those signals received. Only in the main
+    thread (where Python handles signals) and over the default action (a handler the
+    caller set, or SIGHUP ignored by ``nohup``, stays)."""
     received: list[int] = []
-    if (
-        threading.current_thread() is not threading.main_thread()
-        or signal.getsignal(signal.SIGTERM) is not signal.SIG_DFL
-    ):
+    if threading.current_thread() is not threading.main_thread():
         yield received
         return
 
-    def on_sigterm(signum: int, _frame: object) -> None:
+    def on_stop(signum: int, _frame: object) -> None:
         received.append(signum)
         signal.raise_signal(signal.SIGINT)  # asyncio.run's Ctrl-C: cancels the measurement
 
-    signal.signal(signal.SIGTERM, on_sigterm)
+    ours = [s for s in STOP_SIGNALS if signal.getsignal(s) is signal.SIG_DFL]
+    for s in ours:
+        signal.signal(s, on_stop)
     try:
         yield received
     finally:
-        signal.signal(signal.SIGTERM, signal.SIG_DFL)
+        for s in ours:
+            signal.signal(s, signal.SIG_DFL)
+
+
+def _say_how_it_ended(
+    console: OperatorConsole, status: str, storage_error: SessionError | None, directory: Path
+) -> None:
+    """After the session is finished: a measurement that did not end says so, and where
+    its data is; one whose console output failed raises :class:`Terminated`."""
+    if status == "aborted" or storage_error is not None:
+        how = "aborted" if storage_error is None else "stopped: storing failed"
+        console.line(f"measurement {how}; what was recorded is in {directory}")
+        console.line(_RESCUE_HINT.format(directory))
+    if console.lost is not None and storage_error is None:
+        raise _output_lost(console.lost, status, directory)
+
+
+def _output_lost(reason: str, status: str, directory: Path) -> Terminated:
+    """The one line (and Ctrl-C's exit status) of a measurement whose console output
+    failed: stopped then as by Ctrl-C, or, when it failed after the end, finished."""
+    if status == "aborted":
+        return Terminated(f"stopped: {reason}; the session is finished (aborted): {directory}", 130)
+    return Terminated(f"{reason}; the session is finished ({status}): {directory}", 130)
 
 
 async def run_daemon(
@@ -239,8 +289,7 @@ async def run_daemon(
         :data:`SCENE_LEAD_WALL_S` after start-up); give it when a device started by the
         caller plays the scene from a known instant.
     on_session : callable, optional
-        Called with the :class:`~stipi_daemon.storage.writer.SessionWriter` once the
-        session exists (e.g. to record commit times in a benchmark).
+        Called with the session's :class:`~.writer.SessionWriter` once it exists.
     on_running : async callable, optional
         Run as a task with the :class:`DaemonHandles` once the stream has started, and
         cancelled when the measurement ends (fault injection in reliability tests).
@@ -255,6 +304,8 @@ async def run_daemon(
         once (within 1 s), keeps every row committed before, leaves the session
         ``interrupted`` (``fault`` if the final state could still be stored) and says why
         in one line.
+    Terminated
+        The console's output failed (closed, full): stopped as by Ctrl-C (one line).
     """
     if clock is None:
         clock = session_clock(config, speed)
@@ -313,6 +364,14 @@ async def _run_daemon(
     # the session's frames are the measurement's: none captured after its end is stored
     pipeline.on_end_known = measurer.store_until
     acquisition = Acquisition(config, devices, pipeline, console, measurer)
+    # The live view in the browser, when asked for: it reads what the acquisition publishes.
+    view = contextlib.ExitStack()
+    served = view.enter_context(
+        serving_live_view(config.view, _view_info(config, writer, threshold, roi), console)
+    )
+    if served is not None:
+        acquisition.live = served[0]
+        measurer.preview = served[0].frame
     status = "aborted"
     # Until the measurement ends: an interruption (Ctrl-C) or an unexpected error leaves
     # this summary, whose verdict is incomplete.
@@ -352,14 +411,14 @@ async def _run_daemon(
         wall = {"wall_s": repr(time.monotonic() - wall0), "clock": type(clock).__name__}
         if isinstance(clock, VirtualClock):
             wall |= {"pace": repr(clock.pace), "clock_steps": str(clock.steps)}
-        finish_session(writer, status, summary, storage_error, wall)
-        if status == "aborted" or storage_error is not None:  # did not end: say so, and where
-            how = "aborted" if storage_error is None else "stopped: storing failed"
-            console.line(f"measurement {how}; what was recorded is in {writer.directory}")
-            console.line(_RESCUE_HINT.format(writer.directory))
+        with view:  # the live view stops once the session is finished, whatever happens
+            finish_session(writer, status, summary, storage_error, wall)
+        _say_how_it_ended(console, status, storage_error, writer.directory)
     if storage_error is not None:
         raise storage_failure(writer, storage_error) from storage_error
     print_results(console, summary, writer.db_path.parent, acquisition.stop_error)
     if status != "complete":
         console.line(_RESCUE_HINT.format(writer.directory))
+    if console.lost is not None:  # failed after the end: the session is whole, say so
+        raise _output_lost(console.lost, status, writer.directory)
     return RunOutcome(writer.db_path.parent, pipeline.phase, summary, summary["run"])

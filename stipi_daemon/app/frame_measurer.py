@@ -39,6 +39,7 @@ from __future__ import annotations
 import math
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -220,6 +221,9 @@ class FrameMeasurer:
     #: The camera waits for the video's encoder instead of leaving a frame out of the video
     #: (set by the daemon for a source that waits for its consumer: a file, the simulator).
     wait_for_encoder: bool = False
+    #: Given each measured frame ``(seq, t_capture_s, s_k, image)`` on the loop, the image
+    #: by reference (the live view keeps the newest; None: no view).
+    preview: Callable[[int, float, int, npt.NDArray[np.uint8]], None] | None = None
 
     def __init__(
         self,
@@ -296,6 +300,8 @@ class FrameMeasurer:
             return LateFrame(ev.seq, ev.t_capture_s, captured.late_lag_s, ev.dropped_before)
         s_k = captured.s_k
         st = self._pipeline.state
+        if self.preview is not None:
+            self.preview(ev.seq, ev.t_capture_s, s_k, ev.image)
         if captured.stored:  # a representative frame is one of the session's
             self._keeper.offer(
                 ev.seq, ev.t_capture_s, ev.image, s_k, st.phase, st.t_pit_start_s, st.t_release_s

@@ -41,6 +41,7 @@ from stipi_daemon.measurement.state_machine import (
     LinkRestored,
 )
 from stipi_daemon.storage import SessionReader, SessionState
+from stipi_daemon.yamlfile import decode_utf8
 
 __all__ = [
     "FORCE_TIME_COLUMNS",
@@ -98,14 +99,15 @@ class CsvTable:
         return int(self.lines.size)
 
 
-def _read_text(p: Path, encoding: str) -> str:
+def _read_text(p: Path) -> str:
     """The text of ``p``; :class:`DataFileError` when it is missing or unreadable."""
     try:
-        return p.read_text(encoding=encoding)
+        data = p.read_bytes()
     except FileNotFoundError:
         raise DataFileError(f"{p}: no such file") from None
-    except (OSError, UnicodeDecodeError) as exc:
+    except OSError as exc:
         raise DataFileError(f"{p}: cannot read: {exc}") from None
+    return decode_utf8(data, str(p), DataFileError)
 
 
 def read_csv_table(
@@ -141,7 +143,7 @@ def read_csv_table(
         number (file, line and column named), or holds no data row.
     """
     p = Path(path)
-    text = _read_text(p, "utf-8-sig")
+    text = _read_text(p)
     rows = [
         (n, row)
         for n, row in enumerate(csv.reader(text.splitlines()), start=1)
@@ -796,7 +798,7 @@ def load_ground_truth(path: str | Path) -> dict[str, Any]:
         Unreadable, not JSON, or not a ``stipi-sim-ground-truth`` document.
     """
     p = Path(path)
-    text = _read_text(p, "utf-8")
+    text = _read_text(p)
     try:
         doc = json.loads(text)
     except json.JSONDecodeError as exc:

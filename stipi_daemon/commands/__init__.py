@@ -10,7 +10,10 @@ from __future__ import annotations
 import argparse
 import importlib
 import re
+from pathlib import Path
 from typing import Protocol
+
+from stipi_daemon.errors import ConfigError
 
 
 class _Registrar(Protocol):
@@ -27,6 +30,7 @@ COMMAND_MODULES: tuple[str, ...] = (
     "sessions",
     "simulate",
     "study",
+    "view",
 )
 
 
@@ -38,6 +42,25 @@ def frame_size_arg(text: str) -> tuple[int, int]:
             f"expected WIDTHxHEIGHT in px, both > 0 (e.g. 1280x720), got {text!r}"
         )
     return int(m.group(1)), int(m.group(2))
+
+
+def given_path(text: str, option: str = "--out") -> Path:
+    """An output path given as text (argparse ``type=str``, as ``Path("")`` would be the
+    current directory).
+
+    Raises
+    ------
+    ConfigError
+        An empty or blank value (one line): never taken as the current directory.
+    """
+    if not text.strip():
+        raise ConfigError(f"{option} {text!r}: empty; give a directory or file name")
+    return Path(text)
+
+
+def out_path(text: str | None, option: str = "--out") -> Path | None:
+    """:func:`given_path`, or None when the option was not given."""
+    return None if text is None else given_path(text, option)
 
 
 def register_all(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:

@@ -29,7 +29,7 @@ from stipi_daemon.analysis.calibration_procedure import (
     DEFAULT_PLATEAU_TOLERANCE_N,
     DEFAULT_TRIM_S,
 )
-from stipi_daemon.commands import frame_size_arg
+from stipi_daemon.commands import frame_size_arg, given_path
 from stipi_daemon.errors import ConfigError
 
 
@@ -74,7 +74,7 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         metavar="FILE.csv",
         help="with --depth-recording: columns t_start_s, t_end_s, depth_change_mm",
     )
-    parser.add_argument("--out", type=Path, required=True, metavar="CAL.json", help="output file")
+    parser.add_argument("--out", type=str, required=True, metavar="CAL.json", help="output file")
     parser.add_argument(
         "--overwrite", action="store_true", help="replace an existing calibration file"
     )
@@ -163,8 +163,9 @@ def run(args: argparse.Namespace) -> int:
     from stipi_daemon.app.calibrate import CalibrateRequest, calibrate
     from stipi_daemon.app.offline_io import parse_roi
 
-    if args.out.exists() and not args.overwrite:
-        raise ConfigError(f"{args.out}: exists already (give --overwrite to replace it)")
+    out = given_path(args.out)
+    if out.exists() and not out.is_dir() and not args.overwrite:
+        raise ConfigError(f"{out}: exists already (give --overwrite to replace it)")
     if args.depth_recording is not None and args.displacements is None:
         raise ConfigError("--depth-recording needs --displacements FILE.csv")
     if args.depth_recording is None and args.displacements is not None:
@@ -172,7 +173,7 @@ def run(args: argparse.Namespace) -> int:
     _check_values(args)
     roi = parse_roi(args.roi) if args.roi is not None else None
     request = CalibrateRequest(
-        out=args.out,
+        out=out,
         depth_pairs=args.depth_pairs,
         depth_recording=args.depth_recording,
         displacements=args.displacements,

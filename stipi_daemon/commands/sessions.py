@@ -22,6 +22,7 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
+from stipi_daemon.commands import out_path
 from stipi_daemon.storage import (
     DEFAULT_ROOT,
     EXPORT_FORMATS,
@@ -116,7 +117,7 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     )
     p_export.add_argument(
         "--out",
-        type=Path,
+        type=str,
         help="output directory (default: exports/ID next to the sessions directory, "
         "i.e. ROOT/../exports/ID)",
     )
@@ -149,7 +150,7 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     add_where(p_table)
     p_table.add_argument(
         "--out",
-        type=Path,
+        type=str,
         help="results.csv or results.parquet (default: exports/results.csv next to the "
         "sessions directory, i.e. ROOT/../exports/results.csv)",
     )
@@ -208,7 +209,8 @@ def _cmd_show(args: argparse.Namespace) -> int:
 def _cmd_export(args: argparse.Namespace) -> int:
     root = _root(args)
     directory = _session_dir(root, args.session_id)
-    out = args.out if args.out is not None else default_export_dir(directory)
+    given = out_path(args.out)
+    out = given if given is not None else default_export_dir(directory)
     with SessionReader(directory) as reader:
         live = reader.status is SessionState.RECORDING
         integrity = reader.integrity_check()
@@ -240,7 +242,8 @@ def _cmd_export(args: argparse.Namespace) -> int:
 
 def _cmd_table(args: argparse.Namespace) -> int:
     root = _root(args)
-    out = args.out if args.out is not None else default_table_path(root)
+    given = out_path(args.out)
+    out = given if given is not None else default_table_path(root)
     path, n = write_results_table(root, out, _where(args), overwrite=args.overwrite)
     print(f"{path} ({n} session{'s' if n != 1 else ''})")
     return 0

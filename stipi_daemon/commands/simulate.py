@@ -11,8 +11,9 @@ import argparse
 import sys
 from pathlib import Path
 
-from stipi_daemon.commands import frame_size_arg
-from stipi_daemon.errors import ConfigError
+from stipi_daemon.commands import frame_size_arg, given_path
+from stipi_daemon.errors import ConfigError, SessionError
+from stipi_daemon.storage.export import check_export_target
 
 
 def _coding(codec: str, jpeg_quality: int | None) -> str:
@@ -32,7 +33,7 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         ),
     )
     parser.add_argument("scene_file", type=Path, metavar="SCENE", help="scene YAML file")
-    parser.add_argument("--out", type=Path, required=True, metavar="DIR", help="output directory")
+    parser.add_argument("--out", type=str, required=True, metavar="DIR", help="output directory")
     parser.add_argument("--seed", type=int, default=None, help="random seed (default: scene's)")
     parser.add_argument(
         "--resolution", type=frame_size_arg, default=None, metavar="WxH", help="frame size override"
@@ -59,7 +60,12 @@ def run(args: argparse.Namespace) -> int:
             scene = scene.with_camera(width=w, height=h, fps=args.fps)
         except ValueError as exc:
             raise ConfigError(f"{args.scene_file.name}: camera override: {exc}") from exc
-    show = not args.quiet and sys.stdout.isatty()
+    out = given_path(args.out)
+    try:  # a simulation's files never land in a session (video.mkv, frames.csv...)
+        check_export_target(out, [], what="a simulation")
+    except SessionError as exc:
+        raise ConfigError(str(exc)) from None
+    show = not args.quiet and sys.stdout is not None and sys.stdout.isatty()
     if show:
         from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
 
@@ -75,10 +81,10 @@ def run(args: argparse.Namespace) -> int:
                 bar.update(task, completed=done, total=total)
 
             paths = write_outputs(
-                scene, args.out, args.seed, progress=progress, overwrite=args.overwrite
+                scene, out, args.seed, progress=progress, overwrite=args.overwrite
             )
     else:
-        paths = write_outputs(scene, args.out, args.seed, overwrite=args.overwrite)
+        paths = write_outputs(scene, out, args.seed, overwrite=args.overwrite)
     if not args.quiet:
         print(
             f"{paths.frames_written} frames ({_coding(paths.video_codec, paths.jpeg_quality)}) "

@@ -19,6 +19,8 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import TypeAlias
 
+from stipi_daemon.commands import given_path, out_path
+
 _Sub: TypeAlias = "argparse._SubParsersAction[argparse.ArgumentParser]"
 
 
@@ -53,7 +55,7 @@ def _add_index(sub: _Sub) -> None:
     )
     p.add_argument("roots", nargs="+", type=Path, metavar="ROOT", help="sessions directory")
     p.add_argument(
-        "--out", type=Path, required=True, metavar="DATASET", help="the dataset directory"
+        "--out", type=str, required=True, metavar="DATASET", help="the dataset directory"
     )
     p.add_argument("--quiet", action="store_true", help="print only the summary line")
     p.set_defaults(handler=_cmd_index)
@@ -73,10 +75,12 @@ def _add_query(sub: _Sub) -> None:
     p.add_argument("sql", metavar="SQL", help="one query (SELECT, WITH ... SELECT, EXPLAIN)")
     p.add_argument(
         "--out",
-        type=Path,
+        type=str,
         metavar="FILE",
-        help="write the whole result to FILE.csv or FILE.parquet instead of printing it",
+        help="write the whole result to FILE.csv or FILE.parquet instead of printing it "
+        "(never into the dataset)",
     )
+    p.add_argument("--overwrite", action="store_true", help="replace an existing --out file")
     p.add_argument(
         "--max-rows", type=int, default=200, metavar="N", help="rows printed (default 200)"
     )
@@ -131,8 +135,9 @@ def _add_diff(sub: _Sub) -> None:
     p.add_argument("v1", metavar="V1", help="the analysis version compared against")
     p.add_argument("v2", metavar="V2", help="the analysis version compared")
     p.add_argument(
-        "--out", type=Path, metavar="FILE.csv", help="also write one row per session to CSV"
+        "--out", type=str, metavar="FILE.csv", help="also write one row per session to CSV"
     )
+    p.add_argument("--overwrite", action="store_true", help="replace an existing --out file")
     p.add_argument(
         "--max-rows", type=int, default=50, metavar="N", help="changed sessions listed (50)"
     )
@@ -151,7 +156,7 @@ _SUBCOMMANDS: tuple[Callable[[_Sub], None], ...] = (
 def _cmd_index(args: argparse.Namespace) -> int:
     from stipi_daemon.study.index import index_sessions
 
-    report = index_sessions(args.roots, args.out)
+    report = index_sessions(args.roots, given_path(args.out))
     if not args.quiet:
         for line in report.skipped:
             print(f"stipi-daemon: skipped {line}", file=sys.stderr)
@@ -162,14 +167,17 @@ def _cmd_index(args: argparse.Namespace) -> int:
 
 
 def _cmd_query(args: argparse.Namespace) -> int:
+    from stipi_daemon.study.dataset import check_output_file
     from stipi_daemon.study.query import format_result, result_format, run_query, write_result
 
-    if args.out is not None:
-        result_format(args.out)  # a bad suffix is refused before the query runs
+    out = out_path(args.out)
+    if out is not None:  # refused before the query runs
+        result_format(out)
+        check_output_file(out, args.dataset, overwrite=args.overwrite, what="a query")
     result = run_query(args.dataset, args.sql)
-    if args.out is not None:
-        write_result(result, args.out)
-        print(f"{args.out}: {result.num_rows} rows")
+    if out is not None:
+        write_result(result, out)
+        print(f"{out}: {result.num_rows} rows")
     else:
         print(format_result(result, max(0, args.max_rows)))
     return 0
@@ -195,12 +203,16 @@ def _cmd_reanalyze(args: argparse.Namespace) -> int:
 
 
 def _cmd_diff(args: argparse.Namespace) -> int:
+    from stipi_daemon.study.dataset import check_output_file
     from stipi_daemon.study.diff import diff_versions
 
+    out = out_path(args.out)
+    if out is not None:
+        check_output_file(out, args.dataset, overwrite=args.overwrite, what="a diff")
     diff = diff_versions(args.dataset, args.v1, args.v2)
-    if args.out is not None:
-        diff.write_csv(args.out)
+    if out is not None:
+        diff.write_csv(out)
     print("\n".join(diff.lines(max(0, args.max_rows))))
-    if args.out is not None:
-        print(f"{args.out}: {len(diff.sessions)} rows")
+    if out is not None:
+        print(f"{out}: {len(diff.sessions)} rows")
     return 0

@@ -43,9 +43,11 @@ from stipi_daemon.protocol.messages import (
     RATE_MIN_HZ,
     Ack,
     AckStatus,
+    BleState,
     Command,
     GetInfo,
     InfoResult,
+    ResetCause,
     Samples,
     SetLed,
     SetRate,
@@ -204,6 +206,8 @@ class StatusReport:
     led_level, rate_hz, dropped, supply_mv, flags
         As in STATUS (docs/protocol.md): LED duty, rate [Hz], samples dropped in the probe
         since boot, supply [mV], flags.
+    ble_state, ble_restarts, reset_cause
+        The probe's health (firmware 1.1 on); ``None`` from a probe that does not send it.
     """
 
     t_host_s: float
@@ -213,6 +217,41 @@ class StatusReport:
     dropped: int
     supply_mv: int
     flags: StatusFlags
+    ble_state: BleState | None = None
+    ble_restarts: int | None = None
+    reset_cause: ResetCause | None = None
+
+
+def _flag_names(cause: ResetCause) -> str:
+    names = [m.name.lower() for m in ResetCause if m and m in cause and m.name]
+    return " or ".join(names) if names else "unknown"
+
+
+class ProbeHealth:
+    """Which STATUS heartbeats the session records as a ``probe_health`` event: the first
+    one that reports the probe's health (why it started, its BLE module's state and
+    restarts), then each one where that changed. :meth:`forget` after the link came back,
+    so that a restarted probe's reason is recorded even when it is the same as before."""
+
+    def __init__(self) -> None:
+        self._last: tuple[object, ...] | None = None
+
+    def forget(self) -> None:
+        self._last = None
+
+    def observe(self, report: StatusReport) -> dict[str, object] | None:
+        """The event's detail when ``report`` should be recorded, else None."""
+        if report.reset_cause is None or report.ble_state is None:
+            return None  # a probe that predates the health fields
+        now = (report.reset_cause, report.ble_state, report.ble_restarts)
+        if now == self._last:
+            return None
+        self._last = now
+        return {
+            "reset_cause": _flag_names(report.reset_cause),
+            "ble_state": report.ble_state.name.lower(),
+            "ble_restarts": report.ble_restarts,
+        }
 
 
 @dataclass(frozen=True, slots=True)
@@ -802,6 +841,9 @@ class ProbeLink:
                         msg.dropped,
                         msg.supply_mv,
                         msg.flags,
+                        msg.ble_state,
+                        msg.ble_restarts,
+                        msg.reset_cause,
                     )
                 )
             elif isinstance(msg, Ack):

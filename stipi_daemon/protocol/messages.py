@@ -41,6 +41,7 @@ __all__ = [
     "Ack",
     "AckResult",
     "AckStatus",
+    "BleState",
     "CmdId",
     "Command",
     "Frame",
@@ -49,6 +50,7 @@ __all__ = [
     "Message",
     "MsgType",
     "RawCommand",
+    "ResetCause",
     "Samples",
     "SetLed",
     "SetRate",
@@ -93,6 +95,7 @@ _HEADER = struct.Struct("<BBHI")
 _CRC = struct.Struct("<H")
 _SAMPLES_HEAD = struct.Struct("<IHB")
 _STATUS = struct.Struct("<BHIHB")
+_STATUS_HEALTH = struct.Struct("<BHB")  # ble_state, ble_restarts, reset_cause (firmware 1.1 on)
 _ACK_HEAD = struct.Struct("<HBB")
 _U8 = struct.Struct("<B")
 _U16 = struct.Struct("<H")
@@ -129,6 +132,28 @@ class AckStatus(IntEnum):
     BAD_ARGUMENT = 2
     BUSY = 3
     EEPROM_FAILED = 4
+
+
+class BleState(IntEnum):
+    """STATUS ``ble_state``: the probe's BLE module as its firmware sees it."""
+
+    NOT_BUILT = 0
+    ABSENT = 1  # nothing answers; the probe resets it and looks again with a back-off
+    BOOTING = 2  # reset or answering "busy" (0xFE), being probed
+    UP = 3
+
+
+class ResetCause(IntFlag):
+    """STATUS ``reset_cause``: why the probe last started, in the ATmega32u4's MCUSR bit
+    order. On a Feather the Caterina bootloader clears MCUSR, so the firmware infers the
+    cause: ``WATCHDOG`` from a mark its watchdog interrupt leaves, ``POWER_ON`` when RAM
+    lost its contents, and ``EXTERNAL | BROWN_OUT`` (both bits: one of the two) otherwise."""
+
+    UNKNOWN = 0
+    POWER_ON = 0x01
+    EXTERNAL = 0x02
+    BROWN_OUT = 0x04
+    WATCHDOG = 0x08
 
 
 class StatusFlags(IntFlag):
@@ -262,6 +287,10 @@ class Status:
         Supply voltage [mV], 0..65535.
     flags : StatusFlags
         Streaming, BLE connected, USB CDC open, calibration valid (bits 0..3).
+    ble_state, ble_restarts, reset_cause : optional
+        The probe's health, sent by firmware 1.1 on after the ten bytes above (a 14-byte
+        body); ``None`` for a probe that sends the original 10-byte body. ``ble_restarts``
+        counts the times the BLE module, once up, restarted and was probed again.
     """
 
     MSG_TYPE: ClassVar[MsgType] = MsgType.STATUS
@@ -271,6 +300,9 @@ class Status:
     dropped: int
     supply_mv: int
     flags: StatusFlags = StatusFlags.NONE
+    ble_state: BleState | None = None
+    ble_restarts: int | None = None
+    reset_cause: ResetCause | None = None
 
     def __post_init__(self) -> None:
         _u8("led_level", self.led_level)
@@ -281,24 +313,52 @@ class Status:
         flags = _u8("flags", given)
         if not isinstance(given, StatusFlags):
             object.__setattr__(self, "flags", StatusFlags(flags))
+        health = (self.ble_state, self.ble_restarts, self.reset_cause)
+        if all(h is None for h in health):
+            return
+        if any(h is None for h in health):
+            raise ProtocolError("ble_state, ble_restarts and reset_cause come together")
+        state = _check_int("ble_state", self.ble_state, 0, 3)
+        _u16("ble_restarts", self.ble_restarts)
+        cause = _u8("reset_cause", self.reset_cause)
+        object.__setattr__(self, "ble_state", BleState(state))
+        object.__setattr__(self, "reset_cause", ResetCause(cause))
 
     def body(self) -> bytes:
-        """Body bytes (10)."""
-        return _STATUS.pack(
+        """Body bytes (10, or 14 with the health fields)."""
+        base = _STATUS.pack(
             self.led_level, self.rate_hz, self.dropped, self.supply_mv, int(self.flags)
+        )
+        if self.ble_state is None or self.ble_restarts is None or self.reset_cause is None:
+            return base
+        return base + _STATUS_HEALTH.pack(
+            int(self.ble_state), self.ble_restarts, int(self.reset_cause)
         )
 
     @classmethod
     def from_body(cls, body: bytes) -> Status:
         """Parse a STATUS body; raise :class:`FrameError` (kind ``body``) naming the offset."""
-        if len(body) != _STATUS.size:
+        full = _STATUS.size + _STATUS_HEALTH.size
+        if len(body) not in (_STATUS.size, full):
             raise FrameError(
                 FrameErrorKind.BODY,
                 HEADER_SIZE,
-                f"STATUS body must be {_STATUS.size} bytes, got {len(body)}",
+                f"STATUS body must be {_STATUS.size} or {full} bytes, got {len(body)}",
             )
-        led, rate, dropped, supply, flags = _STATUS.unpack(body)
-        return cls(led, rate, dropped, supply, StatusFlags(flags))
+        led, rate, dropped, supply, flags = _STATUS.unpack_from(body)
+        if len(body) == _STATUS.size:
+            return cls(led, rate, dropped, supply, StatusFlags(flags))
+        state, restarts, cause = _STATUS_HEALTH.unpack_from(body, _STATUS.size)
+        if state > BleState.UP:
+            raise FrameError(
+                FrameErrorKind.BODY,
+                HEADER_SIZE + _STATUS.size,
+                f"STATUS ble_state must be 0..3, got {state}",
+            )
+        return cls(
+            led, rate, dropped, supply, StatusFlags(flags),
+            BleState(state), restarts, ResetCause(cause),
+        )  # fmt: skip
 
 
 # --------------------------------------------------------------------------- host → probe

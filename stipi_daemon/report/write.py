@@ -11,6 +11,7 @@ atomically (written to ``*.tmp``, then renamed) so a reader never sees half a pa
 
 from __future__ import annotations
 
+import contextlib
 import gc
 import os
 from collections.abc import Callable, Mapping, Sequence
@@ -126,6 +127,8 @@ def _write_atomic(path: Path, payload: bytes) -> None:
         tmp.write_bytes(payload)
         os.replace(tmp, path)
     except OSError as exc:
+        with contextlib.suppress(OSError):
+            tmp.unlink(missing_ok=True)  # a full disk leaves no partial file behind
         raise SessionError(f"{path}: cannot write: {exc}") from exc
 
 

@@ -27,7 +27,7 @@ from stipi_daemon.errors import ConfigError
 from stipi_daemon.sim.effects import effect_module, known_effects
 from stipi_daemon.sim.effects.base import EffectParams
 from stipi_daemon.sim.tissue.spec import TissueModelSpec
-from stipi_daemon.yamlfile import load_yaml
+from stipi_daemon.yamlfile import load_yaml, read_utf8
 
 __all__ = [
     "DEFAULT_JPEG_QUALITY",
@@ -381,10 +381,16 @@ def parse_scene(data: Any, source: str) -> Scene:
     Raises
     ------
     ConfigError
-        Each problem on its own line as ``source: field.path: message``.
+        One line, every problem as ``field.path: message`` after ``source: `` and
+        separated by ``; ``; a daemon config given as a scene is said to be one.
     """
     if not isinstance(data, Mapping):
         raise ConfigError(f"{source}: a scene must be a mapping, got {type(data).__name__}")
+    if data.get("format") == "stipi-daemon-config":
+        raise ConfigError(
+            f"{source}: is a daemon config (format stipi-daemon-config), not a scene; give it "
+            "with --config, and a scene (e.g. configs/scenes/grade2.yaml) with --scene"
+        )
     problems: list[str] = []
     raw = dict(data)
     raw_effects = raw.pop("effects", [])
@@ -403,7 +409,8 @@ def parse_scene(data: Any, source: str) -> Scene:
             problems.append(f"{source}: {_loc(err['loc']) or '(scene)'}: {msg}")
         scene = None
     if problems or scene is None:
-        raise ConfigError("\n".join(problems))
+        rest = [p.removeprefix(f"{source}: ") for p in problems[1:]]
+        raise ConfigError("; ".join([problems[0], *rest]))
     return scene
 
 
@@ -417,9 +424,6 @@ def load_scene(path: str | Path) -> Scene:
         the message names the file and the field path.
     """
     p = Path(path)
-    try:
-        text = p.read_text(encoding="utf-8")
-    except OSError as exc:
-        raise ConfigError(f"{p}: cannot read scene file: {exc.strerror or exc}") from exc
-    data = load_yaml(text, p.name)  # a key given twice is an error naming its line
+    # a key given twice is an error naming its line; bytes not UTF-8 one naming its offset
+    data = load_yaml(read_utf8(p, "scene file"), p.name)
     return parse_scene(data, p.name)

@@ -32,9 +32,11 @@ as null) and string columns; each field's metadata holds its ``unit`` and ``doc`
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import filecmp
 import json
+import os
 import shutil
 from collections.abc import Sequence
 from pathlib import Path
@@ -61,7 +63,7 @@ from stipi_daemon.storage.results_table import (
     table_format,
     write_rows,
 )
-from stipi_daemon.storage.schema import TABLES, Table
+from stipi_daemon.storage.schema import FORMAT_NAME, FRAMES, TABLES, VIDEO_FRAMES, Table
 
 ExportFormat = Literal["csv", "parquet", "mat"]
 EXPORT_FORMATS: Final[tuple[ExportFormat, ...]] = ("csv", "parquet", "mat")
@@ -70,6 +72,8 @@ EXPORTS_DIR: Final = "exports"
 #: Format name and version stored in a ``.mat`` export.
 MAT_FORMAT: Final = "stipi-session-mat"
 MAT_VERSION: Final = 1
+#: Larger than any session manifest: a bigger manifest.json is not read to tell a session.
+_MANIFEST_MAX_BYTES: Final = 16 * 1024 * 1024
 #: File of a csv/parquet export of a session that failed its integrity check (exported with
 #: ``allow_damaged``): one line, every problem.
 INTEGRITY_NAME: Final = "integrity.txt"
@@ -184,8 +188,20 @@ def default_table_path(root: Path) -> Path:
 
 
 def _holds_session(directory: Path) -> bool:
-    """A directory that is (or was) written by a session writer: database or writer lock."""
-    return (directory / layout.DB_NAME).exists() or (directory / layout.LOCK_NAME).exists()
+    """A session directory: a session's manifest (``manifest.json`` of format
+    :data:`~.schema.FORMAT_NAME`) beside its database or writer lock. A stray
+    ``session.sqlite`` or ``writer.lock`` (a 0-byte file at the file system's root)
+    makes no directory a session, nor does an export's copy of a manifest."""
+    manifest = directory / layout.MANIFEST_NAME
+    if not any((directory / name).exists() for name in (layout.DB_NAME, layout.LOCK_NAME)):
+        return False
+    try:
+        if not manifest.is_file() or manifest.stat().st_size > _MANIFEST_MAX_BYTES:
+            return False
+        doc = json.loads(manifest.read_bytes())
+    except (OSError, ValueError):
+        return False
+    return isinstance(doc, dict) and doc.get("format") == FORMAT_NAME
 
 
 def check_export_target(
@@ -206,8 +222,8 @@ def check_export_target(
         Sessions directories: neither may be the target directory, nor may the target be
         a new directory directly in one (it would be listed as a session).
     sessions : sequence of Path
-        Session directories to protect besides every directory holding a session database
-        or writer lock (the exported session, each session of ``roots``).
+        Session directories to protect besides every directory holding a session's
+        manifest (the exported session, each session of ``roots``).
     what : str
         What would write there, for the message (``"an export"``, ``"an analysis"``).
 
@@ -341,33 +357,76 @@ def export_session(
             [*((None, t) for t in written_here), *((src, out / src.name) for src in extras)]
         )
     writer = _write_csv if fmt == "csv" else _write_parquet
-    written: list[Path] = []
+    staged = _Staged(out)
     try:
         out.mkdir(parents=True, exist_ok=True)
         with reader.snapshot():
             for table, target in zip(TABLES, targets, strict=True):
-                writer(target, table, list(reader.iter_rows(table)))
-                written.append(target)
+                writer(staged.path(target), table, _export_rows(reader, table))
             row = session_row(reader)
-        _write_validity(validity_target, fmt, validity_rows(_summary_or_none(reader)))
-        write_rows(row_target, [row], fmt)
-        written += [validity_target, row_target]
-        written += [_copy(src, out / src.name) for src in extras]
+        summary = _summary_or_none(reader)
+        _write_validity(staged.path(validity_target), fmt, validity_rows(summary))
+        write_rows(staged.path(row_target), [row], fmt)
+        copies = [staged.copy(src, out / src.name) for src in extras]
         if problems:
-            (out / INTEGRITY_NAME).write_text(
+            staged.path(out / INTEGRITY_NAME).write_text(
                 _integrity_line(reader, problems) + "\n", encoding="utf-8"
             )
-            written.append(out / INTEGRITY_NAME)
+        staged.commit()
     except OSError as exc:
-        raise SessionError(f"{out}: export failed: {exc}") from exc
-    return written
+        staged.discard()
+        raise SessionError(f"{out}: export failed (nothing written): {exc}") from exc
+    except BaseException:
+        staged.discard()
+        raise
+    return [*targets, validity_target, row_target, *copies, *written_here[len(targets) + 2 :]]
 
 
-def _copy(src: Path, dst: Path) -> Path:
-    """``src`` copied byte for byte to ``dst`` (left as it is when it holds those bytes)."""
-    if not (dst.exists() and filecmp.cmp(src, dst, shallow=False)):
-        shutil.copyfile(src, dst)
-    return dst
+class _Staged:
+    """Files of one export written under temporary names beside their targets, then
+    renamed into place together (:meth:`commit`); on failure (disk full) :meth:`discard`
+    removes every temporary file and the directories the export created, so a failed
+    export leaves nothing partial behind and replaces nothing."""
+
+    def __init__(self, out: Path) -> None:
+        self.out = out
+        self.pairs: list[tuple[Path, Path]] = []
+        self.new_dirs = [p for p in (out, *out.parents) if not p.exists()]
+
+    def path(self, target: Path) -> Path:
+        """The temporary name to write ``target`` under (hidden, same suffix)."""
+        tmp = target.with_name(f".{target.stem}.{os.getpid()}.tmp{target.suffix}")
+        self.pairs.append((tmp, target))
+        return tmp
+
+    def copy(self, src: Path, dst: Path) -> Path:
+        """``src`` copied byte for byte to ``dst`` (left as it is when it holds them)."""
+        if not (dst.exists() and filecmp.cmp(src, dst, shallow=False)):
+            shutil.copyfile(src, self.path(dst))
+        return dst
+
+    def commit(self) -> None:
+        for tmp, target in self.pairs:
+            os.replace(tmp, target)
+        self.pairs = []
+
+    def discard(self) -> None:
+        for tmp, _ in self.pairs:
+            with contextlib.suppress(OSError):
+                tmp.unlink(missing_ok=True)
+        for d in self.new_dirs:  # deepest first; only if left empty
+            with contextlib.suppress(OSError):
+                d.rmdir()
+
+
+def _export_rows(reader: SessionReader, table: Table) -> list[tuple[Any, ...]]:
+    """The rows of ``table``; frames and video frames in capture order (by ``seq``:
+    the measurer's workers may store them out of it)."""
+    rows = list(reader.iter_rows(table))
+    if table.name in (FRAMES.name, VIDEO_FRAMES.name) and "seq" in table.column_names:
+        i = table.column_names.index("seq")
+        rows.sort(key=lambda row: row[i])
+    return rows
 
 
 def _export_mat_files(
@@ -383,22 +442,24 @@ def _export_mat_files(
         pairs.append((video, video_target))
     if not overwrite:
         _refuse_conflicts(pairs)
+    staged = _Staged(out)
     try:
         out.mkdir(parents=True, exist_ok=True)
+        export_mat(
+            reader,
+            staged.path(target),
+            video_file=None if video_target is None else video_target.name,
+            integrity_problems=problems,
+        )
+        copies = [] if video is None or video_target is None else [staged.copy(video, video_target)]
+        staged.commit()
     except OSError as exc:
-        raise SessionError(f"{out}: export failed: {exc}") from exc
-    export_mat(
-        reader,
-        target,
-        video_file=None if video_target is None else video_target.name,
-        integrity_problems=problems,
-    )
-    if video is None or video_target is None:  # no video file to copy
-        return [target]
-    try:
-        return [target, _copy(video, video_target)]
-    except OSError as exc:
-        raise SessionError(f"{video_target}: export failed: {exc}") from exc
+        staged.discard()
+        raise SessionError(f"{out}: export failed (nothing written): {exc}") from exc
+    except BaseException:
+        staged.discard()
+        raise
+    return [target, *copies]
 
 
 def write_results_table(
@@ -425,10 +486,13 @@ def write_results_table(
     rows = collect_rows(root, where)
     if out.exists() and not overwrite:
         raise SessionError(f"{out}: exists already (use --overwrite to replace it)")
+    staged = _Staged(out.parent)
     try:
         out.parent.mkdir(parents=True, exist_ok=True)
-        write_rows(out, rows, fmt)
+        write_rows(staged.path(out), rows, fmt)
+        staged.commit()
     except OSError as exc:
+        staged.discard()
         raise SessionError(f"{out}: cannot write the results table: {exc}") from exc
     return out, len(rows)
 
@@ -453,7 +517,7 @@ def _mat_column(kind: str, values: list[Any]) -> npt.NDArray[Any]:
 
 
 def _mat_table(reader: SessionReader, table: Table) -> dict[str, Any]:
-    rows = list(reader.iter_rows(table))
+    rows = _export_rows(reader, table)
     return {c.name: _mat_column(c.kind, [r[i] for r in rows]) for i, c in enumerate(table.columns)}
 
 

@@ -9,6 +9,7 @@ done before a session is created. It does not touch the SQLite database (:mod:`.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import platform
@@ -242,7 +243,7 @@ def write_json_atomic(path: Path, value: object, *, what: str = "value") -> None
     The text goes to ``<path>.tmp`` (flushed and fsynced), is renamed over ``path``
     (``os.replace`` is atomic on POSIX), and the directory is fsynced so that the rename
     itself survives a power loss. A reader therefore sees either the old file or the whole
-    new one, never a partial file.
+    new one, never a partial file; a failed write (disk full) removes ``<path>.tmp``.
     """
     text = json.dumps(to_jsonable(value, what), indent=2, allow_nan=False) + "\n"
     tmp = path.with_name(path.name + ".tmp")
@@ -254,6 +255,8 @@ def write_json_atomic(path: Path, value: object, *, what: str = "value") -> None
         os.replace(tmp, path)
         fsync_directory(path.parent)
     except OSError as exc:
+        with contextlib.suppress(OSError):
+            tmp.unlink(missing_ok=True)  # a disk-full stop leaves no partial file behind
         raise SessionError(f"{path}: cannot write {what}: {exc}") from exc
 
 

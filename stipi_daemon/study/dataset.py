@@ -33,7 +33,7 @@ from typing import Any, Final
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from stipi_daemon.errors import StipiError
+from stipi_daemon.errors import SessionError, StipiError
 from stipi_daemon.storage.layout import fsync_directory, utc_now_iso, write_json_atomic
 from stipi_daemon.storage.results_table import COLUMNS as RESULT_TABLE_COLUMNS
 from stipi_daemon.storage.results_table import quantity_cells
@@ -286,6 +286,35 @@ def new_state(package_version: str) -> dict[str, Any]:
         "package_version": package_version,
         "sessions": {},
     }
+
+
+def check_output_file(path: Path, dataset: Path, *, overwrite: bool, what: str) -> None:
+    """Refuse an output file (``--out`` of a query or a diff) before anything is run: one
+    in the dataset (its files are the indexer's; a result there would replace one or be
+    read as part of a table), in a session directory, a directory, or an existing file
+    without ``overwrite``.
+
+    Raises
+    ------
+    StudyError
+        One line naming ``path`` and why.
+    """
+    from stipi_daemon.storage.export import check_export_target
+
+    target, root = path.resolve(), dataset.resolve()
+    if target == root or root in target.parents:
+        raise StudyError(
+            f"--out {path}: inside the dataset {dataset}; {what} never writes into its "
+            "dataset (choose a file outside it)"
+        )
+    try:
+        check_export_target(path, [], is_file=True, what=what)
+    except SessionError as exc:
+        raise StudyError(str(exc)) from None
+    if path.is_dir():
+        raise StudyError(f"--out {path}: is a directory (give a file name)")
+    if path.exists() and not overwrite:
+        raise StudyError(f"--out {path}: exists already (give --overwrite to replace it)")
 
 
 def load_state(dataset: Path) -> dict[str, Any]:

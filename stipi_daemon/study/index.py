@@ -34,6 +34,7 @@ from pathlib import Path
 from typing import Any, Final
 
 import pyarrow as pa
+import pyarrow.parquet as pq
 
 from stipi_daemon import __version__
 from stipi_daemon.errors import SessionError
@@ -257,7 +258,17 @@ def _still_indexed(
 ) -> bool:
     """Whether an indexed session's dataset files are there and of this data and summary."""
     same = (entry.get("data_hash"), entry.get("summary_hash")) == (digest, summary_digest)
-    return same and all((dataset / f).is_file() for f in entry.get("files", []))
+    return same and all(_intact(dataset / f) for f in entry.get("files", []))
+
+
+def _intact(path: Path) -> bool:
+    """Whether a dataset file is there and a readable Parquet file (its footer and
+    metadata; a truncated or overwritten file is not, and is written again)."""
+    try:
+        pq.read_metadata(path)
+    except (OSError, pa.ArrowException):
+        return False
+    return True
 
 
 def _open_dataset(dataset: Path) -> dict[str, Any]:
@@ -349,7 +360,7 @@ def _index_one(
     signature = _stat_signature(directory)
     known = by_path.get(path)
     if known is not None and sessions[known].get("stat") == signature:
-        if all((dataset / f).is_file() for f in sessions[known].get("files", [])):
+        if all(_intact(dataset / f) for f in sessions[known].get("files", [])):
             report.unchanged += 1
             return
     try:

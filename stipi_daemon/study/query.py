@@ -12,6 +12,8 @@ yet is an empty view of its schema. :func:`run_query` runs one read-only stateme
 
 from __future__ import annotations
 
+import contextlib
+import os
 from pathlib import Path
 from typing import TYPE_CHECKING, Final
 
@@ -40,35 +42,80 @@ def _sql_text(value: str) -> str:
     return "'" + value.replace("'", "''") + "'"
 
 
+def _parquet_files(dataset: Path, table: str) -> list[Path]:
+    """The table's Parquet files (absolute: under the resolved table directory), hidden
+    temporary files left out."""
+    directory = dataset / table
+    if not directory.is_dir():
+        return []
+    base = directory.resolve()
+    return sorted(p for p in base.rglob("*.parquet") if not p.name.startswith("."))
+
+
+def _create_view(con: duckdb.DuckDBPyConnection, table: str, files: list[Path]) -> None:
+    """``table`` as a view over ``files`` (hive partitions as text), or an empty view of
+    its schema when there is no file."""
+    keys = _partition_keys(table)
+    if files:
+        listed = "[" + ", ".join(_sql_text(str(f)) for f in files) + "]"
+        types = "{" + ", ".join(f"{_sql_text(k)}: 'VARCHAR'" for k in keys) + "}"
+        con.execute(
+            f"CREATE VIEW {table} AS SELECT * FROM read_parquet({listed}, "
+            f"hive_partitioning = true, union_by_name = true, hive_types = {types})"
+        )
+        return
+    schema = arrow_schema(table)
+    for key in keys:
+        if key not in schema.names:
+            schema = schema.append(pa.field(key, pa.string()))
+    con.register(f"_empty_{table}", schema.empty_table())
+    con.execute(f"CREATE VIEW {table} AS SELECT * FROM _empty_{table}")
+
+
+def _sandbox(con: duckdb.DuckDBPyConnection, files: list[Path]) -> None:
+    """Allow the connection to read ``files`` and nothing else, and lock that in.
+
+    External access off (no other local file, no network, no extension installed or
+    loaded), the dataset's files the only allowed paths (read; writing one is refused as
+    DuckDB writes through a temporary name beside it), no spilling to a temporary
+    directory, and the configuration locked so that no statement can change it back.
+    """
+    listed = "[" + ", ".join(_sql_text(str(f)) for f in files) + "]"
+    con.execute(f"SET allowed_paths = {listed}")
+    con.execute("SET temp_directory = ''")
+    con.execute("SET enable_external_access = false")
+    con.execute("SET lock_configuration = true")
+
+
 def connect(dataset: Path) -> duckdb.DuckDBPyConnection:
-    """An in-memory DuckDB connection with the dataset's tables as views.
+    """An in-memory DuckDB connection with the dataset's tables as views, that reads
+    the dataset's Parquet files and no other file, and writes none (:func:`_sandbox`).
 
     Raises
     ------
     StudyError
-        ``dataset`` is not a study dataset (one line).
+        ``dataset`` is not a study dataset, or one of its Parquet files is unreadable
+        (truncated, corrupt: one line, as DuckDB names it, and how to repair it).
     """
     import duckdb
 
     load_state(dataset)
-    con = duckdb.connect()
-    for table in TABLE_NAMES:
-        keys = _partition_keys(table)
-        directory = dataset / table
-        if directory.is_dir() and next(directory.rglob("*.parquet"), None) is not None:
-            pattern = _sql_text(str(directory.resolve() / "**" / "*.parquet"))
-            types = "{" + ", ".join(f"{_sql_text(k)}: 'VARCHAR'" for k in keys) + "}"
-            con.execute(
-                f"CREATE VIEW {table} AS SELECT * FROM read_parquet({pattern}, "
-                f"hive_partitioning = true, union_by_name = true, hive_types = {types})"
-            )
-        else:
-            schema = arrow_schema(table)
-            for key in keys:
-                if key not in schema.names:
-                    schema = schema.append(pa.field(key, pa.string()))
-            con.register(f"_empty_{table}", schema.empty_table())
-            con.execute(f"CREATE VIEW {table} AS SELECT * FROM _empty_{table}")
+    con = duckdb.connect(
+        config={"autoinstall_known_extensions": False, "autoload_known_extensions": False}
+    )
+    allowed: list[Path] = []
+    try:
+        for table in TABLE_NAMES:
+            files = _parquet_files(dataset, table)
+            _create_view(con, table, files)
+            allowed.extend(files)
+        _sandbox(con, allowed)
+    except duckdb.Error as exc:
+        con.close()
+        raise StudyError(
+            f"{dataset}: a dataset file is unreadable: {_one_line(exc)} (run `stipi-daemon "
+            "study index` again to write it anew)"
+        ) from None
     return con
 
 
@@ -77,8 +124,63 @@ def _one_line(exc: BaseException) -> str:
     return text.splitlines()[0] if text else type(exc).__name__
 
 
+def _explained(sql: str) -> str | None:
+    """The statement an ``EXPLAIN [ANALYZE] [(options)] ...`` statement explains, found
+    with DuckDB's own tokenizer (comments skipped); None when there is none."""
+    import duckdb
+
+    starts = [p for p, kind in duckdb.tokenize(sql) if kind != duckdb.token_type.comment]
+    words = [
+        (sql[p:end].split() or [""])[0].upper()
+        for p, end in zip(starts, [*starts[1:], len(sql)], strict=True)
+    ]
+    depth = 0
+    for p, word in list(zip(starts, words, strict=True))[1:]:  # [0] is EXPLAIN
+        if depth == 0 and word not in ("ANALYZE", "ANALYSE", "("):
+            return sql[p:]
+        depth += word.count("(") - word.count(")")
+    return None
+
+
+def _check_read_only(con: duckdb.DuckDBPyConnection, sql: str) -> None:
+    """Refuse anything but one query: a ``SELECT`` (``WITH ... SELECT``), or an
+    ``EXPLAIN [ANALYZE]`` of one, as DuckDB's parser classifies the statement.
+
+    Raises
+    ------
+    StudyError
+        Not exactly one statement, or one that is not a query (one line, naming its type).
+    """
+    import duckdb
+
+    statements = con.extract_statements(sql)
+    if len(statements) != 1:
+        raise StudyError(f"SQL: give exactly one statement (got {len(statements)})")
+    kind = statements[0].type
+    if kind == duckdb.StatementType.EXPLAIN:
+        inner = _explained(statements[0].query)
+        inner_statements = con.extract_statements(inner) if inner else []
+        if len(inner_statements) == 1 and inner_statements[0].type == duckdb.StatementType.SELECT:
+            return
+        kind = inner_statements[0].type if len(inner_statements) == 1 else kind
+        raise StudyError(
+            f"SQL: EXPLAIN is run here of a query only (SELECT, WITH ... SELECT), not of "
+            f"{kind.name}; a study query changes nothing"
+        )
+    if kind != duckdb.StatementType.SELECT:
+        raise StudyError(
+            f"SQL: only queries are run here (SELECT, WITH ... SELECT, EXPLAIN), "
+            f"not {kind.name}; a study query changes nothing"
+        )
+
+
 def run_query(dataset: Path, sql: str) -> pa.Table:
     """The result of one read-only SQL statement over the dataset.
+
+    The statement is classified by DuckDB's parser (:func:`_check_read_only`) and run on
+    a connection that can read the dataset's Parquet files and nothing else and can
+    write no file (:func:`connect`): a statement that would write or read elsewhere is
+    refused in one line.
 
     Raises
     ------
@@ -91,21 +193,13 @@ def run_query(dataset: Path, sql: str) -> pa.Table:
     con = connect(dataset)
     try:
         try:
-            statements = con.extract_statements(sql)
-        except duckdb.Error as exc:
-            raise StudyError(f"SQL: {_one_line(exc)}") from None
-        if len(statements) != 1:
-            raise StudyError(f"SQL: give exactly one statement (got {len(statements)})")
-        kind = statements[0].type
-        readable = {duckdb.StatementType.SELECT, duckdb.StatementType.EXPLAIN}
-        if kind not in readable:
-            raise StudyError(
-                f"SQL: only queries are run here (SELECT, WITH ... SELECT, EXPLAIN), "
-                f"not {kind.name}"
-            )
-        try:
+            _check_read_only(con, sql)
             relation = con.sql(sql)
             result: pa.Table = relation.to_arrow_table()
+        except duckdb.PermissionException as exc:
+            raise StudyError(
+                f"SQL: {_one_line(exc)} (a study query reads the dataset's own files only)"
+            ) from None
         except duckdb.Error as exc:
             raise StudyError(f"SQL: {_one_line(exc)}") from None
         return result
@@ -130,7 +224,9 @@ def result_format(path: Path) -> str:
 
 
 def write_result(result: pa.Table, path: Path) -> None:
-    """Write a query result as CSV (header, empty for null) or Parquet, per the suffix.
+    """Write a query result as CSV (header, empty for null) or Parquet, per the suffix,
+    atomically: a hidden temporary file beside it, renamed over it when whole (removed
+    when the write fails: a full disk leaves no partial result).
 
     Raises
     ------
@@ -141,12 +237,16 @@ def write_result(result: pa.Table, path: Path) -> None:
     import pyarrow.parquet as pq
 
     fmt = result_format(path)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
     try:
         if fmt == "csv":
-            pacsv.write_csv(result, path)
+            pacsv.write_csv(result, tmp)
         else:
-            pq.write_table(result, path)
+            pq.write_table(result, tmp)
+        os.replace(tmp, path)
     except (OSError, pa.ArrowException) as exc:
+        with contextlib.suppress(OSError):
+            tmp.unlink(missing_ok=True)
         raise StudyError(f"{path}: cannot write the result: {exc}") from None
 
 

@@ -34,6 +34,7 @@ sessions analysed, skipped, errors) with the totals.
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import json
 import logging
@@ -633,6 +634,7 @@ def reanalyze(
         raise StudyError(f"{dataset}: the dataset holds no sessions (run `study index` first)")
     plan = _plan(dataset, settings, recompute_sk, name)
     record_path = dataset / ANALYSES_DIR / f"{plan.version}.json"
+    new_dir = not record_path.parent.exists()
     record_path.parent.mkdir(exist_ok=True)
     try:
         lock = WriterLock.acquire(
@@ -649,6 +651,9 @@ def reanalyze(
         return _run(plan, tasks, record_path, (settings, raw), scheduler, workers, progress)
     finally:
         lock.release()
+        if new_dir:  # a run refused before it recorded anything leaves no analyses/
+            with contextlib.suppress(OSError):
+                record_path.parent.rmdir()
 
 
 def _save_record(path: Path, doc: dict[str, Any]) -> None:
@@ -667,7 +672,8 @@ def _run(
     workers: int | None,
     stream: TextIO | None,
 ) -> ReanalysisReport:
-    """The run, the lock held: skip what is done, run the rest, record it."""
+    """The run, the lock held: skip what is done, reach the cluster (refused before
+    anything is recorded when it cannot be), run the rest, record it."""
     doc = _open_record(record_path, plan, given[1], given[0], len(tasks))
     report = ReanalysisReport(Path(plan.dataset), plan.version, plan.settings_hash)
     report.sessions = len(tasks)
@@ -675,7 +681,28 @@ def _run(
     report.skipped = len(done)
     report.errors = [(uid, err) for uid, err in sorted(done.items()) if err is not None]
     todo = [t for t in tasks if t.uid not in done]
-    run: dict[str, Any] = {"started_utc": layout.utc_now_iso(), "skipped": len(done)}
+    with contextlib.ExitStack() as stack:
+        client = None
+        if todo and scheduler != SYNCHRONOUS:
+            client, report.where = stack.enter_context(dask_client(scheduler, workers))
+        _record_run(plan, todo, record_path, doc, report, client, stream)
+    report.errors.sort()
+    return report
+
+
+def _record_run(
+    plan: Plan,
+    todo: list[SessionTask],
+    record_path: Path,
+    doc: dict[str, Any],
+    report: ReanalysisReport,
+    client: Any,
+    stream: TextIO | None,
+) -> None:
+    """Run ``todo`` (on ``client``, or here without one) and keep ``doc`` (the analysis
+    record) up to date: saved before the run and after it, however it ends."""
+    tasks = report.sessions
+    run: dict[str, Any] = {"started_utc": layout.utc_now_iso(), "skipped": report.skipped}
     doc["status"] = "running"
     doc["runs"].append(run)
     _save_record(record_path, doc)
@@ -693,13 +720,11 @@ def _run(
     try:
         if not todo:
             report.where = "nothing to do"
-        elif scheduler == SYNCHRONOUS:
+        elif client is None:
             report.where = "serial, in this process"
             run_serial(todo, plan, on_done)
         else:
-            with dask_client(scheduler, workers) as (client, where):
-                report.where = where
-                run_distributed(todo, plan, client, on_done)
+            run_distributed(todo, plan, client, on_done)
     finally:
         bar.close()
         run |= {
@@ -710,14 +735,12 @@ def _run(
         }
         errors = len(report.errors)
         doc["counts"] = {
-            "sessions": len(tasks),
+            "sessions": tasks,
             "done": report.skipped + report.computed,
             "errors": errors,
             "failed": len(report.failed),
         }
-        complete = doc["counts"]["done"] == len(tasks)
+        complete = doc["counts"]["done"] == tasks
         doc["status"] = "finished" if complete else "incomplete"
         doc["finished_utc"] = run["finished_utc"] if complete else None
         _save_record(record_path, doc)
-    report.errors.sort()
-    return report

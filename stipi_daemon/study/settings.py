@@ -47,7 +47,7 @@ from stipi_daemon.analysis.results import AnalysisSettings
 from stipi_daemon.errors import ConfigError, StipiError
 from stipi_daemon.measurement.settings import MeasurementConfig
 from stipi_daemon.study import hashing
-from stipi_daemon.yamlfile import load_yaml
+from stipi_daemon.yamlfile import load_yaml, read_utf8
 
 __all__ = ["SETTINGS_FORMAT", "StudySettings", "load_settings", "settings_hash"]
 
@@ -221,9 +221,5 @@ def load_settings(path: Path) -> tuple[StudySettings, Any]:
     ConfigError
         The file cannot be read, is not YAML, or a field is wrong (one line).
     """
-    try:
-        text = path.read_text(encoding="utf-8")
-    except OSError as exc:
-        raise ConfigError(f"{path}: cannot read settings file: {exc.strerror or exc}") from None
-    data = load_yaml(text, str(path))
+    data = load_yaml(read_utf8(path, "settings file"), str(path))
     return parse_settings(data, str(path), path.resolve().parent), data

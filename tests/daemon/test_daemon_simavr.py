@@ -165,6 +165,12 @@ async def test_daemon_measures_the_real_firmware(
         assert firmware_info["span_un_per_count"] == 0  # blank EEPROM
         assert str(reader.status) == "complete"
         force = reader.force_samples()
+        # The firmware's STATUS health reaches the session: why the probe started (simavr
+        # starts it from power-on) and its BLE module (none behind simavr's SPI here).
+        health = [e.detail for e in reader.events() if e.kind == "probe_health"]
+    assert health, "no probe_health event"
+    assert health[0]["reset_cause"] == "power_on" and health[0]["ble_restarts"] == 0
+    assert health[0]["ble_state"] in ("booting", "absent")
     # The LED duty reached the PWM register (OCR3AL).
     assert any(kv["value"] == "180" for kv in h.log.of("REG"))
     # Mapped sample times against the harness's clock: the conversion of the sample with

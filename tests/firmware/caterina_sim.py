@@ -4,6 +4,11 @@ Written from Atmel's AVR109 application note ("Self-programming", the command se
 ``-c avr109`` speaks) and Caterina's behaviour: the application's CDC port answers a 1200-baud
 touch by resetting; the bootloader then enumerates (here: a NEW pty, reachable under a new
 name) and serves AVR109 commands. Flash writes land in ``self.flash`` (32 KB, erased = 0xFF).
+
+Faults a bench meets: ``silent`` (the port appears but nothing answers, e.g. the application
+still running on it or another device), ``signature`` (another part answers, a wrong board),
+``locked`` (the part's lock bits make SPM ignore page writes, ATmega32u4 datasheet 28.5: the
+bootloader acknowledges every block, the flash keeps its old content).
 """
 
 from __future__ import annotations
@@ -25,9 +30,21 @@ BLOCK = 128
 class CaterinaSim:
     """App port ``dir/ttyACM0``; after a 1200-baud touch the bootloader appears on ttyACM1."""
 
-    def __init__(self, directory: Path, reappear_s: float = 0.3) -> None:
+    def __init__(
+        self,
+        directory: Path,
+        reappear_s: float = 0.3,
+        *,
+        silent: bool = False,
+        signature: bytes = SIGNATURE,
+        locked: bool = False,
+    ) -> None:
         self.dir = directory
         self.reappear_s = reappear_s
+        self.silent = silent
+        self.signature = signature
+        self.locked = locked
+        self.touched = False
         self.flash = bytearray(b"\xff" * FLASH_BYTES)
         self.written: set[int] = set()
         self.commands: list[str] = []
@@ -51,6 +68,7 @@ class CaterinaSim:
             time.sleep(0.01)
         else:
             return
+        self.touched = True
         self.app_link.unlink()  # the CDC device goes away, the bootloader enumerates
         time.sleep(self.reappear_s)
         master, slave = pty.openpty()
@@ -69,7 +87,8 @@ class CaterinaSim:
             r, _, _ = select.select([fd], [], [], 0.05)
             if r:
                 try:
-                    out += os.read(fd, n - len(out))
+                    got = os.read(fd, n - len(out))
+                    out += b"" if self.silent else got
                 except OSError:
                     time.sleep(0.01)
         return out
@@ -94,7 +113,7 @@ class CaterinaSim:
             "p": b"S",
             "a": b"Y",
             "t": b"\x44\x00",
-            "s": SIGNATURE,
+            "s": self.signature,
             "b": b"Y" + BLOCK.to_bytes(2, "big"),
         }
         if cmd in simple:
@@ -102,10 +121,12 @@ class CaterinaSim:
         if cmd in "TxyPLEe":  # select device, LEDs, enter/leave programming, exit, erase
             if cmd in "Txy":
                 self._read(fd, 1)
-            if cmd == "e":
+            if cmd == "e" and not self.locked:
                 self.flash[:] = b"\xff" * FLASH_BYTES
             return b"\r", addr
-        if cmd in "rFNQ":  # lock, fuse bytes
+        if cmd == "r":  # lock bits: 0x2C = LB1 and LB2 programmed (no further programming)
+            return b"\x2c" if self.locked else b"\xff", addr
+        if cmd in "FNQ":  # fuse bytes
             return b"\xff", addr
         if cmd == "A":
             a = self._read(fd, 2)
@@ -114,7 +135,7 @@ class CaterinaSim:
             hdr = self._read(fd, 3)
             n, mem = int.from_bytes(hdr[:2], "big"), chr(hdr[2])
             data = self._read(fd, n)
-            if mem == "F":
+            if mem == "F" and not self.locked:
                 start = addr * 2
                 self.flash[start : start + n] = data
                 self.written.update(range(start, start + n))

@@ -11,7 +11,7 @@ from __future__ import annotations
 import subprocess
 from pathlib import Path
 
-from tests.conftest import REPO_ROOT, require_path, require_tool
+from tests.conftest import COLD_BUILD_TIMEOUT_S, REPO_ROOT, require_path, require_tool
 
 FIRMWARE_DIR = REPO_ROOT / "firmware" / "feather32u4"
 ELF = FIRMWARE_DIR / "build" / "stipi_feather32u4.elf"
@@ -40,7 +40,7 @@ def _make(*args: str) -> subprocess.CompletedProcess[str]:
         ["make", "-C", str(FIRMWARE_DIR), *args],
         capture_output=True,
         text=True,
-        timeout=110,
+        timeout=COLD_BUILD_TIMEOUT_S,
         check=False,
     )
     assert proc.returncode == 0, (proc.stdout + proc.stderr)[-4000:]

@@ -10,7 +10,7 @@ from __future__ import annotations
 import re
 import subprocess
 
-from tests.conftest import REPO_ROOT, require_tool
+from tests.conftest import COLD_BUILD_TIMEOUT_S, REPO_ROOT, require_tool
 
 FIRMWARE_DIR = REPO_ROOT / "firmware" / "feather32u4"
 
@@ -21,7 +21,7 @@ def test_host_tests_pass() -> None:
         ["make", "-C", str(FIRMWARE_DIR), "host-test", "-j2"],
         capture_output=True,
         text=True,
-        timeout=110,
+        timeout=COLD_BUILD_TIMEOUT_S,
         check=False,
     )
     output = proc.stdout + proc.stderr

@@ -22,9 +22,11 @@ import pytest
 
 from stipi_daemon.protocol.messages import (
     AckStatus,
+    BleState,
     CmdId,
     GetInfo,
     RawCommand,
+    ResetCause,
     Samples,
     SetLed,
     SetRate,
@@ -139,6 +141,11 @@ def test_stream_follows_waveform_at_default_rate(
     assert probe.command(StreamStop()).status == AckStatus.OK
     status = probe.next_status()
     assert not probe.link_faults(), probe.link_faults()
+    # The probe's health (STATUS body of 14 bytes): simavr starts the MCU from power-on with
+    # RAM cleared, and no nRF51 answers behind SPI in this harness.
+    assert status.reset_cause == ResetCause.POWER_ON, status
+    assert status.ble_state in (BleState.ABSENT, BleState.BOOTING), status
+    assert status.ble_restarts == 0
 
     s = flatten(frames)
     # Continuity: every index once, in order; no drops at the default rate.

@@ -14,7 +14,7 @@ import re
 import subprocess
 from pathlib import Path
 
-from tests.conftest import REPO_ROOT, require_tool
+from tests.conftest import COLD_BUILD_TIMEOUT_S, REPO_ROOT, require_tool
 
 VENDOR_TEST_DIR = REPO_ROOT / "tests" / "firmware" / "vendor_driver"
 
@@ -36,7 +36,7 @@ def test_vendor_driver_passes_against_simulated_module() -> None:
         ["make", "-C", str(VENDOR_TEST_DIR), "run", f"STIPI_VENDOR_DIR={src}"],
         capture_output=True,
         text=True,
-        timeout=300,
+        timeout=COLD_BUILD_TIMEOUT_S,
         check=False,
     )
     out = proc.stdout + proc.stderr

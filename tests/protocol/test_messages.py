@@ -209,7 +209,7 @@ def _frame(version: int, msg_type: int, body: bytes) -> bytes:
             12,
             "period_us=0",
         ),
-        (_frame(1, MsgType.STATUS, bytes(11)), FrameErrorKind.BODY, 8, "10 bytes, got 11"),
+        (_frame(1, MsgType.STATUS, bytes(11)), FrameErrorKind.BODY, 8, "10 or 14 bytes, got 11"),
         (_frame(1, MsgType.COMMAND, b""), FrameErrorKind.BODY, 8, "empty"),
         (_frame(1, MsgType.ACK, b"\x00\x00\x01"), FrameErrorKind.BODY, 8, "shorter"),
         (_frame(1, MsgType.ACK, b"\x00\x00\x01\x09"), FrameErrorKind.BODY, 11, "status=9"),
@@ -238,3 +238,20 @@ def test_messages_are_frozen_and_hashable() -> None:
     with pytest.raises(AttributeError):
         msg.first_index = 3  # type: ignore[misc]
     assert len({msg, Samples(0, 1000, (1,))}) == 1
+
+
+def test_status_health_fields_round_trip_and_old_probes_still_decode() -> None:
+    """Firmware 1.1 appends ble_state, ble_restarts and reset_cause (14-byte body); a probe
+    that predates them sends 10 bytes, which still decodes, with the fields None."""
+    from stipi_daemon.protocol import BleState, ResetCause
+
+    new = Status(0, 100, 3, 5000, StatusFlags.STREAMING, BleState.BOOTING, 2, ResetCause.WATCHDOG)
+    body = new.body()
+    assert len(body) == 14 and Status.from_body(body) == new
+    old = Status.from_body(body[:10])
+    assert (old.ble_state, old.ble_restarts, old.reset_cause) == (None, None, None)
+    assert old.body() == body[:10]
+    with pytest.raises(ProtocolError, match="come together"):
+        Status(0, 100, 3, 5000, StatusFlags.NONE, BleState.UP)
+    with pytest.raises(FrameError, match=r"ble_state must be 0\.\.3, got 7"):
+        Status.from_body(body[:10] + b"\x07" + body[11:])

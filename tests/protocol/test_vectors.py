@@ -10,6 +10,7 @@ import pytest
 from stipi_daemon.protocol import (
     Ack,
     AckStatus,
+    BleState,
     FrameDecoder,
     FrameError,
     FrameErrorKind,
@@ -17,6 +18,7 @@ from stipi_daemon.protocol import (
     InfoResult,
     Message,
     RawCommand,
+    ResetCause,
     Samples,
     SetLed,
     SetRate,
@@ -90,9 +92,11 @@ def build_message(line: Line) -> Message:
             f("first_index"), f("period_us"), tuple(f(f"adc{i}") for i in range(f("count")))
         )
     if line.kind == "status":
-        return Status(
-            f("led_level"), f("rate_hz"), f("dropped"), f("supply_mv"), StatusFlags(f("flags"))
-        )
+        base = (f("led_level"), f("rate_hz"), f("dropped"), f("supply_mv"), StatusFlags(f("flags")))
+        if "ble_state" not in line.fields:  # the 10-byte body of probes before firmware 1.1
+            return Status(*base)
+        health = (BleState(f("ble_state")), f("ble_restarts"), ResetCause(f("reset_cause")))
+        return Status(*base, *health)
     if line.kind == "command":
         cmd = f("cmd")
         simple: dict[int, Message] = {1: StreamStart(), 2: StreamStop(), 5: Tare(), 7: GetInfo()}

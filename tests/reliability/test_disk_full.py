@@ -155,6 +155,7 @@ def _record_until_full(
     assert counts["force_samples"] > 100 and counts["frames"] > 100
     if codec is None:
         assert not (session / "video.mkv").exists()
+    assert not list(session.rglob("*.tmp"))  # a failed atomic write leaves no partial file
     figures = {} if codec is None else _check_video(session, codec)
     report(
         "disk_full_" + ("rlimit_fsize" if fsize else "tmpfs") + f"_{codec or 'no_video'}",

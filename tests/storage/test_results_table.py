@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import csv
 import math
+import shutil
 from pathlib import Path
 from typing import Any
 
@@ -113,12 +114,16 @@ def test_default_places_are_next_to_the_root() -> None:
 
 
 def test_target_checks(root: Path, tmp_path: Path) -> None:
-    # Another sessions directory's session (database present) is refused as well.
+    # Another sessions directory's session (its manifest beside its database) is refused
+    # as well; a stray database file alone makes no directory a session.
     elsewhere = tmp_path / "other" / "x"
-    elsewhere.mkdir(parents=True)
-    (elsewhere / "session.sqlite").touch()
+    shutil.copytree(root / "a", elsewhere)
     with pytest.raises(SessionError, match="inside the session directory"):
         check_export_target(elsewhere / "out", [root])
+    stray = tmp_path / "stray"
+    stray.mkdir()
+    (stray / "session.sqlite").touch()
+    check_export_target(stray / "out", [root])
     check_export_target(root / "exports" / "a", [root])  # deeper in the root: allowed
     check_export_target(tmp_path / "exports" / "a", [root])
 

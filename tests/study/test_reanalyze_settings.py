@@ -161,6 +161,9 @@ def test_not_a_dataset_and_no_scheduler_are_one_line(
     path = _write(tmp_path / "S.yaml", "{}\n")
     with pytest.raises(StudyError, match="not a study dataset") as not_dataset:
         reanalyze(tmp_path / "nothing", path)
+    before = sorted(p.relative_to(dataset) for p in dataset.rglob("*"))
     with pytest.raises(StudyError, match=r"--scheduler tcp://127.0.0.1:9: cannot connect") as no:
         reanalyze(dataset, path, scheduler="tcp://127.0.0.1:9")
     assert "\n" not in str(not_dataset.value) and "\n" not in str(no.value)
+    # refused before anything is recorded: no analyses/ record, lock or directory left
+    assert sorted(p.relative_to(dataset) for p in dataset.rglob("*")) == before

@@ -18,11 +18,13 @@ from pathlib import Path
 from stipi_daemon.protocol import (
     Ack,
     AckStatus,
+    BleState,
     CmdId,
     GetInfo,
     InfoResult,
     Message,
     RawCommand,
+    ResetCause,
     Samples,
     SetLed,
     SetRate,
@@ -62,7 +64,9 @@ HEADER = """\
 #            protocol's largest frame; they only test general COBS (254-byte blocks,
 #            code 0xFF), a boundary no protocol frame reaches.
 #   samples  seq,t_us,first_index,period_us,count,adc0..adc<count-1>
-#   status   seq,t_us,led_level,rate_hz,dropped,supply_mv,flags
+#   status   seq,t_us,led_level,rate_hz,dropped,supply_mv,flags[,ble_state,ble_restarts,
+#            reset_cause (the 14-byte body of firmware 1.1 on; without them the 10-byte body
+#            of older probes, which a host still decodes)]
 #   command  seq,t_us,cmd[,rate_hz | level | zero_counts,span_un_per_count]
 #   ack      seq,t_us,ref_seq,cmd,status[,zero_counts (TARE) |
 #            proto,fw_major,fw_minor,fw_patch,rate_hz,led_level,zero_counts,
@@ -109,12 +113,20 @@ def message_fields(message: Message) -> tuple[str, tuple[tuple[str, int], ...]]:
         )
         return "samples", head + adc
     if isinstance(message, Status):
-        return "status", (
+        status = (
             ("led_level", message.led_level),
             ("rate_hz", message.rate_hz),
             ("dropped", message.dropped),
             ("supply_mv", message.supply_mv),
             ("flags", int(message.flags)),
+        )
+        if message.ble_state is None or message.ble_restarts is None:
+            return "status", status
+        return "status", (
+            *status,
+            ("ble_state", int(message.ble_state)),
+            ("ble_restarts", message.ble_restarts),
+            ("reset_cause", int(message.reset_cause or 0)),
         )
     if isinstance(message, Ack):
         fields: tuple[tuple[str, int], ...] = (
@@ -187,6 +199,72 @@ INFO = InfoResult(
     adc_bits=10,
     batch=10,
 )
+
+
+def _status_health_vectors() -> list[Vector]:
+    """STATUS with the probe's health (firmware 1.1 on): the 14-byte body."""
+    v: list[Vector] = []
+    v.append(
+        msg_vector(
+            "status_health_ble_up_power_on",
+            Status(0, 100, 0, 5000, StatusFlags.NONE, BleState.UP, 0, ResetCause.POWER_ON),
+            13,
+            4_000_000,
+        )
+    )
+    v.append(
+        msg_vector(
+            "status_health_watchdog_ble_booting",
+            Status(
+                0,
+                200,
+                7,
+                4900,
+                StatusFlags.STREAMING,
+                BleState.BOOTING,
+                513,
+                ResetCause.WATCHDOG,
+            ),
+            14,
+            5_000_000,
+        )
+    )
+    v.append(
+        msg_vector(
+            "status_health_ble_absent_external_or_brown_out",
+            Status(
+                0,
+                100,
+                0,
+                3700,
+                StatusFlags.NONE,
+                BleState.ABSENT,
+                65_535,
+                ResetCause.EXTERNAL | ResetCause.BROWN_OUT,
+            ),
+            15,
+            6_000_000,
+        )
+    )
+    v.append(
+        msg_vector(
+            "status_health_no_ble_link",
+            Status(0, 100, 0, 5000, StatusFlags.NONE, BleState.NOT_BUILT, 0, ResetCause.UNKNOWN),
+            16,
+            7_000_000,
+        )
+    )
+    up = Status(1, 100, 0, 5000, StatusFlags.NONE, BleState.UP, 0, ResetCause.POWER_ON)
+    health = pack_frame(up, 22, 22_000)
+    v.append(_invalid("invalid_status_body_12_bytes", "body", _crc_frame(health[:-4])))
+    v.append(
+        _invalid(
+            "invalid_status_ble_state_4",
+            "body",
+            _crc_frame(health[:-6] + b"\x04" + health[-5:-2]),
+        )
+    )
+    return v
 
 
 def build_vectors() -> list[Vector]:
@@ -291,6 +369,7 @@ def build_vectors() -> list[Vector]:
             3_000_000,
         )
     )
+    v.extend(_status_health_vectors())
     # COMMAND
     commands: list[tuple[str, Message]] = [
         ("command_stream_start", StreamStart()),

@@ -3,8 +3,11 @@
 
 #include <avr/eeprom.h>
 #include <avr/interrupt.h>
+#include <avr/wdt.h>
 
 #include "../config.h"
+#include "core/cdc_write.h"
+#include "core/frame.h"
 #include "core/oversample.h"
 
 namespace stipi {
@@ -105,6 +108,73 @@ ISR(ADC_vect) {
 }
 
 namespace stipi {
+
+// ---- reset cause and watchdog -------------------------------------------------------------
+// MCUSR says why the MCU reset, but the Feather's Caterina bootloader clears it before the
+// sketch runs (Caterina.c: "MCUSR = 0"). So two marks in .noinit RAM (not cleared at start-up)
+// stand in: kRamKept survives any reset but not a power loss; kWatchdogMarked is written by the
+// watchdog interrupt one period before the watchdog's reset. core/frame.h infer_reset_cause().
+
+namespace {
+const uint32_t kRamKept = 0x53545031UL;  // "STP1"
+const uint8_t kWatchdogMarked = 0xA5;
+uint32_t g_ram_mark __attribute__((section(".noinit")));
+uint8_t g_watchdog_mark __attribute__((section(".noinit")));
+uint8_t g_mcusr_at_start __attribute__((section(".noinit")));
+#if STIPI_WATCHDOG
+const uint8_t kOurPrescaler = WDTO_500MS;  // STIPI_WATCHDOG_PERIOD_MS
+static_assert(STIPI_WATCHDOG_PERIOD_MS == 500, "kOurPrescaler is WDTO_500MS");
+const uint8_t kPrescalerBits = _BV(WDP3) | _BV(WDP2) | _BV(WDP1) | _BV(WDP0);
+
+void watchdog_arm() {  // interrupt + reset mode (ATmega32u4 datasheet 10.9.2)
+  IrqGuard guard;
+  wdt_reset();
+  WDTCSR = _BV(WDCE) | _BV(WDE);
+  WDTCSR = static_cast<uint8_t>(_BV(WDIE) | _BV(WDE) | (kOurPrescaler & 0x07) |
+                                ((kOurPrescaler & 0x08) ? _BV(WDP3) : 0));
+}
+#endif
+}  // namespace
+
+// Before the C runtime sets up RAM (.init3): read and clear MCUSR and stop a watchdog left
+// running by a watchdog reset (avr-libc <avr/wdt.h>: WDRF keeps it enabled).
+extern "C" void stipi_save_mcusr() __attribute__((naked, used, section(".init3")));
+extern "C" void stipi_save_mcusr() {
+  g_mcusr_at_start = MCUSR;
+  MCUSR = 0;
+  wdt_disable();
+}
+
+ISR(WDT_vect) { g_watchdog_mark = kWatchdogMarked; }  // the reset follows one period later
+
+void AvrBoard::begin_watchdog() {
+  reset_cause_ = infer_reset_cause(g_mcusr_at_start, g_ram_mark == kRamKept,
+                                   g_watchdog_mark == kWatchdogMarked);
+  g_ram_mark = kRamKept;
+  g_watchdog_mark = 0;
+#if STIPI_WATCHDOG
+  watchdog_arm();
+#endif
+}
+
+void AvrBoard::kick_watchdog() {
+#if STIPI_WATCHDOG
+  const uint8_t w = WDTCSR;
+  if (!(w & _BV(WDE))) {  // switched off (e.g. a bootloader touch the core cancelled)
+    watchdog_arm();
+    return;
+  }
+  // The core's 1200-baud touch set its own 120 ms reset (CDC.cpp): let it happen.
+  const uint8_t ours = static_cast<uint8_t>((kOurPrescaler & 0x07) |
+                                            ((kOurPrescaler & 0x08) ? _BV(WDP3) : 0));
+  if ((w & kPrescalerBits) != ours) return;
+  wdt_reset();
+  if (!(w & _BV(WDIE))) {  // the interrupt fired but the loop came back in time
+    g_watchdog_mark = 0;
+    WDTCSR = static_cast<uint8_t>(w | _BV(WDIE));
+  }
+#endif
+}
 
 void AvrBoard::begin() {
   g_loadcell_channel = analogPinToChannel(STIPI_PIN_LOADCELL - A0);
@@ -242,12 +312,28 @@ bool UsbCdcLink::is_open() { return USBDevice.configured() && Serial.dtr(); }
 int16_t UsbCdcLink::read() { return static_cast<int16_t>(Serial.read()); }
 
 namespace {
+// The Arduino core's Serial (USB CDC) for core/cdc_write.h: at most room - 1 bytes with the
+// SOF interrupt (which flushes the bank, USBCore.cpp USB_Flush) held off, so USB_Send never
+// waits for the other bank and never fails after queuing (tests/firmware/usb_core_model).
+struct AvrCdc {
+  uint8_t sofe = 0;
+  void hold_sof(bool hold) {
+    IrqGuard guard;  // UDIEN is also written by the core's USB interrupt
+    if (hold) {
+      sofe = UDIEN & _BV(SOFE);
+      UDIEN &= static_cast<uint8_t>(~_BV(SOFE));
+    } else {
+      UDIEN |= sofe;
+    }
+  }
+  int available_for_write() { return Serial.availableForWrite(); }
+  size_t write(const uint8_t* data, uint16_t n) { return Serial.write(data, n); }
+};
+
 struct CdcWriter {
   uint16_t operator()(const uint8_t* data, uint16_t n) {
-    const int room = Serial.availableForWrite();
-    if (room <= 0) return 0;
-    const uint16_t k = n < static_cast<uint16_t>(room) ? n : static_cast<uint16_t>(room);
-    return static_cast<uint16_t>(Serial.write(data, k));  // fits: does not wait
+    AvrCdc cdc;
+    return cdc_write(cdc, data, n);
   }
 };
 }  // namespace

@@ -34,6 +34,16 @@ class AvrBoard : public Board {
   void request_supply_measurement() override;
   uint16_t supply_mv() override;
   bool supply_corrected() override;
+  uint8_t reset_cause() const { return reset_cause_; }
+  // Start the watchdog (interrupt, then reset; STIPI_WATCHDOG_PERIOD_MS) and note why the MCU
+  // started. Call once from setup().
+  void begin_watchdog();
+  // Every main-loop pass: restart the watchdog's period. Leaves alone a watchdog the Arduino
+  // core armed for the bootloader (the 1200-baud touch), so that reset still happens.
+  void kick_watchdog();
+
+ private:
+  uint8_t reset_cause_ = 0;
 };
 
 class AvrSpiPort : public SpiPort {

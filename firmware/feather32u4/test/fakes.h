@@ -155,10 +155,12 @@ class SimNrf51Port : public stipi::SpiPort {
   }
   void reset(bool asserted) override {
     sync();
+    rst_pulses += asserted && !m.in_reset;
     nrf51_sim_reset(&m, asserted ? 1 : 0);
   }
   nrf51_sim m;
   uint64_t bytes = 0;
+  uint32_t rst_pulses = 0;  // RST assertions (the module reset by the probe)
 
  private:
   stipi::Clock& clock_;

@@ -5,6 +5,7 @@
 //   make -C firmware/feather32u4 host-test | grep 'ble world'
 #include <cstdio>
 #include <string>
+#include <utility>
 #include <vector>
 
 #include "../src/core/frame.h"
@@ -32,10 +33,18 @@ struct Stream {
   uint32_t samples = 0, gaps = 0, lost = 0, frames = 0;
   uint32_t next_index = 0;
   bool started = false;
+  std::vector<std::pair<uint32_t, uint8_t>> batches;  // (first_index, count) as received
+  std::vector<uint8_t> last_status;                    // body of the latest STATUS
+  uint16_t next_seq = 0;
+  uint32_t seq_gaps_after_last_batch = 0;  // frames lost after the newest SAMPLES received
   void feed(std::vector<uint8_t>& wire) {
     for (const fakes::HostFrame& f : fakes::take_frames(wire)) {
+      if (f.crc_ok && f.type == kMsgStatus) last_status = f.body;
+      if (f.crc_ok && frames > 0 && f.seq != next_seq) ++seq_gaps_after_last_batch;
+      if (f.crc_ok) next_seq = static_cast<uint16_t>(f.seq + 1);
       if (!f.crc_ok || f.type != kMsgSamples) continue;
       ++frames;
+      seq_gaps_after_last_batch = 0;
       const uint32_t first = f.body[0] | f.body[1] << 8 | f.body[2] << 16 |
                              static_cast<uint32_t>(f.body[3]) << 24;
       if (started && first != next_index) {
@@ -45,6 +54,7 @@ struct Stream {
       started = true;
       next_index = first + f.body[6];
       samples += f.body[6];
+      batches.emplace_back(first, f.body[6]);
     }
   }
 };
@@ -85,6 +95,7 @@ struct World {
     while (static_cast<int32_t>(end - clock.now_us) > 0) {
       const uint32_t t0 = clock.now_us;
       ble.poll();
+      probe.set_ble_health(ble.health(), ble.module_resets());
       probe.poll();
       board.advance(100);
       port.sync();
@@ -101,18 +112,22 @@ struct World {
 
 struct Result {
   uint32_t taken, usb, uart, ble, ble_gaps, ble_lost, dropped, frames_lost, link_drops, max_pass;
+  uint32_t room_waits, module_tx_errors, discarded, stale;
 };
 
-Result stream(uint16_t rate_hz, uint32_t interval_us, uint16_t bytes_per_event, const char* name) {
+Result stream(uint16_t rate_hz, uint32_t interval_us, uint16_t bytes_per_event, const char* name,
+              uint32_t process_us = 5000, bool old_module_firmware = false) {
   World w(interval_us, bytes_per_event);
-  w.run(STIPI_BLE_BOOT_US + 200000);
+  w.port.m.process_us = process_us;
+  w.port.m.no_fifo_command = old_module_firmware ? 1 : 0;
+  w.run(STIPI_BLE_BOOT_US + 200000 + 4 * process_us);  // reset, ATE=0, AT+GAPGETCONN
   CHECK(w.ble.is_open());
   w.command(1, kCmdSetRate, {static_cast<uint8_t>(rate_hz), static_cast<uint8_t>(rate_hz >> 8)});
   w.command(2, kCmdStreamStart, {});
   const uint32_t first = w.sampler.taken();
   w.run(60000000);  // 60 s simulated
   w.command(3, kCmdStreamStop, {});
-  w.run(3000000);   // the BLE backlog drains (or is refused)
+  w.run(6000000);   // the BLE backlog (module FIFO 1 KB at 400 B/s, and the ring) drains
   Result r;
   r.taken = w.sampler.taken() - first;
   r.usb = w.s_usb.samples;
@@ -120,16 +135,28 @@ Result stream(uint16_t rate_hz, uint32_t interval_us, uint16_t bytes_per_event, 
   r.ble = w.s_ble.samples;
   r.ble_gaps = w.s_ble.gaps;
   r.ble_lost = w.s_ble.lost;
+  // Batches lost after the last one the central got show as a seq gap on a later STATUS.
+  const uint32_t trailing = first + r.taken - w.s_ble.next_index;
+  if (trailing > 0) {
+    CHECK(w.s_ble.seq_gaps_after_last_batch > 0);
+    r.ble_lost += trailing;
+  }
   r.dropped = w.sampler.dropped();
   r.frames_lost = w.ble.frames_lost();
   r.link_drops = w.probe.link_drops(kLinkBle);
   r.max_pass = w.max_pass_us;
+  r.room_waits = w.port.m.room_waits;
+  r.module_tx_errors = w.port.m.tx_errors;
+  r.discarded = w.port.m.unread_at_command;
+  r.stale = w.ble.stale_answers();
   std::printf(
-      "ble world %s: %u Hz 60 s, central %u B per %u us: taken %u, usb %u, uart %u, ble %u "
-      "(%u gaps, %u samples missing; %u frames refused by the full module, %u not queued), "
-      "dropped %u, BLE %.0f samples/s, longest loop pass %u us\n",
-      name, rate_hz, bytes_per_event, interval_us, r.taken, r.usb, r.uart, r.ble, r.ble_gaps,
-      r.ble_lost, r.frames_lost, r.link_drops, r.dropped, r.ble / 60.0, r.max_pass);
+      "ble world %s: %u Hz 60 s, central %u B per %u us, module %u ms per command: taken %u, "
+      "usb %u, uart %u, ble %u (%u gaps, %u samples missing; %u frames refused by the full "
+      "module, %u not queued), dropped %u, BLE %.0f samples/s, longest loop pass %u us; "
+      "module waited for room %u times, %u answers discarded unread, %u read stale\n",
+      name, rate_hz, bytes_per_event, interval_us, process_us / 1000, r.taken, r.usb, r.uart,
+      r.ble, r.ble_gaps, r.ble_lost, r.frames_lost, r.link_drops, r.dropped, r.ble / 60.0,
+      r.max_pass, r.room_waits, r.discarded, r.stale);
   return r;
 }
 
@@ -155,6 +182,37 @@ TEST(ble_world_100hz_slow_central_losses_are_counted_gaps) {
   CHECK(r.ble_gaps >= 1u);
   // Every missing sample is in a gap the host sees (first_index jumps), none silently.
   CHECK_EQ(r.ble + r.ble_lost, r.taken);
+  // Flow control from the module's FIFO room (AT+BLEUARTFIFO=TX): no TX waits for room or is
+  // refused; what BLE cannot carry stays out of the module (the ring refuses whole frames).
+  CHECK_EQ(r.room_waits, 0u);
+  CHECK_EQ(r.module_tx_errors, 0u);
+  CHECK_EQ(r.frames_lost, 0u);
+  CHECK(r.link_drops > 0u);
+}
+
+TEST(ble_world_slow_module_answers_are_never_abandoned) {
+  // A module taking 60-120 ms per command (the old 250 ms timeout left 50 ms over its 200 ms
+  // wait): no command times out, no answer is left unread or read stale, BLE loses only what
+  // the central cannot take, in exact gaps.
+  for (uint32_t process_us : {60000u, 120000u}) {
+    const Result r = stream(100, 50000, 20, "slow module", process_us);
+    check_lossless_wired(r);
+    CHECK_EQ(r.ble + r.ble_lost, r.taken);
+    CHECK_EQ(r.discarded, 0u);
+    CHECK_EQ(r.stale, 0u);
+    CHECK_EQ(r.room_waits, 0u);
+    CHECK_EQ(r.module_tx_errors, 0u);
+  }
+}
+
+TEST(ble_world_module_without_fifo_command_falls_back_to_its_errors) {
+  // Bluefruit firmware before 0.6.7 answers ERROR to AT+BLEUARTFIFO: TX as before, the
+  // module's 200 ms ERROR when full loses whole frames, still counted in exact gaps.
+  const Result r = stream(100, 50000, 20, "old module firmware", 5000, true);
+  check_lossless_wired(r);
+  CHECK_EQ(r.ble + r.ble_lost, r.taken);
+  CHECK(r.room_waits > 0u);
+  CHECK(r.frames_lost > 0u);
 }
 
 TEST(ble_world_250hz_reports_what_ble_sustains) {
@@ -164,4 +222,91 @@ TEST(ble_world_250hz_reports_what_ble_sustains) {
   const Result f = stream(250, 15000, 80, "250 Hz fast central");  // 4 notifications / 15 ms
   check_lossless_wired(f);
   CHECK_EQ(f.ble, f.taken);
+}
+
+namespace {
+// Samples the central got with index >= `from`, and whether they are all consecutive.
+struct After {
+  uint32_t samples = 0, gaps = 0;
+};
+After received_after(const Stream& s, uint32_t from) {
+  After a;
+  uint32_t next = from;
+  for (const std::pair<uint32_t, uint8_t>& b : s.batches) {
+    const uint32_t first = b.first, end = b.first + b.second;
+    if (end <= from) continue;
+    if (first > next) ++a.gaps;  // samples between next and first never arrived
+    a.samples += end - (first > from ? first : from);
+    next = end;
+  }
+  return a;
+}
+}  // namespace
+
+TEST(ble_world_slow_booting_module_gets_every_sample) {
+  // 1.6 s of 0xFE after reset used to end the BLE link for the whole run (0 of 2,000).
+  World w(15000, 80);  // 4 notifications per 15 ms: BLE keeps up with 200 Hz
+  w.port.m.boot_us = 1600000;
+  w.ble.begin();  // reset it again with the slow boot
+  w.command(1, kCmdSetRate, {200, 0});
+  w.command(2, kCmdStreamStart, {});
+  for (int i = 0; i < 40; ++i) {  // 4 s: never counted absent on the way
+    w.run(100000);
+    CHECK(w.ble.state() != BleUartLink::kAbsent);
+  }
+  CHECK_EQ(w.port.rst_pulses, 1u);
+  CHECK(w.ble.is_open());
+  const uint32_t from = w.sampler.taken();  // every sample from here on must reach the central
+  w.run(10000000);
+  w.command(3, kCmdStreamStop, {});
+  w.run(3000000);
+  const uint32_t taken = w.sampler.taken() - from;
+  const After a = received_after(w.s_ble, from);
+  std::printf("ble world slow boot 1.6 s: 200 Hz, %u samples taken after the link came up, "
+              "%u at the central, %u gaps\n", taken, a.samples, a.gaps);
+  CHECK(taken >= 1990u);
+  CHECK_EQ(a.samples, taken);
+  CHECK_EQ(a.gaps, 0u);
+  CHECK_EQ(w.sampler.dropped(), 0u);
+  CHECK(w.max_pass_us <= 1000);
+}
+
+TEST(ble_world_module_restarting_mid_stream_gets_every_later_sample) {
+  World w(15000, 80);  // 4 notifications per 15 ms: BLE keeps up with 200 Hz
+  w.run(STIPI_BLE_BOOT_US + 200000);
+  CHECK(w.ble.is_open());
+  w.command(1, kCmdSetRate, {200, 0});
+  w.command(2, kCmdStreamStart, {});
+  w.run(5000000);
+  nrf51_sim_reset(&w.port.m, 1);  // the module restarts by itself; its central drops
+  nrf51_sim_set_connected(&w.port.m, 0);
+  w.port.m.boot_us = 1600000;
+  nrf51_sim_reset(&w.port.m, 0);
+  const uint32_t restart_index = w.sampler.taken();
+  w.run(1600000);
+  nrf51_sim_set_connected(&w.port.m, 1);  // and reconnects once it advertises again
+  w.run(3000000);  // the probe sees the restart and probes the module again
+  CHECK(w.ble.is_open());
+  const uint32_t from = w.sampler.taken();
+  w.run(10000000);
+  w.command(3, kCmdStreamStop, {});
+  w.run(3000000);
+  const uint32_t taken = w.sampler.taken() - from;
+  const After a = received_after(w.s_ble, from);
+  std::printf("ble world module restart: 200 Hz, restart at sample %u, %u samples taken after "
+              "the link was back, %u at the central, %u gaps, %u module resets seen; usb %u "
+              "uart %u of %u\n", restart_index, taken, a.samples, a.gaps,
+              w.ble.module_resets(), w.s_usb.samples, w.s_uart.samples, w.sampler.taken());
+  CHECK_EQ(w.ble.module_resets(), 1u);
+  // STATUS tells the host: BLE up again, one module restart seen.
+  CHECK_EQ(w.s_usb.last_status.size(), 14u);
+  CHECK_EQ(w.s_usb.last_status[10], kBleUp);
+  CHECK_EQ(w.s_usb.last_status[11] | w.s_usb.last_status[12] << 8, 1);
+  CHECK(taken >= 1990u);
+  CHECK_EQ(a.samples, taken);
+  CHECK_EQ(a.gaps, 0u);
+  CHECK_EQ(w.sampler.dropped(), 0u);
+  CHECK_EQ(w.s_usb.gaps, 0u);
+  CHECK_EQ(w.s_uart.gaps, 0u);
+  CHECK(w.max_pass_us <= 1000);
 }

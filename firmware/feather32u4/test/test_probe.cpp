@@ -77,6 +77,7 @@ TEST(probe_boot_flushes_receivers_and_sends_status_every_500ms) {
   Rig r;
   r.usb.open = false;
   r.ble.open = false;
+  r.probe.set_reset_cause(kResetWatchdog);
   r.begin();
   CHECK(r.uart.tx == std::vector<uint8_t>{0});  // leading 0x00 flushes a partial frame
   CHECK(r.usb.tx.empty());                      // closed links get nothing
@@ -90,12 +91,15 @@ TEST(probe_boot_flushes_receivers_and_sends_status_every_500ms) {
     CHECK_EQ(f.version, 1);
     CHECK_EQ(f.type, kMsgStatus);
     CHECK_EQ(f.seq, seq++);
-    CHECK_EQ(f.body.size(), 10u);
+    CHECK_EQ(f.body.size(), 14u);
     CHECK_EQ(f.body[0], 0);                                   // LED off
     CHECK_EQ(get_u16(f.body.data() + 1), STIPI_DEFAULT_RATE_HZ);
     CHECK_EQ(get_u32(f.body.data() + 3), 0u);                 // dropped
     CHECK_EQ(get_u16(f.body.data() + 7), 4123);               // supply_mv from the board
     CHECK_EQ(f.body[9], 0);                                   // no flags
+    CHECK_EQ(f.body[10], 0);                                  // no BLE health given
+    CHECK_EQ(get_u16(f.body.data() + 11), 0u);                // no module restarts
+    CHECK_EQ(f.body[13], kResetWatchdog);                     // the reset cause given
     if (seq > 1) CHECK(f.t_us - last_t <= 1000000u);
     last_t = f.t_us;
   }
@@ -482,4 +486,17 @@ TEST(probe_flags_force_not_supply_corrected) {
   r.board.corrected = true;  // a plausible 5 V reading arrived
   r.run(600000);
   CHECK_EQ(r.frames().back().body[9], 0);
+}
+
+TEST(reset_cause_from_mcusr_or_inferred_after_caterina_cleared_it) {
+  // MCUSR kept (no bootloader, or one that passes it on): its bits as they are.
+  CHECK_EQ(infer_reset_cause(0x01, false, false), kResetPowerOn);
+  CHECK_EQ(infer_reset_cause(0x08, true, false), kResetWatchdog);
+  CHECK_EQ(infer_reset_cause(0x04, true, true), kResetBrownOut);
+  CHECK_EQ(infer_reset_cause(0x02 | 0x80, true, false), kResetExternal);  // JTRF etc. dropped
+  // Caterina cleared MCUSR (a Feather): inferred from RAM and the watchdog interrupt's mark.
+  CHECK_EQ(infer_reset_cause(0, false, false), kResetPowerOn);
+  CHECK_EQ(infer_reset_cause(0, false, true), kResetPowerOn);  // a mark in lost RAM is noise
+  CHECK_EQ(infer_reset_cause(0, true, true), kResetWatchdog);
+  CHECK_EQ(infer_reset_cause(0, true, false), kResetExternal | kResetBrownOut);
 }

@@ -1,16 +1,27 @@
 /* nrf51_sim.c -- simulated Bluefruit nRF51822 SDEP slave (see nrf51_sim.h for what it follows). */
 #include "nrf51_sim.h"
 
+#include <stdio.h>
+#include <stdlib.h>
 #include <string.h>
 
 #define T_CMD 0x10
 #define T_RESP 0x20
+#define T_ALERT 0x40
 #define T_ERR 0x80
 #define NOT_READY 0xFE /* SDEP.md "SDEP Packet and SPI Error Identifier" */
 #define OVERREAD 0xFF
 #define MORE 0x80
 
 static int after(uint32_t now, uint32_t t) { return (int32_t)(now - t) >= 0; }
+
+const char* const nrf51_sim_violation_names[NRF51_VIOLATION_COUNT] = {
+    "spec_true",           "answers_every_packet",    "irq_high_while_busy",
+    "irq_stuck_high",      "irq_drops_between_packets", "never_not_ready",
+    "errors_as_responses", "drops_malformed",          "discards_unread",
+    "tx_while_disconnected", "no_cs_setup",            "no_alerts"};
+
+static int viol(const nrf51_sim* m, int v) { return m->violation == v; }
 
 void nrf51_sim_init(nrf51_sim* m) {
   memset(m, 0, sizeof(*m));
@@ -23,6 +34,13 @@ void nrf51_sim_init(nrf51_sim* m) {
   m->tx_fifo_cap_b = NRF51_SIM_TX_FIFO;
   m->present = 1;
   m->echo = 1; /* AT echo is on after reset */
+  m->cs_setup_us = 100;
+  {
+    const char* v = getenv("STIPI_NRF51_VIOLATION");
+    int i;
+    for (i = 0; v && i < NRF51_VIOLATION_COUNT; ++i)
+      if (strcmp(v, nrf51_sim_violation_names[i]) == 0) m->violation = i;
+  }
 }
 
 static int busy(const nrf51_sim* m) {
@@ -66,7 +84,7 @@ static void error_msg(nrf51_sim* m, uint16_t err) {
   uint8_t* p;
   if (m->out_count == NRF51_SIM_OUT_PACKETS) return;
   p = m->out[(m->out_head + m->out_count) % NRF51_SIM_OUT_PACKETS];
-  p[0] = T_ERR;
+  p[0] = viol(m, NRF51_ERRORS_AS_RESPONSES) ? T_RESP : T_ERR;
   p[1] = (uint8_t)err;
   p[2] = (uint8_t)(err >> 8);
   p[3] = 0;
@@ -100,6 +118,18 @@ static void at_command(nrf51_sim* m) {
     reply_text(m, 0x0A00, m->connected ? "1\r\nOK\r\n" : "0\r\nOK\r\n");
   } else if (strcmp(line, "ATI") == 0) {
     reply_text(m, 0x0A00, "BLEFRIEND32\r\nnRF51822 QFACA10\r\nSIM\r\n0.8.1\r\nOK\r\n");
+  } else if (strncmp(line, "AT+BLEUARTFIFO", 14) == 0) {
+    /* Adafruit's AT command reference, "AT+BLEUARTFIFO" (firmware 0.6.7 on): free bytes of the
+       BLE UART FIFOs, "TX,RX" without a parameter, one of them with "=TX" / "=RX". */
+    char out[32];
+    const unsigned tx_free = (unsigned)(m->tx_fifo_cap_b - m->tx_count);
+    const unsigned rx_free = (unsigned)(NRF51_SIM_RX_FIFO - m->rx_count);
+    if (strcmp(line + 14, "") == 0) snprintf(out, sizeof out, "%u,%u\r\nOK\r\n", tx_free, rx_free);
+    else if (strcmp(line + 14, "=TX") == 0) snprintf(out, sizeof out, "%u\r\nOK\r\n", tx_free);
+    else if (strcmp(line + 14, "=RX") == 0) snprintf(out, sizeof out, "%u\r\nOK\r\n", rx_free);
+    else snprintf(out, sizeof out, "ERROR\r\n");
+    if (m->no_fifo_command) snprintf(out, sizeof out, "ERROR\r\n");
+    reply_text(m, 0x0A00, out);
   } else if (strcmp(line, "ATZ") == 0) {
     reply_text(m, 0x0A00, "OK\r\n");
   } else {
@@ -119,8 +149,9 @@ static void uart_rx(nrf51_sim* m) {
 /* 0x0A01: queue the whole payload if it fits, else wait for room (ERROR after the timeout). */
 static int uart_tx_try(nrf51_sim* m) {
   uint16_t i;
-  if (!m->connected) { /* nobody to send to: the bytes go nowhere */
-    queue_reply(m, T_RESP, 0x0A01, 0, 0);
+  if (!m->connected) { /* nobody to send to */
+    if (viol(m, NRF51_TX_WHILE_DISCONNECTED)) queue_reply(m, T_RESP, 0x0A01, 0, 0);
+    else queue_reply(m, T_RESP, 0x0A01, (const uint8_t*)"ERROR\r\n", 7);
     return 1;
   }
   if (m->tx_count + m->cmd_len > m->tx_fifo_cap_b) return 0;
@@ -140,6 +171,7 @@ static void process(nrf51_sim* m) {
     case 0x0A02: uart_rx(m); break;
     case 0x0A01:
       if (!uart_tx_try(m)) {
+        ++m->room_waits;
         m->waiting_room = 1;
         m->wait_since_us = m->now_us;
       }
@@ -190,6 +222,9 @@ void nrf51_sim_advance(nrf51_sim* m, uint32_t now_us) {
 
 int nrf51_sim_irq(const nrf51_sim* m) {
   if (!m->present || m->in_reset) return 0;
+  if (viol(m, NRF51_IRQ_STUCK_HIGH)) return 1;
+  if (viol(m, NRF51_IRQ_HIGH_WHILE_BUSY) && (m->pending || m->waiting_room)) return 1;
+  if (viol(m, NRF51_IRQ_DROPS_BETWEEN_PACKETS) && m->between_packets) return 0;
   return m->out_count > 0 || m->irq_stale; /* "IRQ Pin" */
 }
 
@@ -197,7 +232,8 @@ static void end_packet_in(nrf51_sim* m) {
   const uint8_t len = (uint8_t)(m->pkt[3] & 0x1F);
   const uint16_t id = (uint16_t)(m->pkt[1] | m->pkt[2] << 8);
   if (m->pkt_pos < 4 || m->pkt_pos < 4 + len || len > 16) {
-    ++m->protocol_errors; /* short or malformed packet: dropped */
+    ++m->protocol_errors; /* short or malformed packet: "Error Messages", 0x0003 */
+    if (!viol(m, NRF51_DROPS_MALFORMED)) error_msg(m, 0x0003);
     return;
   }
   ++m->packets_in;
@@ -214,11 +250,17 @@ static void end_packet_in(nrf51_sim* m) {
     m->cmd_len = (uint16_t)(m->cmd_len + len);
   }
   m->cmd_open = (m->pkt[3] & MORE) != 0;
+  if (m->cmd_open && viol(m, NRF51_ANSWERS_EVERY_PACKET)) {
+    reply_text(m, id, "OK\r\n");
+    return;
+  }
   if (m->cmd_open) return; /* "Command Messages": no answer before the last packet */
-  if (m->out_count) { /* previous answer never read: the new command replaces it */
-    m->responses_discarded += m->out_count;
-    m->out_count = 0;
-    m->out_pos = 0;
+  if (m->out_count) { /* an earlier answer is still unread: it stays queued, ahead */
+    m->unread_at_command += m->out_count;
+    if (viol(m, NRF51_DISCARDS_UNREAD)) {
+      m->out_count = 0;
+      m->out_pos = 0;
+    }
   }
   m->pending = 1;
   m->busy_until_us = m->now_us + m->process_us;
@@ -228,11 +270,18 @@ void nrf51_sim_select(nrf51_sim* m, int active) {
   if (active && !m->selected) {
     m->mode = 0;
     m->pkt_pos = 0;
+    m->between_packets = 0;
+    if (!m->spis_ready && !m->spis_pending) { /* the SPI slave starts getting ready */
+      m->spis_pending = 1;
+      m->spis_ready_at_us = m->now_us + m->cs_setup_us;
+    }
   } else if (!active && m->selected) {
+    if (m->mode == 1 || m->mode == 2) m->spis_ready = m->spis_pending = 0; /* used up */
     if (m->mode == 1) end_packet_in(m);
     if (m->mode == 2 && m->out_pos > 0) {
       const uint8_t* p = m->out[m->out_head];
       if (m->out_pos >= 4 + (p[0] == T_ERR ? 0 : (p[3] & 0x1F))) { /* whole packet read */
+        m->between_packets = (p[3] & MORE) != 0 && p[0] != T_ERR;
         m->out_head = (uint8_t)((m->out_head + 1) % NRF51_SIM_OUT_PACKETS);
         --m->out_count;
         if (m->out_count == 0) {
@@ -248,9 +297,17 @@ void nrf51_sim_select(nrf51_sim* m, int active) {
 
 static uint8_t first_byte(nrf51_sim* m, uint8_t mosi) {
   uint8_t miso;
-  if (busy(m)) {
+  if (m->spis_pending && after(m->now_us, m->spis_ready_at_us)) m->spis_ready = 1;
+  if (!m->spis_ready && !viol(m, NRF51_NO_CS_SETUP)) { /* "SPI Bus Hardware Requirements" */
+    ++m->cs_early;
     ++m->not_ready;
     m->mode = 3;
+    return NOT_READY;
+  }
+  if (busy(m)) {
+    m->mode = 3;
+    if (viol(m, NRF51_NEVER_NOT_READY)) return OVERREAD;
+    ++m->not_ready;
     return NOT_READY;
   }
   miso = m->out_count ? m->out[m->out_head][0] : OVERREAD;
@@ -299,6 +356,12 @@ void nrf51_sim_set_connected(nrf51_sim* m, int connected) {
   if (connected && !m->connected) m->next_event_us = m->now_us + m->conn_interval_us;
   if (!connected) m->tx_count = 0; /* the link is gone, and what was queued for it */
   m->connected = connected;
+}
+
+void nrf51_sim_alert(nrf51_sim* m, uint16_t id, const uint8_t* payload, uint8_t len) {
+  if (viol(m, NRF51_NO_ALERTS) || len > 16) return;
+  ++m->alerts;
+  queue_reply(m, T_ALERT, id, payload, len);
 }
 
 uint16_t nrf51_sim_central_write(nrf51_sim* m, const uint8_t* data, uint16_t len) {

@@ -37,7 +37,20 @@ uint8_t encode_status(uint8_t* out, uint16_t seq, uint32_t t_us, const StatusBod
   put_u32(body + 3, s.dropped);
   put_u16(body + 7, s.supply_mv);
   body[9] = s.flags;
-  return encode_frame(out, kMsgStatus, seq, t_us, body, 10);
+  body[10] = s.ble_state;
+  put_u16(body + 11, s.ble_restarts);
+  body[13] = s.reset_cause;
+  return encode_frame(out, kMsgStatus, seq, t_us, body, 14);
+}
+
+uint8_t infer_reset_cause(uint8_t mcusr, bool ram_kept, bool watchdog_marked) {
+  const uint8_t known = kResetPowerOn | kResetExternal | kResetBrownOut | kResetWatchdog;
+  if (mcusr & known) return static_cast<uint8_t>(mcusr & known);  // no bootloader cleared it
+  if (watchdog_marked && ram_kept) return kResetWatchdog;
+  if (!ram_kept) return kResetPowerOn;  // RAM lost its contents: the power went
+  // RAM kept, no watchdog mark: the reset pin or a brown-out; Caterina leaves the MCU in the
+  // same state after both, so both bits say "one of these".
+  return static_cast<uint8_t>(kResetExternal | kResetBrownOut);
 }
 
 uint8_t encode_ack(uint8_t* out, uint16_t seq, uint32_t t_us, uint16_t ref_seq, uint8_t cmd,

@@ -53,13 +53,28 @@ const uint8_t kFlagUsbOpen = 0x04;
 const uint8_t kFlagCalValid = 0x08;
 const uint8_t kFlagSupplyUncorrected = 0x10;  // force not corrected for the FC22's 5 V supply
 
+// STATUS.reset_cause bits, MCUSR's order (docs/protocol.md).
+const uint8_t kResetPowerOn = 0x01;
+const uint8_t kResetExternal = 0x02;
+const uint8_t kResetBrownOut = 0x04;
+const uint8_t kResetWatchdog = 0x08;
+
 struct StatusBody {
   uint8_t led_level;
   uint16_t rate_hz;
   uint32_t dropped;
   uint16_t supply_mv;
   uint8_t flags;
+  // The probe's health (firmware 1.1 on; a 14-byte body).
+  uint8_t ble_state;      // 0 no BLE link, 1 absent, 2 booting, 3 up (BleHealth)
+  uint16_t ble_restarts;  // times the module, once up, restarted and was probed again
+  uint8_t reset_cause;    // kReset* bits
 };
+
+// Why the MCU started, from MCUSR as read at start-up (0 when a bootloader cleared it, as
+// Caterina does), whether RAM kept a mark from the previous run (no power loss), and whether
+// the watchdog interrupt marked an expiry just before the reset.
+uint8_t infer_reset_cause(uint8_t mcusr, bool ram_kept, bool watchdog_marked);
 
 // Little-endian helpers.
 inline void put_u16(uint8_t* p, uint16_t v) {

@@ -255,6 +255,9 @@ void Probe::send_status() {
   s.dropped = sampler_.dropped();
   s.supply_mv = board_.supply_mv();
   s.flags = status_flags();
+  s.ble_state = ble_state_;
+  s.ble_restarts = ble_restarts_;
+  s.reset_cause = reset_cause_;
   send_frame(encode_status(frame_, seq_, clock_.micros(), s));
 }
 

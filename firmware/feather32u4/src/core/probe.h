@@ -51,6 +51,13 @@ class Probe {
   uint32_t rx_errors() const { return rx_errors_; }  // bad COBS/CRC/version/type frames
   uint32_t link_drops(LinkSlot slot) const { return link_drops_[slot]; }
   uint8_t status_flags();
+  // What STATUS reports besides the probe's own state (plain values, no virtual calls: on the
+  // AVR every virtual function costs RAM for its vtable entry).
+  void set_reset_cause(uint8_t cause) { reset_cause_ = cause; }              // once, at start
+  void set_ble_health(uint8_t state, uint16_t restarts) {                    // every pass
+    ble_state_ = state;
+    ble_restarts_ = restarts;
+  }
 
  private:
   void read_link(uint8_t slot);
@@ -83,6 +90,9 @@ class Probe {
   bool streaming_;
   uint16_t rate_hz_;
   uint8_t led_level_;
+  uint8_t reset_cause_ = 0;
+  uint8_t ble_state_ = 0;
+  uint16_t ble_restarts_ = 0;
   // TARE in progress
   bool tare_pending_;
   bool tare_owns_timer_;  // sampling was started only for the tare

@@ -17,6 +17,7 @@ SdepStatus SdepDriver::send_packet(uint16_t id, const uint8_t* payload, uint8_t 
   if (len > kSdepMaxPayload) return kSdepBadPacket;
   begin_transaction();
   if (spi_.transfer(kSdepCommand) == kSdepNotReady) {  // busy: the packet was not taken
+    ++not_ready_;
     spi_.select(false);
     return kSdepAgain;
   }
@@ -34,6 +35,7 @@ SdepStatus SdepDriver::read_packet(SdepPacket& out) {
   const uint8_t type = spi_.transfer(kSdepNoData);
   // 0xFE: still processing; 0xFF: IRQ was still high after the last packet (SDEP.md "IRQ Pin").
   if (type == kSdepNotReady || type == kSdepNoData) {
+    if (type == kSdepNotReady) ++not_ready_;
     spi_.select(false);
     return kSdepAgain;
   }
@@ -63,13 +65,16 @@ SdepStatus SdepDriver::read_packet(SdepPacket& out) {
 namespace {
 const char kAtEchoOff[] = "ATE=0";  // also the boot probe: echo is on after every reset
 const char kAtGetConn[] = "AT+GAPGETCONN";
+const char kAtFifoTx[] = "AT+BLEUARTFIFO=TX";  // "<free bytes>\r\nOK\r\n" (firmware 0.6.7 on)
 }  // namespace
 
 BleUartLink::BleUartLink(SdepDriver& sdep, SpiPort& spi, Clock& clock)
     : sdep_(sdep), spi_(spi), clock_(clock), state_(kReset), connected_(false), attempts_(0),
-      since_us_(0), last_conn_poll_us_(0), last_rx_poll_us_(0), tx_failures_(0),
-      frames_lost_(0), job_(kJobNone), last_job_(kJobNone), awaiting_(false), failed_(false), job_id_(0),
-      job_len_(0), job_sent_(0), job_start_us_(0), job_text_(0), reply_len_(0), tx_head_(0),
+      silent_(0), module_resets_(0), busy_mark_(0), since_us_(0),
+      backoff_us_(STIPI_BLE_RETRY_MIN_US), last_fifo_poll_us_(0), fifo_room_(0),
+      fifo_supported_(true), last_conn_poll_us_(0), last_rx_poll_us_(0), tx_failures_(0),
+      stale_answers_(0), frames_lost_(0), job_(kJobNone), last_job_(kJobNone), awaiting_(false),
+      failed_(false), job_id_(0), job_len_(0), job_sent_(0), job_start_us_(0), job_text_(0), reply_len_(0), tx_head_(0),
       tx_count_(0), rx_head_(0), rx_count_(0) {}
 
 void BleUartLink::begin() {
@@ -82,13 +87,33 @@ void BleUartLink::begin() {
   job_ = kJobNone;
 }
 
+BleHealth BleUartLink::health() const {
+  if (state_ == kReady) return kBleUp;
+  return state_ == kAbsent ? kBleAbsent : kBleBooting;
+}
+
+// RST released: the module boots; it may answer 0xFE for a while after STIPI_BLE_BOOT_US.
+void BleUartLink::start_boot(uint32_t now) {
+  since_us_ = now;
+  attempts_ = 0;
+  silent_ = 0;
+  state_ = kBooting;
+}
+
 void BleUartLink::poll() {
   const uint32_t now = clock_.micros();
+  if (state_ == kAbsent) {  // back-off over: reset the module and look again, forever
+    if (static_cast<uint32_t>(now - since_us_) < backoff_us_) return;
+    backoff_us_ = backoff_us_ >= STIPI_BLE_RETRY_MAX_US / 2 ? STIPI_BLE_RETRY_MAX_US
+                                                             : backoff_us_ * 2;
+    spi_.reset(true);
+    since_us_ = now;
+    state_ = kReset;
+  }
   if (state_ == kReset) {
     if (static_cast<uint32_t>(now - since_us_) < STIPI_BLE_RESET_PULSE_US) return;
     spi_.reset(false);
-    since_us_ = now;
-    state_ = kBooting;
+    start_boot(now);
   }
   if (state_ == kBooting) {
     if (static_cast<uint32_t>(now - since_us_) < STIPI_BLE_BOOT_US) return;
@@ -118,8 +143,13 @@ void BleUartLink::choose_job(uint32_t now) {
     // RX polls and TX commands alternate when both are due: neither starves the other.
     last_rx_poll_us_ = now;
     start_job(kJobRx, kSdepCmdUartRx, 0);
-  } else if (connected_ && tx_count_ > 0) {
-    start_tx();
+  } else if (connected_ && tx_count_ > 0 && !start_tx(false) &&
+             static_cast<uint32_t>(now - last_fifo_poll_us_) >= STIPI_BLE_FIFO_POLL_US) {
+    // Short of room as far as we know: ask the module (AT+BLEUARTFIFO=TX) rather than let a
+    // UART TX wait 200 ms for room and fail; the frames wait in the ring meanwhile.
+    last_fifo_poll_us_ = now;
+    job_text_ = kAtFifoTx;
+    start_job(kJobFifo, kSdepCmdAtWrapper, sizeof(kAtFifoTx) - 1);
   }
 }
 
@@ -132,18 +162,49 @@ void BleUartLink::start_job(Job job, uint16_t id, uint16_t len) {
   failed_ = false;
   reply_len_ = 0;
   job_start_us_ = clock_.micros();
+  busy_mark_ = sdep_.not_ready_seen();
 }
 
 // One UART TX command carries whole frames only (up to the last 0x00 in the first
-// STIPI_BLE_TX_CHUNK bytes), so a refused command loses whole frames: seq gaps, no fragments.
-void BleUartLink::start_tx() {
-  const uint16_t limit = tx_count_ < STIPI_BLE_TX_CHUNK ? tx_count_ : STIPI_BLE_TX_CHUNK;
+// STIPI_BLE_TX_CHUNK bytes, and, with flow control, in the FIFO room the module reported), so
+// the module never truncates one and a refused command loses whole frames: seq gaps.
+bool BleUartLink::start_tx(bool dry_run) {
+  uint16_t limit = tx_count_ < STIPI_BLE_TX_CHUNK ? tx_count_ : STIPI_BLE_TX_CHUNK;
+  if (fifo_supported_ && fifo_room_ < limit) limit = fifo_room_;
   uint16_t len = 0;
   for (uint16_t i = 0; i < limit; ++i) {
     if (tx_at(i) == 0) len = static_cast<uint16_t>(i + 1);
   }
-  if (len == 0) return;
+  if (len == 0 || dry_run) return len != 0;
   start_job(kJobTx, kSdepCmdUartTx, len);
+  return true;
+}
+
+// "<free>\r\nOK\r\n": the digits before the status line. "ERROR": a module firmware without the
+// command (before 0.6.7): no flow control, as before.
+void BleUartLink::on_fifo_reply(bool ok) {
+  if (ok && reply_len_ >= 5 && memcmp(reply_, "ERROR", 5) == 0) {
+    fifo_supported_ = false;
+    return;
+  }
+  if (!ok || !reply_ok()) return;
+  uint32_t room = 0;
+  for (uint8_t i = 0; i + 6 < reply_len_; ++i) {  // the digits before "\r\nOK\r\n"
+    const uint8_t c = reply_[i];
+    room = (c >= '0' && c <= '9') ? room * 10 + (c - '0') : 0;
+  }
+  fifo_room_ = room > 0xFFFF ? 0xFFFF : static_cast<uint16_t>(room);
+}
+
+// SDEP.md "IRQ Pin": a packet waiting before our command goes out is an answer to an earlier
+// one that timed out; read it (and drop it) rather than send over it. True while one was read.
+bool BleUartLink::drain_stale_answer() {
+  if (!spi_.irq()) return false;
+  SdepPacket p;
+  const SdepStatus st = sdep_.read_packet(p);
+  if (st == kSdepAgain) return false;  // IRQ's lag after the last packet (0xFF): nothing there
+  if (p.type != kSdepAlert) ++stale_answers_;
+  return true;
 }
 
 void BleUartLink::step() {
@@ -154,11 +215,16 @@ void BleUartLink::step() {
     step_send(now);
   }
   if (job_ != kJobNone && static_cast<uint32_t>(now - job_start_us_) >= STIPI_SDEP_TIMEOUT_US) {
-    finish(false);  // no module, or no answer in time: bounded, and nothing waited for it
+    // No module, a busy one, or no answer in time: bounded, and nothing waited for it. A
+    // module that was up and now answers nothing (or only 0xFE) several times restarted.
+    const bool was_ready = state_ == kReady;
+    finish(false);
+    if (was_ready && ++silent_ >= STIPI_BLE_SILENT_TO_REPROBE) module_lost();
   }
 }
 
 void BleUartLink::step_send(uint32_t) {
+  if (job_sent_ == 0 && drain_stale_answer()) return;  // the command goes on a later pass
   uint8_t buf[kSdepMaxPayload];
   const uint16_t left = static_cast<uint16_t>(job_len_ - job_sent_);
   const uint8_t n = left > kSdepMaxPayload ? kSdepMaxPayload : static_cast<uint8_t>(left);
@@ -214,20 +280,52 @@ void BleUartLink::drop_tx(uint16_t bytes) {
   tx_count_ = static_cast<uint16_t>(tx_count_ - bytes);
 }
 
+// An "ATE=0" probe failed. 0xFE answers mean the module is there and still booting (SDEP.md,
+// "SDEP Packet and SPI Error Identifier"): keep probing, up to STIPI_BLE_BOOT_MAX_US. Nothing
+// at all, STIPI_BLE_PROBE_ATTEMPTS times: absent until the back-off ends.
+void BleUartLink::probe_failed(uint32_t now, bool busy) {
+  const bool booting_too_long = static_cast<uint32_t>(now - since_us_) >= STIPI_BLE_BOOT_MAX_US;
+  if ((busy && !booting_too_long) || ++attempts_ < STIPI_BLE_PROBE_ATTEMPTS) return;
+  state_ = kAbsent;  // no SPI traffic until the back-off ends
+  since_us_ = now;
+}
+
+// A module that was up restarted (its echo is back) or stopped answering: what was queued for
+// its central is lost (counted), and it is probed again as after a reset.
+void BleUartLink::module_lost() {
+  ++module_resets_;
+  for (uint16_t i = 0; i < tx_count_; ++i) frames_lost_ += tx_at(i) == 0;
+  drop_tx(tx_count_);
+  connected_ = false;
+  fifo_room_ = 0;
+  fifo_supported_ = true;  // a restarted module may have other firmware: ask again
+  job_ = kJobNone;
+  start_boot(static_cast<uint32_t>(clock_.micros() - STIPI_BLE_BOOT_US));  // probe at once
+  state_ = kProbing;
+}
+
 void BleUartLink::finish(bool ok) {
   const Job job = job_;
   job_ = kJobNone;
   last_job_ = job;
+  if (ok) silent_ = 0;
   if (job == kJobEcho) {
     if (ok && reply_ok()) {
       state_ = kReady;
+      backoff_us_ = STIPI_BLE_RETRY_MIN_US;
       last_conn_poll_us_ = static_cast<uint32_t>(clock_.micros() - STIPI_BLE_CONN_POLL_US);
-    } else if (++attempts_ >= STIPI_BLE_PROBE_ATTEMPTS) {
-      state_ = kAbsent;  // no module answers: the link stays closed, no more SPI traffic
+    } else {
+      probe_failed(clock_.micros(), sdep_.not_ready_seen() != busy_mark_);
     }
   } else if (job == kJobConn) {
-    // "1\r\nOK\r\n" when a central is connected (the last 7 bytes even if echo were on).
+    // "0\r\nOK\r\n" / "1\r\nOK\r\n" (7 bytes). Longer: the command was echoed, so echo is on
+    // again, which only a restart of the module does: probe it again (ATE=0).
+    if (ok && reply_ok() && reply_len_ > 7) {
+      module_lost();
+      return;
+    }
     const bool now_conn = ok && reply_ok() && reply_len_ >= 7 && reply_[reply_len_ - 7] == '1';
+    if (now_conn && !connected_) fifo_room_ = 0;  // a new central: ask for the room first
     if (now_conn && !connected_ && tx_count_ < STIPI_BLE_TX_RING) {
       tx_[(tx_head_ + tx_count_) % STIPI_BLE_TX_RING] = 0;  // new central: frame boundary
       ++tx_count_;
@@ -244,8 +342,13 @@ void BleUartLink::finish(bool ok) {
     if (refused) {
       ++tx_failures_;
       for (uint16_t i = 0; i < job_len_; ++i) frames_lost_ += tx_at(i) == 0;
+      fifo_room_ = 0;  // ask again before the next one
+    } else {
+      fifo_room_ = fifo_room_ > job_len_ ? static_cast<uint16_t>(fifo_room_ - job_len_) : 0;
     }
     drop_tx(job_len_);
+  } else if (job == kJobFifo) {
+    on_fifo_reply(ok);
   }
 }
 

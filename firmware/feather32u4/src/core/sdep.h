@@ -7,7 +7,10 @@
 // back and ONE response (possibly several packets, "Response Messages") is read after the last;
 // 0xFE (not ready) and 0xFF (nothing / IRQ still high after the last packet) are retried on a
 // later pass, never in a wait loop. BleUartLink adds the module's life cycle (reset, boot wait,
-// "ATE=0" as the bounded boot probe, connection polling) and the Nordic UART byte stream
+// "ATE=0" as the boot probe, connection polling, and for as long as the probe runs: a module
+// answering 0xFE is booting, not absent; an absent one is reset and probed again with a
+// doubling back-off; one that restarts (echo back on) or stops answering is probed again) and
+// the Nordic UART byte stream
 // (0x0A01 TX from a ring of whole frames, 0x0A02 RX). Does not own the SPI peripheral.
 #ifndef STIPI_CORE_SDEP_H
 #define STIPI_CORE_SDEP_H
@@ -56,12 +59,18 @@ class SdepDriver {
   SdepStatus send_packet(uint16_t id, const uint8_t* payload, uint8_t len, bool more);
   // Read one packet if IRQ is high; kSdepAgain when there is none yet (IRQ low, 0xFE, 0xFF).
   SdepStatus read_packet(SdepPacket& out);
+  // 0xFE ("not ready": present, busy or booting) answers seen since start, wrapping.
+  uint16_t not_ready_seen() const { return not_ready_; }
 
  private:
   void begin_transaction();
   SpiPort& spi_;
   Clock& clock_;
+  uint16_t not_ready_ = 0;
 };
+
+// What STATUS reports about the BLE module (docs/protocol.md, STATUS ble_state).
+enum BleHealth : uint8_t { kBleNotBuilt = 0, kBleAbsent = 1, kBleBooting = 2, kBleUp = 3 };
 
 // The Bluefruit module as a ByteLink. Call poll() from the main loop: at most
 // STIPI_SDEP_PACKETS_PER_POLL SPI transactions (~0.2 ms each) per call.
@@ -80,21 +89,34 @@ class BleUartLink : public ByteLink {
   bool write_frame(const uint8_t* data, uint8_t len) override;
 
   State state() const { return state_; }
+  BleHealth health() const;
+  // Times a module that was up restarted or stopped answering and was probed again.
+  uint16_t module_resets() const { return module_resets_; }
   bool connected() const { return connected_; }
   uint16_t tx_failures() const { return tx_failures_; }  // UART TX commands the module refused
   uint32_t frames_lost() const { return frames_lost_; }  // queued frames lost that way
+  // Flow control: the module's TX FIFO room as last reported (AT+BLEUARTFIFO=TX) minus what
+  // was sent since; false while the module does not support the command (then TX relies on
+  // the module's ERROR after 200 ms, as before).
+  bool fifo_flow_control() const { return fifo_supported_; }
+  uint16_t stale_answers() const { return stale_answers_; }
   uint16_t tx_queued() const { return tx_count_; }
 
  private:
-  enum Job : uint8_t { kJobNone, kJobEcho, kJobConn, kJobRx, kJobTx };
+  enum Job : uint8_t { kJobNone, kJobEcho, kJobConn, kJobRx, kJobTx, kJobFifo };
   void start_job(Job job, uint16_t id, uint16_t len);
+  void start_boot(uint32_t now);
+  void probe_failed(uint32_t now, bool busy);
+  void module_lost();
   void step();
   void step_send(uint32_t now);
   void step_receive(uint32_t now);
   void finish(bool ok);
   void on_payload(const SdepPacket& p);
   void choose_job(uint32_t now);
-  void start_tx();
+  bool start_tx(bool dry_run);
+  void on_fifo_reply(bool ok);
+  bool drain_stale_answer();
   void drop_tx(uint16_t bytes);
   bool reply_ok() const;
   uint8_t tx_at(uint16_t i) const { return tx_[(tx_head_ + i) % STIPI_BLE_TX_RING]; }
@@ -105,10 +127,18 @@ class BleUartLink : public ByteLink {
   State state_;
   bool connected_;
   uint8_t attempts_;
-  uint32_t since_us_;
+  uint8_t silent_;           // commands in a row that nothing answered
+  uint16_t module_resets_;
+  uint16_t busy_mark_;       // sdep_.not_ready_seen() when the job started
+  uint32_t since_us_;        // reset, boot start, or absent since
+  uint32_t backoff_us_;      // next wait in kAbsent
+  uint32_t last_fifo_poll_us_;
+  uint16_t fifo_room_;       // TX FIFO bytes free, as far as we know
+  bool fifo_supported_;
   uint32_t last_conn_poll_us_;
   uint32_t last_rx_poll_us_;
   uint16_t tx_failures_;
+  uint16_t stale_answers_;   // answers read after their command had timed out
   uint32_t frames_lost_;
   // command in flight
   Job job_;
