@@ -14,7 +14,7 @@ import json
 from collections.abc import Sequence
 from pathlib import Path
 
-from stipi_daemon.errors import SessionError
+from stipi_daemon.errors import EXIT_DAMAGED, EXIT_OK, SessionError
 from stipi_daemon.storage import SessionReader, list_sessions
 from stipi_daemon.storage.metadata import METADATA_FIELDS
 
@@ -166,9 +166,9 @@ def show_text(directory: Path, *, decode: bool = False) -> tuple[str, int]:
         try:
             summary = reader.summary
         except SessionError as exc:
-            return "\n".join([*lines, f"summary: unreadable: {exc}"]), 1
+            return "\n".join([*lines, f"summary: unreadable: {exc}"]), EXIT_DAMAGED
         if summary is None:
             lines.append("summary: none")
         else:
             lines += ["summary:", _indent(json.dumps(summary, indent=2))]
-        return "\n".join(lines), 0 if report.ok else 1
+        return "\n".join(lines), EXIT_OK if report.ok else EXIT_DAMAGED

@@ -4,7 +4,8 @@ Builds the firmware if needed, resets the board into its Caterina bootloader (12
 touch), waits for the bootloader's port (which may come back under a new name) and runs
 ``avrdude -c avr109``, which verifies. This module parses the command line; the steps are
 :func:`stipi_daemon.probe.flash.flash`. Every failure is one line on stderr: exit status 2
-for a bad image (checked before the board is touched), 1 for a failure on the way.
+for a bad image or a missing port (checked before the board is touched), 1 for a failure
+on the way.
 """
 
 from __future__ import annotations
@@ -62,7 +63,7 @@ def _run(args: argparse.Namespace) -> int:
             ports_glob=args.ports_glob,
             timeout_s=args.timeout,
         )
-    except flashing.ImageError:
+    except (flashing.ImageError, flashing.PortNotFoundError):
         raise  # bad input: one line and exit 2 through the CLI, like every other command
     except flashing.FlashError as exc:
         print(f"stipi-daemon flash: {exc}", file=sys.stderr)

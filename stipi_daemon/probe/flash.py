@@ -26,7 +26,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
-from stipi_daemon.errors import StipiError
+from stipi_daemon.errors import DeviceNotFoundError, StipiError
 
 FIRMWARE_DIR = Path(__file__).resolve().parents[2] / "firmware" / "feather32u4"
 HEX_NAME = "build/stipi_feather32u4.hex"
@@ -44,6 +44,11 @@ class FlashError(StipiError, RuntimeError):
 
 class ImageError(FlashError):
     """The firmware image is bad input (unreadable, damaged, too large): nothing was touched."""
+
+
+class PortNotFoundError(FlashError, DeviceNotFoundError):
+    """The probe's serial port is not there (bad input, as for the daemon): nothing was
+    touched."""
 
 
 @dataclass(frozen=True)
@@ -319,7 +324,7 @@ def flash(
     image = read_image(Path(hex_path))  # all of it, before anything touches the board
     log(f"{image.path.name}: {image.end_b:,} of {APP_SECTION_B:,} B of the application section")
     if not os.path.exists(port):
-        raise FlashError(f"no serial port {port}: is the probe plugged in? (pass --port)")
+        raise PortNotFoundError(f"no serial port {port}: is the probe plugged in? (pass --port)")
     before = set(glob.glob(ports_glob))
     log(f"resetting {port} into the bootloader (1200-baud touch)")
     touch_1200(port)

@@ -25,6 +25,7 @@ import pytest
 
 from stipi_daemon.app.sessions_view import show_text
 from stipi_daemon.cli import main
+from stipi_daemon.errors import EXIT_DAMAGED
 from stipi_daemon.storage import SessionReader, SessionWriter, StorageOptions
 from stipi_daemon.storage.video import UNINDEXED_FRAMES_MAX, VideoRecorder
 from stipi_daemon.storage.video_readback import (
@@ -177,7 +178,7 @@ def test_a_frame_that_only_decoding_finds_is_found_with_decode(
     assert main(["sessions", "show", str(rec.directory)]) == 0
     (line,) = [ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("integrity")]
     assert line.split(None, 1)[1] == "ok"
-    assert main(["sessions", "show", str(rec.directory), "--decode"]) == 1
+    assert main(["sessions", "show", str(rec.directory), "--decode"]) == EXIT_DAMAGED
     (line,) = [ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("integrity")]
     assert "FAILED: " in line and "frame 3 (seq 3, byte" in line and "does not decode" in line
     assert line.endswith("(every video frame decoded)")
@@ -186,7 +187,7 @@ def test_a_frame_that_only_decoding_finds_is_found_with_decode(
     out = capsys.readouterr().out
     assert "integrity  ok (every video frame decoded)" in out
     good.video.unlink()  # nothing decoded: the line does not claim it
-    assert main(["sessions", "show", str(good.directory), "--decode"]) == 1
+    assert main(["sessions", "show", str(good.directory), "--decode"]) == EXIT_DAMAGED
     (line,) = [ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("integrity")]
     assert "FAILED: " in line and "missing" in line and "decoded" not in line
 
