@@ -285,7 +285,7 @@ def _with(path: str, value: Any, *, drop: bool = False) -> dict[str, Any]:
         (_with("imaging.roi", {"kind": "circle", "cx_px": 10}), ["field 'imaging.roi"]),
         (_with("measurement.target_force_n", -1.0), ["field 'measurement.target_force_n'"]),
         (_with("storage.commit_interval_s", 5.0), ["field 'storage.commit_interval_s'"]),
-        (_with("run.speed", 0), ["field 'run.speed'"]),
+        (_with("run.speed", -1), ["field 'run.speed'"]),
         (_with("probe", None, drop=True), ["field 'probe'"]),
     ],
     ids=lambda v: None if isinstance(v, dict) else v[0].split("'")[1],
