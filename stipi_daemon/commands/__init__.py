@@ -63,6 +63,26 @@ def out_path(text: str | None, option: str = "--out") -> Path | None:
     return None if text is None else given_path(text, option)
 
 
+def add_sessions_root(parser: argparse.ArgumentParser) -> None:
+    """``--root DIR`` and ``--config FILE``: where a command finds the sessions."""
+    from stipi_daemon.storage import DEFAULT_ROOT
+
+    parser.add_argument(
+        "--root",
+        type=Path,
+        default=None,
+        help="directory holding the sessions (default: the storage.root of --config, else "
+        f"./{DEFAULT_ROOT})",
+    )
+    parser.add_argument(
+        "--config",
+        type=Path,
+        default=argparse.SUPPRESS,
+        metavar="FILE",
+        help="daemon config whose storage.root holds the sessions",
+    )
+
+
 def register_all(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     """Add every subcommand in :data:`COMMAND_MODULES` to ``subparsers``."""
     for name in COMMAND_MODULES:

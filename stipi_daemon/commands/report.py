@@ -13,8 +13,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from stipi_daemon.commands import add_sessions_root
 from stipi_daemon.errors import ConfigError
-from stipi_daemon.storage import DEFAULT_ROOT
 
 #: Default output directory of ``--compare`` (relative to the working directory).
 DEFAULT_COMPARE_OUT = Path("compare-report")
@@ -53,20 +53,7 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         help="with --compare: one label per session (e.g. the grade); equal labels are "
         "grouped as repeated trials",
     )
-    parser.add_argument(
-        "--root",
-        type=Path,
-        default=None,
-        help="directory holding the sessions (default: the storage.root of --config, else "
-        f"./{DEFAULT_ROOT})",
-    )
-    parser.add_argument(
-        "--config",
-        type=Path,
-        default=argparse.SUPPRESS,
-        metavar="FILE",
-        help="daemon config whose storage.root holds the sessions",
-    )
+    add_sessions_root(parser)
     parser.add_argument(
         "--out",
         type=Path,

@@ -22,9 +22,8 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-from stipi_daemon.commands import out_path
+from stipi_daemon.commands import add_sessions_root, out_path
 from stipi_daemon.storage import (
-    DEFAULT_ROOT,
     EXPORT_FORMATS,
     SessionReader,
     SessionState,
@@ -54,21 +53,7 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     parser.set_defaults(handler=show_help)
     sub = parser.add_subparsers(title="subcommands", metavar="SUBCOMMAND")
 
-    def add_root(p: argparse.ArgumentParser) -> None:
-        p.add_argument(
-            "--root",
-            type=Path,
-            default=None,
-            help="directory holding the sessions (default: the storage.root of --config, "
-            f"else ./{DEFAULT_ROOT})",
-        )
-        p.add_argument(
-            "--config",
-            type=Path,
-            default=argparse.SUPPRESS,
-            metavar="FILE",
-            help="daemon config whose storage.root holds the sessions",
-        )
+    add_root = add_sessions_root
 
     def add_where(p: argparse.ArgumentParser) -> None:
         for field in _SEARCHABLE:

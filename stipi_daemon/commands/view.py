@@ -11,9 +11,8 @@ a path to its directory; it is only read.
 from __future__ import annotations
 
 import argparse
-from pathlib import Path
 
-from stipi_daemon.storage import DEFAULT_ROOT
+from stipi_daemon.commands import add_sessions_root
 
 
 def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -30,20 +29,7 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     parser.add_argument(
         "session", metavar="SESSION", help="session id under --root, or a directory"
     )
-    parser.add_argument(
-        "--root",
-        type=Path,
-        default=None,
-        help="directory holding the sessions (default: the storage.root of --config, else "
-        f"./{DEFAULT_ROOT})",
-    )
-    parser.add_argument(
-        "--config",
-        type=Path,
-        default=argparse.SUPPRESS,
-        metavar="FILE",
-        help="daemon config whose storage.root holds the sessions",
-    )
+    add_sessions_root(parser)
     parser.add_argument(
         "--host",
         default="127.0.0.1",
