@@ -155,3 +155,38 @@ def session_record(session_dir: Path) -> dict[str, Any]:
         con.close()
     summary = json.loads((session_dir / "summary.json").read_text())
     return {"tables": tables, "summary": summary}
+
+
+#: The measurement section matching :func:`tiny_scene` (2.5 s in the band, 6 s window).
+TINY_MEASUREMENT: dict[str, Any] = {
+    "pitting_duration_s": 2.5,
+    "recovery_max_s": 6.0,
+    "settle_hold_s": 3.0,
+    "stop_when_settled": False,
+}
+
+
+def tiny_scene(directory: Path, name: str) -> Path:
+    """Write a tiny grade-I scene (0.5 s approach, 3 s hold, 7 s recovery, 160x120 at
+    60 fps) named ``name`` and return its path."""
+    doc = yaml.safe_load((SCENES / "grade1.yaml").read_text())
+    doc["name"] = name
+    doc["force_profile"].update({"approach_s": 0.5, "hold_s": 3.0, "recovery_s": 7.0})
+    doc["camera"].update({"width": 160, "height": 120})
+    path = directory / f"{name}.yaml"
+    path.write_text(yaml.safe_dump(doc))
+    return path
+
+
+def tiny_config(directory: Path, scene: Path, **sections: dict[str, Any]) -> Path:
+    """A config measuring :func:`tiny_scene` ``scene`` with the emulated probe and the
+    simulator camera into ``directory/sessions`` (made), ``sections`` added."""
+    directory.mkdir()
+    doc: dict[str, Any] = {
+        "probe": {"transport": {"kind": "emulated", "scene": str(scene)}},
+        "camera": {"kind": "simulator", "scene": str(scene)},
+        "measurement": TINY_MEASUREMENT,
+        "storage": {"root": str(directory / "sessions"), "min_free_mb": 0},
+        **sections,
+    }
+    return write_config(directory, doc)

@@ -23,12 +23,11 @@ from typing import Any
 from urllib.parse import urlsplit
 
 import pytest
-import yaml
 
 from stipi_daemon.app.config import load_config
 from stipi_daemon.app.daemon import run_daemon
 from stipi_daemon.storage.video_readback import iter_video_images
-from tests.daemon._support import SCENES, session_record, write_config
+from tests.daemon._support import session_record, tiny_config, tiny_scene
 
 #: Wall time the viewer must stay stalled while the run goes on [s].
 STALL_WALL_S = 30.0
@@ -36,33 +35,11 @@ URL_LINE = re.compile(r"live view: (http://\S+)")
 
 
 def _scene(directory: Path) -> Path:
-    doc = yaml.safe_load((SCENES / "grade1.yaml").read_text())
-    doc["name"] = "grade1_stalled_viewer"
-    doc["force_profile"].update({"approach_s": 0.5, "hold_s": 3.0, "recovery_s": 7.0})
-    doc["camera"].update({"width": 160, "height": 120})
-    path = directory / "grade1_stalled_viewer.yaml"
-    path.write_text(yaml.safe_dump(doc))
-    return path
+    return tiny_scene(directory, "grade1_stalled_viewer")
 
 
 def _config(tmp_path: Path, scene: Path, name: str, speed: float, view: bool) -> Path:
-    (tmp_path / name).mkdir()
-    return write_config(
-        tmp_path / name,
-        {
-            "probe": {"transport": {"kind": "emulated", "scene": str(scene)}},
-            "camera": {"kind": "simulator", "scene": str(scene)},
-            "measurement": {
-                "pitting_duration_s": 2.5,
-                "recovery_max_s": 6.0,
-                "settle_hold_s": 3.0,
-                "stop_when_settled": False,
-            },
-            "run": {"speed": speed},
-            "view": {"enabled": view},
-            "storage": {"root": str(tmp_path / name / "sessions"), "min_free_mb": 0},
-        },
-    )
+    return tiny_config(tmp_path / name, scene, run={"speed": speed}, view={"enabled": view})
 
 
 def _stalled_socket(url: str, request: str) -> socket.socket:

@@ -20,21 +20,10 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-import yaml
 
 from stipi_daemon.app.config import load_config
 from stipi_daemon.app.daemon import run_daemon
-from tests.daemon._support import SCENES, session_record, write_config
-
-
-def _scene(directory: Path) -> Path:
-    doc = yaml.safe_load((SCENES / "grade1.yaml").read_text())
-    doc["name"] = "grade1_speed_identity"
-    doc["force_profile"].update({"approach_s": 0.5, "hold_s": 3.0, "recovery_s": 7.0})
-    doc["camera"].update({"width": 160, "height": 120})
-    path = directory / "grade1_speed_identity.yaml"
-    path.write_text(yaml.safe_dump(doc))
-    return path
+from tests.daemon._support import session_record, tiny_config, tiny_scene
 
 
 @contextlib.contextmanager
@@ -51,22 +40,7 @@ def _busy_processes(n: int) -> Iterator[None]:
 
 async def _measure(tmp_path: Path, scene: Path, name: str, speed: float) -> dict[str, Any]:
     """Every stored row and the summary of a run at ``speed``."""
-    (tmp_path / name).mkdir()
-    cfg = write_config(
-        tmp_path / name,
-        {
-            "probe": {"transport": {"kind": "emulated", "scene": str(scene)}},
-            "camera": {"kind": "simulator", "scene": str(scene)},
-            "measurement": {
-                "pitting_duration_s": 2.5,
-                "recovery_max_s": 6.0,
-                "settle_hold_s": 3.0,
-                "stop_when_settled": False,
-            },
-            "run": {"speed": speed},
-            "storage": {"root": str(tmp_path / name / "sessions"), "min_free_mb": 0},
-        },
-    )
+    cfg = tiny_config(tmp_path / name, scene, run={"speed": speed})
     outcome = await run_daemon(load_config(cfg), quiet=True)
     assert outcome.exit_code == 0, outcome.summary["end_reason"]
     assert outcome.summary["run"]["clock"] == "simulated"
@@ -75,7 +49,7 @@ async def _measure(tmp_path: Path, scene: Path, name: str, speed: float) -> dict
 
 @pytest.mark.timeout(600)
 async def test_rows_and_results_are_the_same_at_any_speed_and_load(tmp_path: Path) -> None:
-    scene = _scene(tmp_path)
+    scene = tiny_scene(tmp_path, "grade1_speed_identity")
     real_time = await _measure(tmp_path, scene, "speed1", 1.0)
     fast = await _measure(tmp_path, scene, "speed50", 50.0)
     with _busy_processes(2):
