@@ -150,7 +150,7 @@ def test_scene_and_set_change_one_run_without_copying_the_config(
             "measurement.stop_when_settled=maybe",
             "--set measurement.stop_when_settled=maybe: Input should be a valid boolean",
         ),
-        ("run.speed=-1", "--set run.speed=-1: Input should be greater than 0"),
+        ("run.speed=-1", "--set run.speed=-1: Input should be greater than or equal to 0"),
         ("imaging.threshold_p=300", "--set imaging.threshold_p=300: Input should be less than"),
         ("nosuch.key=1", "--set nosuch.key=1: field 'nosuch': unknown key"),
         ("run.speed.x=1", "--set run.speed.x=1: 'run.speed' is a value, not a section"),
@@ -517,7 +517,7 @@ def test_a_killed_session_on_read_only_media_reads_fine(tmp_path: Path) -> None:
     shutil.copy2(killed / "manifest.json", broken / "manifest.json")
     (broken / "session.sqlite").write_bytes(b"garbage" * 1000)
     run = _read_only_run(broken, "sessions", "show", str(broken))
-    assert run.returncode == 2
+    assert run.returncode == 4  # damaged stored data (stipi_daemon.errors.EXIT_DAMAGED)
     assert run.stderr.splitlines() == [
         f"stipi-daemon: error: {broken / 'session.sqlite'}: not a readable SQLite database, "
         "truncated or corrupt (file is not a database)"

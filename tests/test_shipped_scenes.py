@@ -2,10 +2,8 @@
 
 Each scene of ``configs/scenes`` is given to the demo config on the command line, as
 README shows it (``stipi-daemon --config configs/demo.yaml --scene SCENE``), and must end
-in a measurement that was made (exit 0, phase done, results computed): the scenes' force
-profiles leave the margin of a hand-held probe against the daemon's timing (the
-operator releases about 0.6 s after the prompt, the force band's 1 s grace on top), so
-no scene depends on where its force crosses the band to the millisecond. The session
+in a measurement that was made (exit 0, phase done, results computed), the same on
+every machine (the runs are on the clock that waits for the daemon). The session
 video is left off (``storage.video off``): it is not what this checks, and its encoder is
 most of a run's cost. The runs are simulated on the clock that waits for the daemon, so
 they end the same on any machine.

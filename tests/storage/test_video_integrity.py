@@ -153,7 +153,7 @@ def test_a_frame_damaged_mid_file_is_found_and_named(tmp_path: Path, codec: str)
             assert np.array_equal(g, rec.images[k]), k
     assert "frame 12" in str(got[1]) and "holds no frame 30" in str(got[3])
     text, status = show_text(rec.directory)
-    assert status == 1 and "integrity  FAILED: " in text and "frame 12" in text
+    assert status == EXIT_DAMAGED and "integrity  FAILED: " in text and "frame 12" in text
 
 
 def test_a_frame_that_only_decoding_finds_is_found_with_decode(
@@ -431,7 +431,7 @@ def test_sessions_show_names_a_damaged_video_once(tmp_path: Path) -> None:
     pos, size = _packets(rec.video)[5]
     _flip(rec.video, pos + size // 3, 4)
     text, status = show_text(rec.directory)
-    assert status == 1
+    assert status == EXIT_DAMAGED
     (line,) = [ln for ln in text.splitlines() if ln.startswith("integrity")]
     assert f"frame 5 (seq 5, byte {pos})" in line and "session.sqlite" not in line
     assert os.path.basename(rec.video) in line

@@ -46,9 +46,12 @@ def test_kelvin_voigt_scenes_unchanged() -> None:
         assert scene.tissue.model is None
         m = SceneModel(scene)
         t = np.asarray(ref["t_s"])
-        assert m.depth_mm(t).tolist() == ref["depth_mm"], name
-        assert m.force_n(t).tolist() == ref["force_n"], name
-        assert m.occluded_area_px(t).tolist() == ref["occluded_area_px"], name
+        # to a few units in the last place: NumPy's builds differ in exp's last bit
+        for got, key in ((m.depth_mm(t), "depth_mm"), (m.force_n(t), "force_n")):
+            np.testing.assert_allclose(got, ref[key], rtol=1e-14, atol=0.0, err_msg=name)
+        np.testing.assert_allclose(
+            m.occluded_area_px(t), ref["occluded_area_px"], rtol=1e-14, atol=0.0, err_msg=name
+        )
         truth = ground_truth(scene, roi=ROI).to_json_dict()
         for key, value in ref["truth"].items():
             if isinstance(value, dict):  # fields added since (calibration.frame_size_px)
