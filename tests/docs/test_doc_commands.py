@@ -47,7 +47,8 @@ KIND is one of
     and removes it after, so the commands get as far as the hardware.
 ``two-terminals``
     two commands for two terminals: the first (a server, e.g. ``mock-peripheral``) is
-    started in the background, the second must succeed as in ``run``, then the first
+    started in the background, the second (run once the first has printed its first
+    line, as a user waits for it) must succeed as in ``run``, then the first
     is sent SIGINT (Ctrl-C) and must exit 0 or 130 without a traceback.
 ``skip``
     not run; ``reason="..."`` is required. Only for what cannot run here or is the suite
@@ -102,6 +103,8 @@ EXPECTED_SKIPS = frozenset(
 )
 
 BLOCK_TIMEOUT_S = 900
+#: How long terminal 1 (a server) may take to print its first line [s].
+SERVER_READY_TIMEOUT_S = 120.0
 MODULE_TIMEOUT_S = 2400
 
 pytestmark = [pytest.mark.xdist_group("docs")]
@@ -479,7 +482,15 @@ class Runner:
                 start_new_session=True,
             )
         try:
-            time.sleep(1.0)  # the time a user takes to switch terminals
+            # A user switches terminals once terminal 1 has said it is ready; on a loaded
+            # machine that takes longer than the second a quiet one needs.
+            if not wait_for_output(server, out_path, SERVER_READY_TIMEOUT_S):
+                return Outcome(
+                    False,
+                    f"{block.where}: terminal 1 printed nothing within "
+                    f"{SERVER_READY_TIMEOUT_S:.0f} s (exit {server.returncode}):\n"
+                    + err_path.read_text()[-3000:],
+                )
             if server.poll() is not None:
                 return Outcome(
                     False,
@@ -503,6 +514,18 @@ class Runner:
             if server.poll() is None:
                 os.killpg(server.pid, signal.SIGKILL)
                 server.wait()
+
+
+def wait_for_output(proc: subprocess.Popen[bytes], path: Path, timeout_s: float) -> bool:
+    """Wait until `proc` has written a whole line to `path` (True) or ended (False)."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if "\n" in path.read_text(errors="replace"):
+            return True
+        if proc.poll() is not None:
+            return False
+        time.sleep(0.1)
+    return False
 
 
 @pytest.fixture(scope="module")

@@ -9,7 +9,7 @@ import pytest
 
 from stipi_daemon.sim.scene import parse_scene
 
-from .matrix import SHIPPED_LEAD_S, TOLERANCES, Case, classify, fast_cases, long_cases, truth
+from .matrix import EARLY_14S_HOLD_LEAD_S, TOLERANCES, Case, classify, fast_cases, long_cases, truth
 
 
 def _truth(case: Case) -> dict[str, dict[str, Any]]:
@@ -37,13 +37,13 @@ def _summary(values: dict[str, Any], flags: list[str] | None = None) -> dict[str
 
 
 def test_release_lead_sets_the_hold() -> None:
-    shipped = Case("x", pre_s=4.5, release_lead_s=SHIPPED_LEAD_S)
-    assert shipped.hold_s == pytest.approx(14.0) and shipped.t0_s == pytest.approx(19.5)
+    early = Case("x", pre_s=4.5, release_lead_s=EARLY_14S_HOLD_LEAD_S)
+    assert early.hold_s == pytest.approx(14.0) and early.t0_s == pytest.approx(19.5)
     assert Case("x", release_lead_s=0.0).hold_s == pytest.approx(14.90625)
 
 
 def test_effects_are_placed_relative_to_the_release() -> None:
-    case = Case("x", pre_s=4.5, release_lead_s=SHIPPED_LEAD_S, frame_gap_rel_s=(-0.7, 0.5))
+    case = Case("x", pre_s=4.5, release_lead_s=EARLY_14S_HOLD_LEAD_S, frame_gap_rel_s=(-0.7, 0.5))
     (gap,) = case.effects()
     assert gap["name"] == "frame_gap"
     assert (gap["t_start_s"], gap["t_end_s"]) == pytest.approx((18.8, 20.0))

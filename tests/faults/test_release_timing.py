@@ -164,6 +164,9 @@ def test_release_before_the_timer_is_placed_at_the_force_drop(
 # ----------------------------------------------------------------------- case 2
 
 
+# Twelve whole synthetic measurements: about 50 s each with the suite beside it, several
+# times that beside two busy loops (a hang guard, not a time limit).
+@pytest.mark.timeout(900)
 @pytest.mark.parametrize("occlusion", ["applied_force", "none"])
 def test_refinement_stays_near_the_force_drop_with_noise(occlusion: str) -> None:
     for seed in range(12):

@@ -43,6 +43,9 @@ def test_kelvin_voigt_scenes_unchanged() -> None:
     assert len(before["scenes"]) == 10
     for name, ref in before["scenes"].items():
         scene = load_scene(SCENES / name)
+        # the force profile the snapshot was taken with (the shipped holds grew since)
+        profile = scene.force_profile.model_copy(update=ref["force_profile"])
+        scene = scene.model_copy(update={"force_profile": profile})
         assert scene.tissue.model is None
         m = SceneModel(scene)
         t = np.asarray(ref["t_s"])
