@@ -459,10 +459,13 @@ class Acquisition:
         bound = self._config.run.max_lag_s
         if lag <= bound or self.fault_line is not None:
             return []
+        if self._clock.waits_for_daemon:  # no lag of its own: a scene's processing_stall
+            why = "a processing stall of the scene (this clock waits for the daemon otherwise)"
+        else:
+            why = f"this machine does not sustain run.speed {self._clock.speed:g}: lower it"
         line = (
             f"falling behind: a frame was handled {lag:.1f} s after its capture (more than "
-            f"run.max_lag_s {bound:g} s); this machine does not sustain run.speed "
-            f"{self._clock.speed:g}: lower it"
+            f"run.max_lag_s {bound:g} s); {why}"
         )
         return self._end_with_fault(now, line, "falling_behind", {"lag_s": lag, "max_lag_s": bound})
 

@@ -35,6 +35,9 @@ __all__ = ["SimulatorCamera"]
 
 #: Frames the hand-off holds for a lagging consumer [-].
 PREFETCH_FRAMES = 8
+#: Session seconds between the hand-overs of held-back frames per second of capture time
+#: between them (``processing_stall``) [-].
+STALL_HANDOVER_SPACING = 1e-6
 
 
 class SimulatorCamera(ThreadedCamera[Iterator[SimFrame]]):
@@ -125,12 +128,17 @@ class SimulatorCamera(ThreadedCamera[Iterator[SimFrame]]):
 
     def _consumer_busy_until_s(self, t_capture_s: float) -> float | None:
         """The scene's ``processing_stall`` spans: a frame captured in one is handed over
-        at its end [s of session time]."""
+        at its end, plus :data:`STALL_HANDOVER_SPACING` of how far into the stall it was
+        captured [s of session time]. The spacing puts the held-back frames one after
+        another (40 us for a 40 s stall): on a clock that waits for the daemon each is
+        handed over once the daemon has dealt with the one before, so what follows (a
+        fault at one of them, the end of the run) is the same on every run."""
         t0 = self._t0_s if self._t0_s is not None else 0.0
+        t_s = t_capture_s - t0
         until = [
-            s.t_end_s
+            s.t_end_s + STALL_HANDOVER_SPACING * (t_s - s.t_start_s)
             for s in self.scene.effects
-            if isinstance(s, ProcessingStall) and s.t_start_s <= t_capture_s - t0 < s.t_end_s
+            if isinstance(s, ProcessingStall) and s.t_start_s <= t_s < s.t_end_s
         ]
         return t0 + max(until) if until else None
 

@@ -47,7 +47,10 @@ def test_other_camera_events_pass_unchanged() -> None:
 
 
 class _Clock:
-    """A session clock the test sets by hand."""
+    """A session clock the test sets by hand (on wall time: it does not wait for the
+    daemon)."""
+
+    waits_for_daemon = False
 
     def __init__(self, now_s: float, speed: float = 50.0) -> None:
         self.t = now_s

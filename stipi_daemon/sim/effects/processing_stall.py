@@ -2,8 +2,9 @@
 
 What a machine busy with something else does to a measurement, on purpose and the same
 every run: every frame captured in ``[t_start_s, t_end_s)`` is handed to the daemon only
-at ``t_end_s`` (then all at once, in order), as a camera that waits for its consumer (a
-video file, the simulator) delivers them after the consumer was held up. The daemon's lag
+at ``t_end_s`` (then one after another, in order, a microsecond of session time apart per
+second of stall), as a camera that waits for its consumer (a video file, the simulator)
+delivers them after the consumer was held up. The daemon's lag
 handling then acts as on a real stall: frames later than half of ``run.max_lag_s`` are
 stored as ``processing_behind`` gaps, and a lag beyond ``run.max_lag_s`` ends the run
 with a fault. The force samples keep coming. In a run on wall time this adds to whatever
