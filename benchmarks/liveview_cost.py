@@ -1,12 +1,13 @@
 """The live view's cost to the measurement at 720p60: none, one viewer, twenty viewers.
 
-Run: ``./dev python benchmarks/liveview_cost.py`` (about 3 minutes; ``--quick``: seconds).
+Run: ``./dev python benchmarks/liveview_cost.py`` (about 4 minutes; ``--quick``: seconds).
 Writes the section "Live view cost" of ``docs/performance.md`` (other sections are left
 alone) and prints it.
 
 Goals (the live view's): with no viewer connected nothing is computed; one viewer adds at
 most 5 % CPU to the daemon at 720p60; twenty viewers at once leave the measurement's frame
-budget (1/60 s per frame) intact.
+budget (1/60 s per frame) intact. Every figure is of this one run: the view's cost is a
+ratio to the ``off`` runs interleaved with it, never to a figure of another benchmark.
 
 What runs. One process, pinned to one CPU, does the daemon's camera-side work on 120
 distinct 1280x720 JPEG frames of the grade-III scene (quality 90, as an MJPG camera sends
@@ -16,17 +17,21 @@ to gray (``cv2.imdecode``), its S_k counted in the waveguide disc
 (:meth:`LiveState.frame`, :meth:`LiveState.force_n`, :meth:`LiveState.tick`) to a
 :class:`~stipi_daemon.app.liveview.server.ViewServer` running in its thread of that process
 (so its CPU, the JPEG encoding included, is counted). This is less than the daemon's whole
-work per frame (no video, no probe, no storage), so the ratio overstates the view's share.
-The viewers are another process on the other CPU doing what the page does: a websocket
-reading the state, on which the next frame is asked for once the last one came, at most
-10 a second.
+work per frame (no video, no probe, no storage): the view's share of it is overstated
+here, which is on the safe side. The viewers are another process on the other CPU doing
+what the page does: a websocket reading the state, on which the next frame is asked for
+once the last one came, at most 10 a second.
 
-Modes, each a paced run of ``--seconds`` (default 10 s, 600 frames): ``off`` (no view),
+Modes, each a paced run of ``--seconds`` (default 5 s, 300 frames): ``off`` (no view),
 ``idle`` (the view served, nobody connected), ``1 viewer``, ``20 viewers``; run in
-``--rounds`` rounds (default 4), the order rotating from round to round. CPU = the
-process's ``time.process_time`` (all threads) over the run; the ratio of each mode to
-``off`` is the median of the rounds' ratios. Frame budget: per frame, wall time from its
-due time to its S_k counted (the frame's latency); p50, p99 and frames over 1/60 s.
+``--rounds`` rounds (default 8), the order rotating from round to round. CPU = the
+process's ``time.process_time`` (all threads) over the run; the view thread's own CPU
+(its ``pthread_getcpuclockid`` clock) alongside. Added CPU of a mode = its CPU over the
+same round's ``off`` run's, minus 1; the median over the rounds (and their range).
+Frame budget: per frame, wall time from its due time to its S_k counted (the frame's
+latency); frames over 1/60 s in each mode against ``off`` in the same rounds (the frames
+whose S_k the view delayed, beside those the shared machine delayed anyway), and the CPU
+per frame, all threads, against the 16.7 ms a frame may take.
 """
 
 from __future__ import annotations
@@ -51,17 +56,18 @@ SECTION = "## Live view cost"
 W, H, FPS, N = 1280, 720, 60.0, 120
 MODES = ("off", "idle", "1 viewer", "20 viewers")
 VIEWERS = {"off": 0, "idle": 0, "1 viewer": 1, "20 viewers": 20}
-#: The whole daemon's CPU per frame at 720p60 MJPG [ms] ("Live daemon latency" section of
-#: docs/performance.md, benchmarks/daemon_latency.py): the share of it one viewer adds.
-DAEMON_720P60_CPU_MS_PER_FRAME = 4.38
 #: Goal: CPU one viewer adds to the daemon [-].
 ONE_VIEWER_GOAL = 0.05
+#: Twenty viewers keep the frame budget when the CPU per frame (all threads) is under it
+#: and no more frames run over it than twice ``off``'s in the same rounds, or 0.5 % of
+#: the frames (the shared machine's own delays come and go) [-].
+OVER_BUDGET_RATIO, OVER_BUDGET_FLOOR = 2.0, 0.005
 
 
 # ----------------------------------------------------------------------------- viewers
 
 
-async def _viewer(url: str, until: float, counts: dict[str, int]) -> None:
+async def _viewer(url: str, until: float, counts: dict[str, float]) -> None:
     """One page's traffic: the websocket's state, and frames asked for one after the other
     (the next once the last came), at most 10 a second."""
     import aiohttp
@@ -88,15 +94,18 @@ async def _viewer(url: str, until: float, counts: dict[str, int]) -> None:
 
 
 def viewers_main(url: str, n: int, seconds: float, cpus: set[int]) -> None:
-    """``n`` viewers of ``url`` for ``seconds``; prints frames and states received (JSON)."""
+    """``n`` viewers of ``url`` for ``seconds``; prints the frames and states they received
+    together and the wall time they ran [s] (JSON)."""
     os.sched_setaffinity(0, cpus)
-    counts = {"frames": 0, "states": 0}
-    until = time.monotonic() + seconds
+    counts: dict[str, float] = {"frames": 0, "states": 0}
+    t0 = time.monotonic()
+    until = t0 + seconds
 
     async def main() -> None:
         await asyncio.gather(*(_viewer(url, until, counts) for _ in range(n)))
 
     asyncio.run(main())
+    counts["seconds"] = time.monotonic() - t0
     print(json.dumps(counts), flush=True)
 
 
@@ -126,7 +135,8 @@ def _frames() -> tuple[list[bytes], Any]:
 def run_mode(
     mode: str, packets: list[bytes], roi: Any, seconds: float, viewer_cpus: set[int]
 ) -> dict[str, Any]:
-    """One paced run of ``mode``: CPU [s], per-frame latencies [s], what the viewers got."""
+    """One paced run of ``mode``: the process's and the view thread's CPU [s], per-frame
+    latencies [s], what the viewers got, previews encoded."""
     import cv2
     import numpy as np
 
@@ -154,6 +164,8 @@ def run_mode(
     processor = FrameProcessor((H, W), 100, roi)
     n = int(seconds * FPS)
     latencies = np.empty(n)
+    view_clock = _view_thread_clock() if server is not None else None
+    view0 = 0.0 if view_clock is None else time.clock_gettime(view_clock)
     cpu0 = time.process_time()
     t0 = time.monotonic() + 0.05
     for k in range(n):
@@ -169,14 +181,30 @@ def run_mode(
             state.tick(k / FPS, None)
         latencies[k] = time.monotonic() - due
     cpu = time.process_time() - cpu0
-    got: dict[str, int] = {}
+    view_cpu = 0.0 if view_clock is None else time.clock_gettime(view_clock) - view0
+    got: dict[str, float] = {}
     if proc_viewers is not None:
         out, _ = proc_viewers.communicate(timeout=60)
         got = json.loads(out.strip().splitlines()[-1])
     encoded = 0 if server is None else server.previews_encoded
     if server is not None:
         server.stop()
-    return {"cpu_s": cpu, "latencies_s": latencies.tolist(), "viewers": got, "encoded": encoded}
+    return {
+        "cpu_s": cpu,
+        "view_cpu_s": view_cpu,
+        "latencies_s": latencies.tolist(),
+        "viewers": got,
+        "encoded": encoded,
+    }
+
+
+def _view_thread_clock() -> int:
+    """The CPU-time clock of the view server's thread (``stipi-view``)."""
+    import threading
+
+    (thread,) = (t for t in threading.enumerate() if t.name == "stipi-view")
+    assert thread.ident is not None
+    return time.pthread_getcpuclockid(thread.ident)
 
 
 def measure(seconds: float, rounds: int) -> dict[str, Any]:
@@ -204,43 +232,102 @@ def _pct(v: float) -> str:
     return f"{100 * v:+.1f} %"
 
 
-def report(result: dict[str, Any]) -> str:
-    import cv2
+def _figures(runs: dict[str, list[dict[str, Any]]], mode: str, seconds: float) -> dict[str, Any]:
+    """One mode's figures over the rounds, each round against the same round's ``off``."""
     import numpy as np
 
-    runs, seconds, rounds = result["runs"], result["seconds"], result["rounds"]
-    n = int(seconds * FPS)
-    rows = []
-    for mode in MODES:
-        cpu = [r["cpu_s"] for r in runs[mode]]
-        ratios = [c / o["cpu_s"] - 1.0 for c, o in zip(cpu, runs["off"], strict=True)]
-        added = [(c - o["cpu_s"]) / seconds for c, o in zip(cpu, runs["off"], strict=True)]
-        lat = np.concatenate([np.asarray(r["latencies_s"]) for r in runs[mode]]) * 1e3
-        over = int((lat > 1e3 / FPS).sum())
-        got = [r["viewers"] for r in runs[mode] if r["viewers"]]
-        per_viewer = (
-            "-"
-            if not got
-            else f"{statistics.median(g['frames'] for g in got) / VIEWERS[mode] / seconds:.1f}"
-        )
-        encoded = statistics.median(r["encoded"] for r in runs[mode]) / seconds
-        rows.append(
-            f"| {mode} | {1e3 * statistics.median(cpu) / n:.2f} | "
-            f"{'-' if mode == 'off' else _pct(statistics.median(ratios))} | "
-            f"{'-' if mode == 'off' else f'{1e3 * statistics.median(added):+.1f}'} | "
-            f"{np.percentile(lat, 50):.2f} | {np.percentile(lat, 99):.2f} | {over} of {lat.size} | "
-            f"{per_viewer} | {encoded:.1f} |"
-        )
-    one = statistics.median(
-        c["cpu_s"] / o["cpu_s"] - 1.0 for c, o in zip(runs["1 viewer"], runs["off"], strict=True)
-    )
-    verdict = "met" if one <= ONE_VIEWER_GOAL else "NOT met"
-    one_ms = statistics.median(
-        (c["cpu_s"] - o["cpu_s"]) / seconds
-        for c, o in zip(runs["1 viewer"], runs["off"], strict=True)
-    )
+    pairs = list(zip(runs[mode], runs["off"], strict=True))
+    ratios = [r["cpu_s"] / o["cpu_s"] - 1.0 for r, o in pairs]
+    lat_ms = np.concatenate([np.asarray(r["latencies_s"]) for r in runs[mode]]) * 1e3
+    got = [r["viewers"] for r in runs[mode] if r["viewers"]]
+    return {
+        "cpu_ms_per_frame": 1e3
+        * statistics.median(r["cpu_s"] for r in runs[mode])
+        / (seconds * FPS),
+        "added": statistics.median(ratios),
+        "added_range": (min(ratios), max(ratios)),
+        "added_ms_per_s": 1e3
+        * statistics.median((r["cpu_s"] - o["cpu_s"]) / seconds for r, o in pairs),
+        "view_ms_per_s": 1e3 * statistics.median(r["view_cpu_s"] for r in runs[mode]) / seconds,
+        "view_share": statistics.median(r["view_cpu_s"] / o["cpu_s"] for r, o in pairs),
+        "p50_ms": float(np.percentile(lat_ms, 50)),
+        "p99_ms": float(np.percentile(lat_ms, 99)),
+        "over": int((lat_ms > 1e3 / FPS).sum()),
+        "frames": int(lat_ms.size),
+        "fps_each": (
+            statistics.median(g["frames"] / g["seconds"] for g in got) / VIEWERS[mode]
+            if got
+            else None
+        ),
+        "encoded_per_s": statistics.median(r["encoded"] for r in runs[mode]) / seconds,
+    }
+
+
+def _row(mode: str, f: dict[str, Any]) -> str:
+    """One mode's row of the table."""
+    lo, hi = f["added_range"]
+    cells = [
+        mode,
+        f"{f['cpu_ms_per_frame']:.2f}",
+        f"{100 * f['cpu_ms_per_frame'] * FPS / 1e3:.0f} %",
+        "-" if mode == "off" else f"{_pct(f['added'])} ({_pct(lo)} to {_pct(hi)})",
+        "-" if mode == "off" else f"{f['added_ms_per_s']:+.1f}",
+        "-" if mode == "off" else f"{f['view_ms_per_s']:.1f}",
+        f"{f['p50_ms']:.2f}",
+        f"{f['p99_ms']:.2f}",
+        f"{f['over']} of {f['frames']}",
+        "-" if f["fps_each"] is None else f"{f['fps_each']:.1f}",
+        f"{f['encoded_per_s']:.1f}",
+    ]
+    return "| " + " | ".join(cells) + " |"
+
+
+def _verdicts(fig: dict[str, dict[str, Any]], rounds: int) -> list[str]:
+    """The goals' lines: met or NOT met, from this run's figures only."""
+    idle, one, many, off = fig["idle"], fig["1 viewer"], fig["20 viewers"], fig["off"]
+    lo, hi = one["added_range"]
+    budget_ms = 1e3 / FPS
+    allowed = max(OVER_BUDGET_RATIO * off["over"], OVER_BUDGET_FLOOR * many["frames"])
+    kept = many["cpu_ms_per_frame"] < budget_ms and many["over"] <= allowed
+    # the goal is judged on the larger of the process's added CPU (noisy on a shared machine)
+    # and the view thread's own CPU (a floor of what the view adds), both against `off`
+    one_added = max(one["added"], one["view_share"])
+    nothing = idle["encoded_per_s"] == 0 and idle["view_ms_per_s"] < 0.1
+    over_ratio = f"{many['over'] / off['over']:.2f}x `off`'s" if off["over"] else "`off` had none"
+    return [
+        f"No viewer (`idle`): {idle['encoded_per_s']:.1f} previews encoded per second, the "
+        f"view's thread {idle['view_ms_per_s']:.2f} ms of CPU per second, added CPU "
+        f"{_pct(idle['added'])} (rounds {_pct(idle['added_range'][0])} to "
+        f"{_pct(idle['added_range'][1])}: the noise of this machine) - nothing computed: "
+        f"**{'met' if nothing else 'NOT met'}**.",
+        "",
+        f"One viewer: **{_pct(one['added'])}** CPU of this pipeline, the base being the same "
+        f"rounds' `off` (median of {rounds} rounds; rounds {_pct(lo)} to {_pct(hi)}; "
+        f"{one['added_ms_per_s']:+.1f} ms of CPU per second, of which the view's thread "
+        f"{one['view_ms_per_s']:.1f} ms/s = {_pct(one['view_share'])} of `off`'s CPU); "
+        f"{one['fps_each']:.1f} frames/s shown - goal <= +5 % (judged on the larger of the "
+        f"two, {_pct(one_added)}): **{'met' if one_added <= ONE_VIEWER_GOAL else 'NOT met'}**. "
+        "The daemon does more per frame than this pipeline (video, probe, storage, console), "
+        "so the view's share of the daemon's CPU is smaller than this.",
+        "",
+        f"Twenty viewers: {many['cpu_ms_per_frame']:.2f} ms of CPU per frame, all threads "
+        f"({100 * many['cpu_ms_per_frame'] / budget_ms:.0f} % of the {budget_ms:.1f} ms "
+        f"budget); frames over the budget {many['over']} of {many['frames']} against "
+        f"{off['over']} of {off['frames']} in `off` ({over_ratio}); each viewer got "
+        f"{many['fps_each']:.1f} frames/s - frame budget intact: "
+        f"**{'met' if kept else 'NOT met'}** (CPU per frame under the budget, and frames "
+        "over it at most twice `off`'s or 0.5 % of the frames).",
+    ]
+
+
+def report(result: dict[str, Any]) -> str:
+    """The section "Live view cost" (Markdown) of one run's figures."""
+    import cv2
+
     from benchmarks._machine import cpu_model
 
+    runs, seconds, rounds = result["runs"], result["seconds"], result["rounds"]
+    fig = {mode: _figures(runs, mode, seconds) for mode in MODES}
     return "\n".join(
         [
             SECTION,
@@ -253,29 +340,27 @@ def report(result: dict[str, Any]) -> str:
             f"{seconds:g} s per run, the view's server in a thread of that process; the viewers, "
             "a websocket each, the next frame asked for once the last came, at most 10/s, as the "
             f"page does, in another process on the other CPU; {rounds} rounds, the order of the "
-            "modes rotating; CPU = `time.process_time` of the whole process; the added CPU is the "
-            "median of the rounds' ratios to `off`). The work per frame here is less than the "
-            "daemon's (no video, probe or storage), so the ratios overstate the view's share.",
+            "modes rotating; CPU = `time.process_time` of the whole process, the view thread's "
+            "own CPU beside it; added CPU = each round's ratio to the same round's `off`, the "
+            "median and the range over the rounds). Every figure is of this run. The work per "
+            "frame here is less than the daemon's (no video, probe or storage), so the ratios "
+            "overstate the view's share.",
             "",
             f"Machine: {cpu_model()}, {os.cpu_count()} CPUs, Python {platform.python_version()}, "
             f"OpenCV {cv2.__version__}; load average at the end "
             f"{' '.join(f'{x:.2f}' for x in os.getloadavg())} (a shared machine).",
             "",
-            "| mode | CPU per frame [ms] | added CPU | added CPU [ms/s] | latency p50 [ms] | "
-            "latency p99 [ms] | frames over 16.7 ms | frames/s each viewer got | "
-            "previews encoded/s |",
-            "|---|---:|---:|---:|---:|---:|---:|---:|---:|",
-            *rows,
+            "| mode | CPU per frame [ms] | of the frame budget | added CPU (rounds' range) | "
+            "added CPU [ms/s] | view thread CPU [ms/s] | latency p50 [ms] | latency p99 [ms] | "
+            "frames over 16.7 ms | frames/s each viewer got | previews encoded/s |",
+            "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+            *(_row(mode, fig[mode]) for mode in MODES),
             "",
-            f"One viewer: **{_pct(one)}** CPU of this pipeline (goal <= +5 %: {verdict}); "
-            f"{1e3 * one_ms:+.1f} ms of CPU per second, which is "
-            f"{_pct(one_ms / (DAEMON_720P60_CPU_MS_PER_FRAME * 1e-3 * FPS))} of the whole "
-            f"daemon's CPU at 720p60 ({DAEMON_720P60_CPU_MS_PER_FRAME} ms per frame, "
-            '"Live daemon latency", another run).',
+            *_verdicts(fig, rounds),
             "",
-            "Latency here is the machine's: with other work on the CPU the pinned process is "
-            "descheduled for tens to hundreds of ms in every mode (compare `off`); the "
-            "load average above says how busy the machine was.",
+            "Latency here is the machine's as much as the view's: with other work on the CPU the "
+            "pinned process is descheduled for tens to hundreds of ms in every mode (compare "
+            "`off`); the load average above says how busy the machine was.",
             "",
         ]
     )
@@ -284,8 +369,8 @@ def report(result: dict[str, Any]) -> str:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="one short round (smoke test)")
-    ap.add_argument("--seconds", type=float, default=10.0, help="length of one run [s]")
-    ap.add_argument("--rounds", type=int, default=4)
+    ap.add_argument("--seconds", type=float, default=5.0, help="length of one run [s]")
+    ap.add_argument("--rounds", type=int, default=8)
     ap.add_argument("--out", type=Path, default=DOC)
     ap.add_argument("--viewers", type=int, help=argparse.SUPPRESS)
     ap.add_argument("--url", help=argparse.SUPPRESS)

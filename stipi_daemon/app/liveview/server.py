@@ -63,8 +63,11 @@ __all__ = [
 
 #: Most state messages a viewer is sent per second [1/s].
 STATE_RATE_HZ = 4.0
-#: Most preview frames encoded per second, for all viewers together [1/s].
-PREVIEW_RATE_HZ = 10.0
+#: Most preview frames encoded per second, for all viewers together [1/s]. A little above
+#: the page's 10 asks a second, so that a page's ask finds the last preview at least
+#: 1/12 s old and gets a new one at once (no second wake-up to wait for it): a viewer gets
+#: about 10 frames a second, twenty viewers share at most 12 encodings a second.
+PREVIEW_RATE_HZ = 12.0
 #: Wall time a websocket send may take before the viewer is dropped [s].
 SEND_TIMEOUT_WALL_S = 60.0
 #: Files the page is made of (package data).
@@ -185,8 +188,10 @@ class _Previews:
         self._cached_wall_s = -float("inf")
         self.encoded = 0
 
-    def _make(self, seq: int | None) -> tuple[int, float, int, bytes, int] | None:
-        frame = self._source.preview_frame(seq)
+    def _make(
+        self, seq: int | None, frame: PreviewFrame | None = None
+    ) -> tuple[int, float, int, bytes, int] | None:
+        frame = self._source.preview_frame(seq) if frame is None else frame
         if frame is None:
             return None
         jpeg, step = preview_jpeg(frame.image, self._threshold_p, self._roi)
@@ -199,7 +204,10 @@ class _Previews:
             if cached is not None and (cached[0] == seq or (seq is None and fresh)):
                 return cached
             if seq is None:  # the newest frame, in memory: encoded here, in the view's thread
-                made = self._make(seq)
+                newest = self._source.preview_frame(None)
+                if cached is not None and newest is not None and newest.seq == cached[0]:
+                    return cached  # the daemon has made no newer frame: nothing to encode
+                made = self._make(seq, newest)
             else:  # a stored frame is read from the video first: in a worker thread
                 loop = asyncio.get_running_loop()
                 made = await loop.run_in_executor(self._pool, self._make, seq)
@@ -207,6 +215,10 @@ class _Previews:
                 self._cached, self._cached_wall_s = made, time.monotonic()
                 self.encoded += 1
             return made
+
+    def fresh(self) -> bool:
+        """Whether the last preview is too recent for a newer one to be encoded."""
+        return time.monotonic() - self._cached_wall_s < 1.0 / PREVIEW_RATE_HZ
 
     def next_in(self) -> float:
         """Wall time until a newer frame may be encoded [s] (at least 5 ms)."""
@@ -247,6 +259,8 @@ class ViewServer:
         self._ready = threading.Event()
         self._error: BaseException | None = None
         self._sockets: set[web.WebSocketResponse] = set()
+        self._viewers: set[_Viewer] = set()
+        self._ticker: asyncio.Task[None] | None = None
         info = source.info()
         self._previews = _Previews(source, int(info["threshold_p"]), info.get("roi"))
         self._page = _static_text("index.html").replace("__TOKEN__", self.token)
@@ -373,6 +387,9 @@ class ViewServer:
         self._sockets.add(ws)
         self.viewers += 1
         viewer = _Viewer()
+        self._viewers.add(viewer)
+        if self._ticker is None or self._ticker.done():
+            self._ticker = asyncio.create_task(self._tick())
         sender = asyncio.create_task(self._send(ws, viewer))
         try:
             # What a page sends only chooses which frame it is sent next: "next" (the newest
@@ -386,24 +403,33 @@ class ViewServer:
             with contextlib.suppress(asyncio.CancelledError, Exception):
                 await sender
             self.viewers -= 1
+            self._viewers.discard(viewer)
             self._sockets.discard(ws)
         return ws
 
+    async def _tick(self) -> None:
+        """Every 1/:data:`STATE_RATE_HZ` s, each viewer's state is due: one timer and one
+        wake-up of this thread for all of them; the task ends with the last viewer."""
+        while self._viewers:
+            await asyncio.sleep(1.0 / STATE_RATE_HZ)
+            for viewer in list(self._viewers):
+                viewer.state_due()
+
     async def _send(self, ws: web.WebSocketResponse, viewer: _Viewer) -> None:
-        """The info once, then the state at most :data:`STATE_RATE_HZ` times a second and
-        the frame the viewer asked for, when there is one it has not been sent."""
+        """The info once, then the state when due (:meth:`_tick`) and the frame the viewer
+        asked for, when there is one it has not been sent. It sleeps until one of these
+        (no timer of its own: a frame not encoded yet because of the rate is looked for
+        again when the rate allows, a frame the daemon has not made yet at the next tick)."""
         cursor: dict[str, int] = {}
         loop = asyncio.get_running_loop()
-        next_state = loop.time()
         try:
             async with asyncio.timeout(SEND_TIMEOUT_WALL_S):
                 await ws.send_json({"info": self.source.info()})
             while not ws.closed:
-                if loop.time() >= next_state:
-                    next_state = loop.time() + 1.0 / STATE_RATE_HZ
+                if viewer.state_is_due:
+                    viewer.state_is_due = False
                     async with asyncio.timeout(SEND_TIMEOUT_WALL_S):  # a stalled viewer waits
                         await ws.send_json(self.source.snapshot(cursor))
-                wait = next_state - loop.time()
                 if viewer.wants is not None:
                     live = viewer.wants == "next"
                     made = await self._previews.get(None if live else int(viewer.wants))
@@ -411,22 +437,25 @@ class ViewServer:
                         viewer.wants, viewer.sent_seq = None, made[0]
                         async with asyncio.timeout(SEND_TIMEOUT_WALL_S):
                             await ws.send_bytes(_frame_message(made))
-                    elif live:  # no newer frame yet (or one made just now): look again soon
-                        wait = min(wait, self._previews.next_in())
+                    elif live:  # none newer: made just now (look again when the rate allows)
+                        if self._previews.fresh():  # or not made yet (the next tick looks)
+                            loop.call_later(self._previews.next_in(), viewer.wake)
                     else:
                         viewer.wants = None  # no such frame
-                await viewer.wait(max(0.0, wait))
+                await viewer.wait()
         except (TimeoutError, ConnectionError):
             await ws.close()
 
 
 class _Viewer:
-    """One page's request for its next frame (``"next"``, a ``seq``, or None)."""
+    """One page's request for its next frame (``"next"``, a ``seq``, or None), whether its
+    state is due, and the wake-up of its sender."""
 
     def __init__(self) -> None:
         self.wants: str | None = None
         self.sent_seq: int | None = None
-        self._asked = asyncio.Event()
+        self.state_is_due = True
+        self._woken = asyncio.Event()
 
     def ask(self, text: str) -> None:
         if text == "next":
@@ -435,13 +464,18 @@ class _Viewer:
             self.wants = text[4:]
         else:
             return
-        self._asked.set()
+        self._woken.set()
 
-    async def wait(self, wall_s: float) -> None:
-        with contextlib.suppress(TimeoutError):
-            async with asyncio.timeout(wall_s):
-                await self._asked.wait()
-        self._asked.clear()
+    def state_due(self) -> None:
+        self.state_is_due = True
+        self._woken.set()
+
+    def wake(self) -> None:
+        self._woken.set()
+
+    async def wait(self) -> None:
+        await self._woken.wait()
+        self._woken.clear()
 
 
 def _frame_message(made: tuple[int, float, int, bytes, int]) -> bytes:

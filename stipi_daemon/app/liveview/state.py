@@ -16,7 +16,6 @@ session or stamped with wall time. All times are on the session clock [s].
 from __future__ import annotations
 
 import math
-import threading
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -142,18 +141,17 @@ class LiveState:
         self.params: dict[str, Any] | None = None
         self.health: dict[str, Any] = {}
         self.notes: list[str] = []
-        self.latest: PreviewFrame | None = None
+        # the newest frame as (seq, t_capture_s, s_k, image), the image by reference: one
+        # tuple a frame; the PreviewFrame is made only when a viewer asks (preview_frame)
+        self._latest: tuple[int, float, int, npt.NDArray[np.uint8]] | None = None
         self.finished = False
-        #: Set on every write, for the server's senders (never waited on by the daemon).
-        self.changed = threading.Event()
 
     # ------------------------------------------------------------ writes (event loop)
 
     def frame(self, seq: int, t_capture_s: float, s_k: int, image: npt.NDArray[np.uint8]) -> None:
         """A measured frame: its S_k joins the trace and it becomes the newest frame."""
         self.s_k.add(t_capture_s, float(s_k))
-        self.latest = PreviewFrame(seq, t_capture_s, s_k, image)
-        self.changed.set()
+        self._latest = (seq, t_capture_s, s_k, image)
 
     def force_n(self, t_s: float, force_n: float) -> None:
         """A force reading [N] at ``t_s`` [s]."""
@@ -163,7 +161,6 @@ class LiveState:
         """A phase change at ``t_s`` [s]; the release (T_0) when the recovery starts."""
         self.transitions.append([t_s, old, new, reason])
         self.phase, self.phase_since_s = new, t_s
-        self.changed.set()
 
     def set_prompt(self, text: str) -> None:
         """The operator's current instruction."""
@@ -201,13 +198,18 @@ class LiveState:
     def finish(self) -> None:
         """The measurement has ended."""
         self.finished = True
-        self.changed.set()
 
     # ------------------------------------------------------------ reads (server thread)
 
     def info(self) -> dict[str, Any]:
         """What does not change during the run, and the mode (``live``)."""
         return {**self.view_info.to_dict(), "mode": "live"}
+
+    @property
+    def latest(self) -> PreviewFrame | None:
+        """The newest frame (its image by reference), or None before the first."""
+        latest = self._latest
+        return None if latest is None else PreviewFrame(*latest)
 
     def preview_frame(self, seq: int | None) -> PreviewFrame | None:
         """The newest frame (live: ``seq`` is ignored, latest wins)."""
@@ -223,7 +225,7 @@ class LiveState:
         n_notes = len(self.notes)
         notes = self.notes[cursor.get("notes", 0) : n_notes]
         cursor.update(force=f_end, s_k=s_end, transitions=n_tr, notes=n_notes)
-        latest = self.latest
+        latest = self._latest
         return {
             "mode": "live",
             "now_s": self.now_s,
@@ -234,7 +236,7 @@ class LiveState:
             "params": self.params,
             "health": self.health,
             "finished": self.finished,
-            "frame_seq": None if latest is None else latest.seq,
+            "frame_seq": None if latest is None else latest[0],
             "force": force,
             "s_k": s_k,
             "transitions": transitions,

@@ -49,7 +49,7 @@ def test_large_frames_are_subsampled_to_the_preview_width() -> None:
         image, 100, {"kind": "circle", "cx_px": 640, "cy_px": 360, "radius_px": 300}
     )
     shown = cv2.imdecode(np.frombuffer(jpeg, np.uint8), cv2.IMREAD_COLOR)
-    assert step == 3 and shown.shape[1] == 427 <= PREVIEW_MAX_WIDTH_PX
+    assert step == 4 and shown.shape[1] == 320 <= PREVIEW_MAX_WIDTH_PX
 
 
 def _console(tty: bool, quiet: bool = False) -> OperatorConsole:
