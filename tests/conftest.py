@@ -110,6 +110,10 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
         rel = Path(str(item.fspath)).resolve().relative_to(REPO_ROOT).as_posix()
         if rel.startswith(REALTIME_TESTS):
             item.add_marker(pytest.mark.xdist_group("realtime"))
+        # A test that builds the firmware (its module's fixtures do, once) may wait for a
+        # cold build on busy cores: the hang guard is the build's, not the default 120 s.
+        if item.get_closest_marker("toolchain") and not item.get_closest_marker("timeout"):
+            item.add_marker(pytest.mark.timeout(COLD_BUILD_TIMEOUT_S + 60))
 
 
 # Hypothesis: example timing varies with machine load; correctness, not speed, is tested

@@ -11,7 +11,12 @@ from __future__ import annotations
 import subprocess
 from pathlib import Path
 
+import pytest
+
 from tests.conftest import COLD_BUILD_TIMEOUT_S, REPO_ROOT, require_path, require_tool
+
+#: A cold build on busy cores may take minutes: the limit only has to catch a hang.
+pytestmark = pytest.mark.timeout(COLD_BUILD_TIMEOUT_S + 60)
 
 FIRMWARE_DIR = REPO_ROOT / "firmware" / "feather32u4"
 ELF = FIRMWARE_DIR / "build" / "stipi_feather32u4.elf"

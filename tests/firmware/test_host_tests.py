@@ -10,11 +10,14 @@ from __future__ import annotations
 import re
 import subprocess
 
+import pytest
+
 from tests.conftest import COLD_BUILD_TIMEOUT_S, REPO_ROOT, require_tool
 
 FIRMWARE_DIR = REPO_ROOT / "firmware" / "feather32u4"
 
 
+@pytest.mark.timeout(COLD_BUILD_TIMEOUT_S + 60)  # a cold sanitizer build on busy cores
 def test_host_tests_pass() -> None:
     require_tool("g++", "make", "flock")
     proc = subprocess.run(

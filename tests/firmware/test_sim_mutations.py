@@ -18,6 +18,8 @@ import os
 import re
 import subprocess
 
+import pytest
+
 from tests.conftest import COLD_BUILD_TIMEOUT_S, REPO_ROOT, require_tool
 from tests.firmware.test_vendor_driver import vendor_dir
 
@@ -70,6 +72,9 @@ def _failing_runs(violation: str) -> list[str]:
     return failed
 
 
+# two cold builds, then the vendor driver and the host tests once per violation: a hang
+# guard, not a time limit (beside two busy loops the builds alone took minutes)
+@pytest.mark.timeout(3 * COLD_BUILD_TIMEOUT_S)
 def test_every_spec_violation_of_the_simulated_module_is_caught() -> None:
     require_tool("g++", "gcc", "make", "flock")
     src = vendor_dir()

@@ -14,7 +14,12 @@ import re
 import subprocess
 from pathlib import Path
 
+import pytest
+
 from tests.conftest import COLD_BUILD_TIMEOUT_S, REPO_ROOT, require_tool
+
+#: A cold build on busy cores may take minutes: the limit only has to catch a hang.
+pytestmark = pytest.mark.timeout(COLD_BUILD_TIMEOUT_S + 60)
 
 VENDOR_TEST_DIR = REPO_ROOT / "tests" / "firmware" / "vendor_driver"
 

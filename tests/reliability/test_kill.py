@@ -48,28 +48,34 @@ COMMIT_INTERVAL_S = 0.2
 #: delays on a loaded 2-CPU machine [s]. The promise is 0.25 s in all.
 LOSS_SLACK_S = 0.05
 SPEED = 2.0
+#: Speeds of the attempts at one kill: a daemon that fell behind its lag bound on a loaded
+#: machine (a ``falling_behind`` fault, before or at the kill) did not run what this test
+#: kills; it is run again, slower. Beside two busy loops, 3 of 26 daemons at speed 2 did.
+SPEEDS = (SPEED, 1.0, 0.5)
 #: The daemon's lag bound in this test [s of session time] (``run.max_lag_s``): it handles
 #: every frame within this of its capture (later ones are recorded gaps; beyond it the
 #: run faults). The end-to-end loss is the storage promise plus this, in wall time: how
 #: far the camera pipeline runs behind depends on the CPU the machine has to spare, and
 #: the daemon bounds and measures it itself (docs/reliability.md, "Falling behind").
 MAX_LAG_S = 1.0
-#: Capture-to-storage latency allowed on top of the storage promise [s of wall time].
-PIPELINE_SLACK_S = MAX_LAG_S / SPEED
 #: The probe sends batches of 10 samples at 100 Hz: the newest sample arrives up to one
 #: batch after it was taken [s of session time].
 BATCH_S = 0.1
 #: Frames whose rows may be stored while the FFV1 encoders still hold them [-]: the queue,
 #: one in each encoder, and the newest, which the muxer holds until the next arrives.
 VIDEO_PENDING_FRAMES = ENCODER_QUEUE_FRAMES + ENCODER_WORKERS + 1
-#: How far the video may lag the newest stored frame row [s of wall time]: one commit
-#: interval (docs/storage.md), or the frames the encoders may hold when that is longer.
-VIDEO_LAG_S = max(COMMIT_INTERVAL_S, VIDEO_PENDING_FRAMES / FAST_FPS / SPEED) + LOSS_SLACK_S
+
+
+def video_lag_bound_s(speed: float) -> float:
+    """How far the video may lag the newest stored frame row [s of wall time]: one commit
+    interval (docs/storage.md), or the frames the encoders may hold when that is longer."""
+    return max(COMMIT_INTERVAL_S, VIDEO_PENDING_FRAMES / FAST_FPS / speed) + LOSS_SLACK_S
 
 
 @dataclass(frozen=True)
 class Kill:
     directory: Path
+    speed: float
     delay_s: float
     stored_lost_s: float
     frames_lost_s: float
@@ -96,7 +102,39 @@ def _first_frame_committed(root: Path) -> Path | None:
     return None
 
 
+def _fell_behind(root: Path) -> bool:
+    """Whether a session under ``root`` ended for falling behind its lag bound."""
+    for d in root.iterdir() if root.exists() else ():
+        db = d / "session.sqlite"
+        if db.exists():
+            con = sqlite3.connect(f"file:{db}?mode=ro", uri=True)
+            try:
+                n = con.execute(
+                    "SELECT count(*) FROM events WHERE kind = 'fault:falling_behind'"
+                ).fetchone()[0]
+            finally:
+                con.close()
+            if n:
+                return True
+    return False
+
+
 def _kill_one(workdir: Path, scene: Path, seed: int, codec: str) -> Kill:
+    """Kill one daemon (module docstring), run again slower while a loaded machine made it
+    fall behind (:data:`SPEEDS`)."""
+    behind: list[float] = []
+    for attempt, speed in enumerate(SPEEDS):
+        directory = workdir / f"attempt{attempt}"
+        directory.mkdir()
+        kill = _kill_at(directory, scene, seed, codec, speed)
+        if kill is not None:
+            return kill
+        behind.append(speed)
+    raise AssertionError(f"fell behind at every speed {behind} (host overloaded)")
+
+
+def _kill_at(workdir: Path, scene: Path, seed: int, codec: str, speed: float) -> Kill | None:
+    """One daemon at ``speed``, killed; None when it fell behind before or at the kill."""
     rng = random.Random(seed)
     root = workdir / "sessions"
     # on wall time: what a kill loses is measured against the wall instant of the kill
@@ -104,7 +142,7 @@ def _kill_one(workdir: Path, scene: Path, seed: int, codec: str) -> Kill:
         workdir / "config.yaml",
         scene,
         root,
-        speed=SPEED,
+        speed=speed,
         run={"max_lag_s": MAX_LAG_S, "clock": "wall"},
     )
     proc = subprocess.Popen(
@@ -117,6 +155,8 @@ def _kill_one(workdir: Path, scene: Path, seed: int, codec: str) -> Kill:
         deadline = time.monotonic() + 60.0
         directory = None
         while directory is None:
+            if proc.poll() is not None and _fell_behind(root):
+                return None
             assert proc.poll() is None, proc.stderr.read() if proc.stderr else ""
             assert time.monotonic() < deadline, "the daemon never committed a frame"
             time.sleep(0.02)
@@ -131,8 +171,10 @@ def _kill_one(workdir: Path, scene: Path, seed: int, codec: str) -> Kill:
         proc.wait(30)
         if proc.stderr:
             proc.stderr.close()
+    if _fell_behind(root):
+        return None
     assert proc.returncode == -signal.SIGKILL, "the daemon ended before it was killed"
-    return _check_session(directory, delay_s, t_kill, codec)
+    return _check_session(directory, delay_s, t_kill, codec, speed)
 
 
 def _contiguous(index: np.ndarray, gaps: np.ndarray) -> None:
@@ -145,18 +187,21 @@ def _contiguous(index: np.ndarray, gaps: np.ndarray) -> None:
     assert np.all(covered[first:] == 1), np.flatnonzero(covered[first:] != 1)[:10] + first
 
 
-def _check_video(directory: Path, codec: str) -> tuple[float, int]:
+def _check_video(directory: Path, codec: str, speed: float) -> tuple[float, int]:
     """The killed session's video against its rows (module docstring); returns how far it
     lags the newest stored frame row [s of wall time] and the frames FFmpeg decodes."""
     video = stored_video(directory)
     assert video.codec == codec, (video.codec, video.error)
     check_rows_in_video(video, newest_may_be_missing=True)
-    lag_s = (video.newest_frame_capture_s - video.plays_to_s) / SPEED
-    assert lag_s <= VIDEO_LAG_S, (lag_s, video.decoded, len(video.row_index), video.error)
+    lag_s = (video.newest_frame_capture_s - video.plays_to_s) / speed
+    bound_s = video_lag_bound_s(speed)
+    assert lag_s <= bound_s, (lag_s, video.decoded, len(video.row_index), video.error)
     return lag_s, video.decoded
 
 
-def _check_session(directory: Path, delay_s: float, t_kill: float, codec: str) -> Kill:
+def _check_session(
+    directory: Path, delay_s: float, t_kill: float, codec: str, speed: float
+) -> Kill:
     with SessionReader(directory) as r:
         assert r.integrity_check().ok, r.integrity_check().problems
         assert r.status is SessionState.INTERRUPTED
@@ -167,23 +212,31 @@ def _check_session(directory: Path, delay_s: float, t_kill: float, codec: str) -
     _contiguous(frames["seq"], gaps[gaps["stream"] == "frames"])
     if len(force):
         _contiguous(force["sample_index"], gaps[gaps["stream"] == "force"])
-        force_lost_s = (t_kill_s - float(force["t_host_s"].max())) / SPEED
+        force_lost_s = (t_kill_s - float(force["t_host_s"].max())) / speed
     else:
         force_lost_s = 0.0
     # What the daemon had handed to storage: at most one commit interval is missing.
-    stored_lost_s = (t_kill_s - float(frames["t_host_s"].max())) / SPEED
+    stored_lost_s = (t_kill_s - float(frames["t_host_s"].max())) / speed
     assert stored_lost_s <= COMMIT_INTERVAL_S + LOSS_SLACK_S, stored_lost_s
     # The daemon handled every stored frame within its lag bound of the capture ...
     lag_s = np.asarray(frames["t_host_s"]) - np.asarray(frames["t_capture_host_s"])
     assert float(lag_s.max()) <= MAX_LAG_S, float(lag_s.max())
     # ... so what the simulated devices had produced is the same plus that bound.
-    frames_lost_s = (t_kill_s - float(frames["t_capture_host_s"].max())) / SPEED
-    bound_s = COMMIT_INTERVAL_S + LOSS_SLACK_S + PIPELINE_SLACK_S
+    # (capture-to-storage latency on top of the storage promise [s of wall time])
+    frames_lost_s = (t_kill_s - float(frames["t_capture_host_s"].max())) / speed
+    bound_s = COMMIT_INTERVAL_S + LOSS_SLACK_S + MAX_LAG_S / speed
     assert frames_lost_s <= bound_s, frames_lost_s
-    assert force_lost_s <= bound_s + BATCH_S / SPEED, force_lost_s
-    video_lag_s, video_frames = _check_video(directory, codec)
+    assert force_lost_s <= bound_s + BATCH_S / speed, force_lost_s
+    video_lag_s, video_frames = _check_video(directory, codec, speed)
     return Kill(
-        directory, delay_s, stored_lost_s, frames_lost_s, force_lost_s, video_lag_s, video_frames
+        directory,
+        speed,
+        delay_s,
+        stored_lost_s,
+        frames_lost_s,
+        force_lost_s,
+        video_lag_s,
+        video_frames,
     )
 
 
@@ -200,19 +253,19 @@ def _run_kills(tmp_path: Path, n: int, workers: int, name: str, pixel_format: st
     assert len({k.directory for k in kills}) == n
 
     # `sessions list` shows every killed session as interrupted.
-    for d in dirs[:: max(1, n // 5)]:
+    for k in kills[:: max(1, n // 5)]:
         out = subprocess.run(
-            [PYTHON, "-m", "stipi_daemon", "sessions", "list", "--root", str(d / "sessions")],
+            [PYTHON, "-m", "stipi_daemon", "sessions", "list", "--root", str(k.directory.parent)],
             capture_output=True,
             text=True,
             check=True,
             cwd=REPO_ROOT,
         ).stdout
-        (line,) = [x for x in out.splitlines() if any(k.directory.name in x for k in kills)]
+        (line,) = [x for x in out.splitlines() if k.directory.name in x]
         assert "interrupted" in line
     # `analyze` works on what was kept: results, or one line saying why there are none.
     for k in kills:
-        out_json = k.directory.parent.parent / "analysis.json"
+        out_json = k.directory.parent.parent / "analysis.json"  # in the attempt's directory
         code = main(["analyze", str(k.directory), "--out", str(out_json), "--quiet"])
         assert code in (0, 1)
         assert out_json.exists()
@@ -236,17 +289,18 @@ def _run_kills(tmp_path: Path, n: int, workers: int, name: str, pixel_format: st
         video_lag_mean_s=video_lag.mean(),
         video_frames_min=min(k.video_frames for k in kills),
         kill_delay_range_s=[min(k.delay_s for k in kills), max(k.delay_s for k in kills)],
+        speeds=sorted({k.speed for k in kills}, reverse=True),
         wall_s=wall_s,
         load_avg=os.getloadavg()[0],
     )
 
 
-@pytest.mark.timeout(300)
+@pytest.mark.timeout(900)  # a loaded machine makes some run again, slower
 def test_kill_9_twenty_times(tmp_path: Path) -> None:
     _run_kills(tmp_path, 20, workers=3, name="kill_9_x20")
 
 
-@pytest.mark.timeout(300)
+@pytest.mark.timeout(900)
 def test_kill_9_mjpg_passthrough(tmp_path: Path) -> None:
     """An MJPG scene: the JPEGs stored as they came (muxed before the frame's row)."""
     _run_kills(tmp_path, 6, workers=3, name="kill_9_mjpg_x6", pixel_format="mjpg")
