@@ -423,9 +423,10 @@ class ViewServer:
         """The view's one timer, for all viewers: every 1/:data:`PREVIEW_RATE_HZ` s (on a
         fixed grid, so ticks do not drift late) the newest live frame is encoded once and
         offered to every viewer, and every :data:`_TICKS_PER_STATE`-th tick each viewer's
-        state is due. One wake-up of this thread a tick; the task ends with the last
-        viewer."""
-        period_s = 1.0 / PREVIEW_RATE_HZ
+        state is due (replay: it ticks only for the states, :data:`STATE_RATE_HZ` times a
+        second). One wake-up of this thread a tick; the task ends with the last viewer."""
+        per_state = _TICKS_PER_STATE if self._live else 1
+        period_s = 1.0 / (STATE_RATE_HZ * per_state)
         loop = asyncio.get_running_loop()
         t0 = loop.time()
         k = 0
@@ -435,7 +436,7 @@ class ViewServer:
             if loop.time() - (t0 + k * period_s) > period_s:  # far behind: skip, not catch up
                 t0, k = loop.time(), 0
             made = self._previews.newest() if self._live else None
-            state_due = k % _TICKS_PER_STATE == 0
+            state_due = k % per_state == 0
             for viewer in list(self._viewers):
                 if made is not None:
                     viewer.offer(made)
