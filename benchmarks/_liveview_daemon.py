@@ -1,19 +1,22 @@
 """The live view's cost to the real daemon at 720p60 (a part of ``liveview_cost.py``).
 
 The daemon runs as it does for an operator (``python -m stipi_daemon --config FILE
---quiet``, a process of its own pinned to the benchmark's CPU): the emulated probe
-(``probe.transport.kind: emulated``, the grade-III scene at 100 Hz, in the daemon's
-process), a camera that delivers 1280x720 MJPG frames at 60 fps which the daemon decodes as
-it does a real MJPG camera's (``camera: {kind: file, pace: true, loop: true}``: the
-capture thread reads frame k's JPEG, waits for its capture time and only then decodes it
-to gray; the video rendered once by ``stipi-daemon simulate`` from a 2 s excerpt of the
-grade-III scene with sensor noise, so its JPEGs cost what a camera's do), the session video
-stored as for a real probe (``storage.video: passthrough``), ``run: {clock: wall, speed:
-1}``, ``view.enabled: true``. Once it prints the view's address, 0, 1 or 20 viewers (a
-process on the other CPU, a websocket each, taking the frames the server pushes) connect;
-after ``WARM_S`` the daemon process's CPU (``utime + stime`` of ``/proc/<pid>/stat``, every
-thread) is read at the start and the end of a window of fixed wall time; then the daemon
-is stopped (SIGTERM) and reaped (``os.wait4``, its whole CPU beside).
+--quiet``, a process of its own pinned to the benchmark's CPU). The probe is the emulated
+Feather (:func:`benchmarks.daemon_latency.probe_process`: the firmware's model playing the
+grade-III scene at 100 Hz) in a process of its own on the other CPU, on a pty the daemon
+opens as ``probe.transport: {kind: serial}``, as a real probe's firmware runs on its MCU
+(so the daemon's CPU is its own work only). The camera delivers 1280x720 MJPG frames at 60
+fps which the daemon decodes as it does a real MJPG camera's (``camera: {kind: file, pace:
+true, loop: true}``: the capture thread reads frame k's JPEG, waits for its capture time
+and only then decodes it to gray; the video rendered once by ``stipi-daemon simulate`` from
+a 2 s excerpt of the grade-III scene with sensor noise, so its JPEGs cost what a camera's
+do). The session video is stored as for a real probe (``storage.video: passthrough``);
+``run: {clock: wall, speed: 1}``; ``view.enabled: true``. Once it prints the view's
+address, 0, 1 or 20 viewers (a process on the other CPU, a websocket each, taking the
+frames the server pushes) connect; after ``WARM_S`` the daemon process's CPU (``utime +
+stime`` of ``/proc/<pid>/stat``, every thread) is read at the start and the end of a window
+of fixed wall time; then the daemon is stopped (SIGTERM) and reaped (``os.wait4``, its
+whole CPU beside).
 """
 
 from __future__ import annotations
@@ -33,6 +36,8 @@ W, H, FPS = 1280, 720, 60.0
 DAEMON_MODES = {"0 viewers": 0, "1 viewer": 1, "20 viewers": 20}
 #: Wall time from the view's address to the start of the CPU window [s] (viewers connect).
 WARM_S = 2.0
+#: Wall time from the probe's start to its scene's t = 0 (the daemon connects before) [s].
+PROBE_LEAD_S = 4.0
 #: Longest wait for the daemon to print the view's address [s].
 START_TIMEOUT_S = 120.0
 _TICK_S = 1.0 / os.sysconf("SC_CLK_TCK")
@@ -73,7 +78,8 @@ def prepare(tmp: Path) -> dict[str, Any]:
     cal_path = save_calibration(tmp / "calibration_720p.json", cal)
     video = next(p for p in sorted(out.iterdir()) if p.name.startswith("video."))
     return {
-        "probe": {"transport": {"kind": "emulated", "scene": str(grade3)}, "rate_hz": 100},
+        "probe": {"transport": {"kind": "serial", "port": "?"}, "rate_hz": 100},
+        "probe_scene": str(grade3),
         "camera": {"kind": "file", "path": str(video), "pace": True, "loop": True},
         "calibration": str(cal_path),
         "imaging": {
@@ -106,6 +112,26 @@ def _address(daemon: subprocess.Popen[bytes], err: Path) -> str:
     raise RuntimeError(f"the daemon printed no view address:\n{err.read_text()[-3000:]}")
 
 
+def _probe(scene: str, work: Path, cpus: set[int]) -> tuple[subprocess.Popen[bytes], Path]:
+    """The emulated Feather in a process of its own on ``cpus``, on a pty at the returned
+    path, until its stdin closes."""
+    link = work / "ttyFEATHER"
+    origin_mono = time.monotonic() + PROBE_LEAD_S
+    probe = subprocess.Popen(
+        [
+            *(sys.executable, str(ROOT / "benchmarks" / "daemon_latency.py")),
+            *("--probe", scene, "--link", str(link), "--origin-mono", repr(origin_mono)),
+            *("--cpus", ",".join(map(str, sorted(cpus)))),
+        ],
+        stdin=subprocess.PIPE,
+    )
+    while not link.exists():
+        if probe.poll() is not None or time.monotonic() > origin_mono:
+            raise RuntimeError("the emulated probe did not start")
+        time.sleep(0.02)
+    return probe, link
+
+
 def _stop(daemon: subprocess.Popen[bytes]) -> Any:
     """SIGTERM (SIGKILL after 30 s), then reap it: its resource usage (``os.wait4``)."""
     daemon.send_signal(signal.SIGTERM)
@@ -130,41 +156,48 @@ def run_daemon_mode(
 
     work = tmp / f"run{run}"
     work.mkdir()
-    cfg = {**config, "storage": {"root": str(work / "sessions"), "min_free_mb": 0}}
+    cfg = {k: v for k, v in config.items() if k != "probe_scene"}
+    cfg["storage"] = {"root": str(work / "sessions"), "min_free_mb": 0}
+    probe, link = _probe(config["probe_scene"], work, viewer_cpus)
+    cfg["probe"] = {**cfg["probe"], "transport": {"kind": "serial", "port": str(link)}}
     cfg["storage"]["video"] = "passthrough"  # as configured for a real probe
     path = work / "daemon.yaml"
     path.write_text(json.dumps(cfg))  # YAML is a superset of JSON
     err = work / "stderr.txt"
-    with err.open("wb") as err_f:
-        daemon = subprocess.Popen(
-            [sys.executable, "-m", "stipi_daemon", "--config", str(path), "--quiet"],
-            stdout=subprocess.DEVNULL,
-            stderr=err_f,
-            cwd=work,
-        )
-    url = _address(daemon, err)
-    n = DAEMON_MODES[mode]
-    viewers = None
-    if n:
-        viewers = subprocess.Popen(
-            [
-                *(sys.executable, str(ROOT / "benchmarks" / "liveview_cost.py")),
-                *("--viewers", str(n), "--url", url, "--seconds", repr(WARM_S + window_s + 0.5)),
-                *("--cpus", ",".join(map(str, sorted(viewer_cpus)))),
-            ],
-            stdout=subprocess.PIPE,
-            text=True,
-        )
-    time.sleep(WARM_S)
-    t0, cpu0 = time.monotonic(), _cpu_s(daemon.pid)
-    time.sleep(window_s)
-    t1, cpu1 = time.monotonic(), _cpu_s(daemon.pid)
-    alive = daemon.poll() is None
-    got: dict[str, float] = {}
-    if viewers is not None:
-        out, _ = viewers.communicate(timeout=60)
-        got = json.loads(out.strip().splitlines()[-1])
-    usage = _stop(daemon)
+    try:
+        with err.open("wb") as err_f:
+            daemon = subprocess.Popen(
+                [sys.executable, "-m", "stipi_daemon", "--config", str(path), "--quiet"],
+                stdout=subprocess.DEVNULL,
+                stderr=err_f,
+                cwd=work,
+            )
+        url = _address(daemon, err)
+        n = DAEMON_MODES[mode]
+        viewers = None
+        if n:
+            viewers = subprocess.Popen(
+                [
+                    *(sys.executable, str(ROOT / "benchmarks" / "liveview_cost.py")),
+                    *("--viewers", str(n), "--url", url),
+                    *("--seconds", repr(WARM_S + window_s + 0.5)),
+                    *("--cpus", ",".join(map(str, sorted(viewer_cpus)))),
+                ],
+                stdout=subprocess.PIPE,
+                text=True,
+            )
+        time.sleep(WARM_S)
+        t0, cpu0 = time.monotonic(), _cpu_s(daemon.pid)
+        time.sleep(window_s)
+        t1, cpu1 = time.monotonic(), _cpu_s(daemon.pid)
+        alive = daemon.poll() is None
+        got: dict[str, float] = {}
+        if viewers is not None:
+            out, _ = viewers.communicate(timeout=60)
+            got = json.loads(out.strip().splitlines()[-1])
+        usage = _stop(daemon)
+    finally:
+        probe.communicate(timeout=30)  # stdin closed: the probe ends
     if not alive:
         raise RuntimeError(f"the daemon ended during the window:\n{err.read_text()[-3000:]}")
     shutil.rmtree(work / "sessions", ignore_errors=True)

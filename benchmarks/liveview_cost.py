@@ -13,13 +13,14 @@ benchmark.
 
 The real daemon (:mod:`benchmarks._liveview_daemon`, which judges the one-viewer goal).
 ``python -m stipi_daemon --config FILE`` in a process of its own, pinned to one CPU: the
-emulated probe, a paced 1280x720 60 fps MJPG video as the camera (each JPEG decoded to gray
-at its capture time, as from a real MJPG camera), the session video stored as passthrough,
-``run: {clock: wall, speed: 1}``, the view enabled; 0, 1 or 20 viewers connect (a process
-on the other CPU); the daemon's CPU (``/proc/<pid>/stat``) over a window of
-``--daemon-seconds`` (default 10 s) of wall time; ``--daemon-rounds`` rounds (default 6),
-the order rotating; added CPU = each round's CPU per second over that round's ``0
-viewers``, minus 1; the median over the rounds (and their range).
+emulated Feather on a pty (a process of its own on the other CPU), a paced 1280x720 60 fps
+MJPG video as the camera (each JPEG decoded to gray at its capture time, as from a real
+MJPG camera), the session video stored as passthrough, ``run: {clock: wall, speed: 1}``,
+the view enabled; 0, 1 or 20 viewers connect (a process on the other CPU); the daemon's
+CPU (``/proc/<pid>/stat``) over a window of ``--daemon-seconds`` (default 10 s) of wall
+time; ``--daemon-rounds`` rounds (default 6), the order rotating; added CPU = each round's
+CPU per second over that round's ``0 viewers``, minus 1; the median over the rounds (and
+their range).
 
 The reduced pipeline (the idle check, the view thread's own CPU and the frame budget). One
 process, pinned to one CPU, does the daemon's camera-side work on 120 distinct 1280x720
@@ -419,8 +420,10 @@ def _daemon_lines(result: dict[str, Any], view_ms_per_s: float) -> list[str]:
         "### The real daemon at 720p60",
         "",
         "`python -m stipi_daemon --config FILE --quiet` as a process of its own on the "
-        "benchmark's CPU: the emulated probe playing the grade-III scene (100 Hz, in the "
-        "daemon's process), a paced MJPG video of 1280x720 at 60 fps as the camera "
+        "benchmark's CPU: the probe the emulated Feather playing the grade-III scene (100 "
+        "Hz) in a process of its own on the other CPU, on a pty the daemon opens as "
+        "`probe.transport: {kind: serial}` (as a real probe's firmware runs on its MCU), a "
+        "paced MJPG video of 1280x720 at 60 fps as the camera "
         "(`camera: {kind: file, pace: true, loop: true}`: each JPEG decoded to gray at its "
         "capture time, as from a real MJPG camera; rendered once by `stipi-daemon simulate` "
         "from a 2 s excerpt of the grade-III scene with sensor noise), `storage.video: "
