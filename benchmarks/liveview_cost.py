@@ -33,8 +33,8 @@ fps on wall time: frame k is due at t0 + k/60 s; when due it is decoded to gray
 (so its CPU, the JPEG encoding included, is counted). This is less than the daemon's whole
 work per frame (no video, no probe, no storage): the view's share of it is overstated. The
 viewers are another process on the other CPU doing what the page does: a websocket reading
-the state and the frames the server pushes (at most 12 a second, the next once the last
-has left the server).
+the state and the frames the server pushes (at most ``PREVIEW_RATE_HZ`` a second, the next
+once the last has left the server).
 
 Modes, each a paced run of ``--seconds`` (default 5 s, 300 frames): ``off`` (no view),
 ``idle`` (the view served, nobody connected), ``1 viewer``, ``20 viewers``; run in
@@ -455,6 +455,7 @@ def report(result: dict[str, Any]) -> str:
     import cv2
 
     from benchmarks._machine import cpu_model
+    from stipi_daemon.app.liveview.server import PREVIEW_RATE_HZ
 
     runs, seconds, rounds = result["runs"], result["seconds"], result["rounds"]
     fig = {mode: _figures(runs, mode, seconds) for mode in MODES}
@@ -470,7 +471,8 @@ def report(result: dict[str, Any]) -> str:
             "doing the camera side's work per frame - JPEG decode to gray, S_k in the disc ROI, "
             "published to the view - paced at 60 fps for "
             f"{seconds:g} s per run, the view's server in a thread of that process; the viewers, "
-            "a websocket each taking the frames the server pushes (at most 12/s), as the "
+            "a websocket each taking the frames the server pushes (at most "
+            f"{PREVIEW_RATE_HZ:g}/s), as the "
             f"page does, in another process on the other CPU; {rounds} rounds, the order of the "
             "modes rotating; CPU = `time.process_time` of the whole process, the view thread's "
             "own CPU beside it; added CPU = each round's ratio to the same round's `off`, the "

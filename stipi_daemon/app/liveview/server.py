@@ -69,10 +69,9 @@ __all__ = [
 STATE_RATE_HZ = 4.0
 #: Most preview frames encoded per second for all viewers together, and pushed to each
 #: live viewer [1/s]: the view's one timer ticks at this rate while anyone watches (one
-#: encoding of the newest frame a tick, shared; every third tick the state is due).
-PREVIEW_RATE_HZ = 12.0
-#: Ticks of the view's timer per state message [-].
-_TICKS_PER_STATE = round(PREVIEW_RATE_HZ / STATE_RATE_HZ)
+#: encoding of the newest frame a tick, shared; the states due on the ticks that reach
+#: the next 1/:data:`STATE_RATE_HZ` s).
+PREVIEW_RATE_HZ = 10.0
 #: Wall time a websocket send may take before the viewer is dropped [s].
 SEND_TIMEOUT_WALL_S = 60.0
 #: Files the page is made of (package data).
@@ -422,11 +421,12 @@ class ViewServer:
     async def _tick(self) -> None:
         """The view's one timer, for all viewers: every 1/:data:`PREVIEW_RATE_HZ` s (on a
         fixed grid, so ticks do not drift late) the newest live frame is encoded once and
-        offered to every viewer, and every :data:`_TICKS_PER_STATE`-th tick each viewer's
-        state is due (replay: it ticks only for the states, :data:`STATE_RATE_HZ` times a
-        second). One wake-up of this thread a tick; the task ends with the last viewer."""
-        per_state = _TICKS_PER_STATE if self._live else 1
-        period_s = 1.0 / (STATE_RATE_HZ * per_state)
+        offered to every viewer, and on the tick that reaches each next 1/:data:`STATE_RATE_HZ`
+        s each viewer's state is due (replay: it ticks only for the states,
+        :data:`STATE_RATE_HZ` times a second). One wake-up of this thread a tick; the task
+        ends with the last viewer."""
+        per_s = PREVIEW_RATE_HZ if self._live else STATE_RATE_HZ  # ticks a second [1/s]
+        period_s = 1.0 / per_s
         loop = asyncio.get_running_loop()
         t0 = loop.time()
         k = 0
@@ -436,7 +436,7 @@ class ViewServer:
             if loop.time() - (t0 + k * period_s) > period_s:  # far behind: skip, not catch up
                 t0, k = loop.time(), 0
             made = self._previews.newest() if self._live else None
-            state_due = k % per_state == 0
+            state_due = int(k * STATE_RATE_HZ / per_s) != int((k - 1) * STATE_RATE_HZ / per_s)
             for viewer in list(self._viewers):
                 if made is not None:
                     viewer.offer(made)

@@ -1,5 +1,5 @@
 // The STIP-I view: state and frames over a websocket, drawn with SVG. Live, the server
-// pushes the newest frame (at most 12 a second, the next only once this one has left it);
+// pushes the newest frame (at most 10 a second, the next only once this one has left it);
 // replay, the page asks for the frame it shows ("seq:N").
 // Every text from the server is set with textContent (never parsed as markup).
 "use strict";
