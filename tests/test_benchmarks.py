@@ -157,6 +157,7 @@ def test_liveview_cost_quick_writes_its_section(tmp_path: Path) -> None:
     text = out.read_text()
     assert "## Demo speed\n\nkept text" in text
     assert text.count("## Live view cost") == 1
-    for mode in ("off", "idle", "1 viewer", "20 viewers"):
+    for mode in ("off", "idle", "1 viewer", "20 viewers", "0 viewers"):
         assert f"\n| {mode} | " in text, mode
-    assert "One viewer: **" in text
+    assert "### The real daemon at 720p60" in text
+    assert "One viewer, the real daemon: **" in text

@@ -10,19 +10,23 @@ What it serves, all ``GET``:
 
 * ``/`` the page, ``/static/view.js`` and ``/static/view.css`` (package data, no build);
 * ``/ws`` a websocket on which the server sends the state as JSON at most
-  :data:`STATE_RATE_HZ` times a second (the traces' new points only) and a frame as a
-  binary message when the page asks for one (``next``: the newest, once it has shown the
-  last; ``seq:N``: frame N of a stored session); it reads nothing else;
+  :data:`STATE_RATE_HZ` times a second (the traces' new points only) and frames as binary
+  messages: live, the server pushes the newest frame to every viewer at most
+  :data:`PREVIEW_RATE_HZ` times a second, unasked; replay, the frame a page asks for
+  (``seq:N``: frame N of the stored session). It reads nothing else;
 * ``/frame.jpg`` the newest frame (live) or frame ``seq`` (replay) as a preview JPEG
-  (:mod:`.preview`), as on the websocket. A preview is made in the view's thread (a stored
-  frame: in a worker thread, as the video is read) when a viewer asks for it and shared by
-  every viewer: at most :data:`PREVIEW_RATE_HZ` new encodings a second, however many
-  watch.
+  (:mod:`.preview`), as on the websocket. A live preview is made in the view's thread, once
+  a tick of :meth:`ViewServer._tick` while anyone watches, and shared by every viewer: at
+  most :data:`PREVIEW_RATE_HZ` encodings a second, however many watch (a stored frame: in a
+  worker thread, as the video is read, when a page asks for it).
 
-A viewer that stops reading costs nothing: the page asks for the next frame only when it
-has shown the last one, and a websocket whose peer does not read holds its sender at the
-socket's bounded buffer (the state is sent again from where it stopped, never queued);
-one that stalls a send for :data:`SEND_TIMEOUT_WALL_S` is disconnected.
+A viewer that stops reading costs nothing and holds nothing back: at most one frame is in
+flight per viewer (the next is sent only once the last has left the server's write buffer
+for the socket; until then a newer frame replaces it, latest wins, and the frames in
+between are never sent), so a slow viewer gets fewer frames and a stalled one none, the
+memory held for it bounded by the socket's send buffer and one frame. Its state is sent
+again from where it stopped, never queued; one that stalls a send for
+:data:`SEND_TIMEOUT_WALL_S` is disconnected.
 
 Who may see it: every request must carry the run's random token (``?token=``, in the
 printed address); its ``Host`` must be the served one (a name that resolves to this
@@ -63,11 +67,11 @@ __all__ = [
 
 #: Most state messages a viewer is sent per second [1/s].
 STATE_RATE_HZ = 4.0
-#: Most preview frames encoded per second, for all viewers together [1/s]. A little above
-#: the page's 10 asks a second, so that a page's ask finds the last preview at least
-#: 1/12 s old and gets a new one at once (no second wake-up to wait for it): a viewer gets
-#: about 10 frames a second, twenty viewers share at most 12 encodings a second.
-PREVIEW_RATE_HZ = 12.0
+#: Most preview frames encoded per second for all viewers together, and pushed to each
+#: live viewer [1/s]: the view's one timer ticks at this rate while anyone watches (one
+#: encoding of the newest frame a tick, shared; the states due on the ticks that reach
+#: the next 1/:data:`STATE_RATE_HZ` s).
+PREVIEW_RATE_HZ = 10.0
 #: Wall time a websocket send may take before the viewer is dropped [s].
 SEND_TIMEOUT_WALL_S = 60.0
 #: Files the page is made of (package data).
@@ -216,14 +220,19 @@ class _Previews:
                 self.encoded += 1
             return made
 
-    def fresh(self) -> bool:
-        """Whether the last preview is too recent for a newer one to be encoded."""
-        return time.monotonic() - self._cached_wall_s < 1.0 / PREVIEW_RATE_HZ
-
-    def next_in(self) -> float:
-        """Wall time until a newer frame may be encoded [s] (at least 5 ms)."""
-        due = self._cached_wall_s + 1.0 / PREVIEW_RATE_HZ - time.monotonic()
-        return max(0.005, due)
+    def newest(self) -> tuple[int, float, int, bytes, int] | None:
+        """The newest frame's preview, encoded here (in the view's thread) unless it is the
+        one made last; None when there is no frame yet. Called once a tick of the view's
+        timer: :data:`PREVIEW_RATE_HZ` encodings a second at most."""
+        cached = self._cached
+        newest = self._source.preview_frame(None)
+        if newest is None or (cached is not None and newest.seq == cached[0]):
+            return cached
+        made = self._make(None, newest)
+        if made is not None:
+            self._cached, self._cached_wall_s = made, time.monotonic()
+            self.encoded += 1
+        return made
 
     def close(self) -> None:
         self._pool.shutdown(wait=False, cancel_futures=True)
@@ -262,6 +271,7 @@ class ViewServer:
         self._viewers: set[_Viewer] = set()
         self._ticker: asyncio.Task[None] | None = None
         info = source.info()
+        self._live = info.get("mode") != "replay"
         self._previews = _Previews(source, int(info["threshold_p"]), info.get("roi"))
         self._page = _static_text("index.html").replace("__TOKEN__", self.token)
         #: Viewers connected now (websockets open) [-].
@@ -383,6 +393,7 @@ class ViewServer:
         ws = web.WebSocketResponse(heartbeat=None, max_msg_size=256, compress=False)
         for k, v in _SECURITY_HEADERS.items():
             ws.headers[k] = v
+        transport = request.transport
         await ws.prepare(request)
         self._sockets.add(ws)
         self.viewers += 1
@@ -390,10 +401,10 @@ class ViewServer:
         self._viewers.add(viewer)
         if self._ticker is None or self._ticker.done():
             self._ticker = asyncio.create_task(self._tick())
-        sender = asyncio.create_task(self._send(ws, viewer))
+        sender = asyncio.create_task(self._send(ws, viewer, transport))
         try:
-            # What a page sends only chooses which frame it is sent next: "next" (the newest
-            # after the one it has; it asks once it has shown the last) or "seq:N" (replay).
+            # What a page sends only chooses which stored frame it is sent next ("seq:N",
+            # replay); live frames are pushed unasked, and anything else is ignored.
             async for msg in ws:
                 if msg.type != WSMsgType.TEXT:
                     break
@@ -408,20 +419,38 @@ class ViewServer:
         return ws
 
     async def _tick(self) -> None:
-        """Every 1/:data:`STATE_RATE_HZ` s, each viewer's state is due: one timer and one
-        wake-up of this thread for all of them; the task ends with the last viewer."""
-        while self._viewers:
-            await asyncio.sleep(1.0 / STATE_RATE_HZ)
-            for viewer in list(self._viewers):
-                viewer.state_due()
-
-    async def _send(self, ws: web.WebSocketResponse, viewer: _Viewer) -> None:
-        """The info once, then the state when due (:meth:`_tick`) and the frame the viewer
-        asked for, when there is one it has not been sent. It sleeps until one of these
-        (no timer of its own: a frame not encoded yet because of the rate is looked for
-        again when the rate allows, a frame the daemon has not made yet at the next tick)."""
-        cursor: dict[str, int] = {}
+        """The view's one timer, for all viewers: every 1/:data:`PREVIEW_RATE_HZ` s (on a
+        fixed grid, so ticks do not drift late) the newest live frame is encoded once and
+        offered to every viewer, and on the tick that reaches each next 1/:data:`STATE_RATE_HZ`
+        s each viewer's state is due (replay: it ticks only for the states,
+        :data:`STATE_RATE_HZ` times a second). One wake-up of this thread a tick; the task
+        ends with the last viewer."""
+        per_s = PREVIEW_RATE_HZ if self._live else STATE_RATE_HZ  # ticks a second [1/s]
+        period_s = 1.0 / per_s
         loop = asyncio.get_running_loop()
+        t0 = loop.time()
+        k = 0
+        while self._viewers:
+            k += 1
+            await asyncio.sleep(max(0.0, t0 + k * period_s - loop.time()))
+            if loop.time() - (t0 + k * period_s) > period_s:  # far behind: skip, not catch up
+                t0, k = loop.time(), 0
+            made = self._previews.newest() if self._live else None
+            state_due = int(k * STATE_RATE_HZ / per_s) != int((k - 1) * STATE_RATE_HZ / per_s)
+            for viewer in list(self._viewers):
+                if made is not None:
+                    viewer.offer(made)
+                if state_due:
+                    viewer.state_due()
+
+    async def _send(
+        self, ws: web.WebSocketResponse, viewer: _Viewer, transport: asyncio.BaseTransport | None
+    ) -> None:
+        """The info once, then the state when due (:meth:`_tick`), the newest live frame
+        when one it has not been sent is offered and its last frame has left the write
+        buffer (else it is skipped: latest wins), and a stored frame it asked for. It
+        sleeps until one of these (no timer of its own)."""
+        cursor: dict[str, int] = {}
         try:
             async with asyncio.timeout(SEND_TIMEOUT_WALL_S):
                 await ws.send_json({"info": self.source.info()})
@@ -430,47 +459,55 @@ class ViewServer:
                     viewer.state_is_due = False
                     async with asyncio.timeout(SEND_TIMEOUT_WALL_S):  # a stalled viewer waits
                         await ws.send_json(self.source.snapshot(cursor))
-                if viewer.wants is not None:
-                    live = viewer.wants == "next"
-                    made = await self._previews.get(None if live else int(viewer.wants))
-                    if made is not None and not (live and made[0] == viewer.sent_seq):
-                        viewer.wants, viewer.sent_seq = None, made[0]
+                offered, viewer.offered = viewer.offered, None
+                if offered is not None and offered[0] != viewer.sent_seq and _drained(transport):
+                    viewer.sent_seq = offered[0]
+                    async with asyncio.timeout(SEND_TIMEOUT_WALL_S):
+                        await ws.send_bytes(_frame_message(offered))
+                if viewer.wants is not None:  # replay: the stored frame asked for
+                    wants, viewer.wants = int(viewer.wants), None
+                    made = await self._previews.get(wants)
+                    if made is not None:
                         async with asyncio.timeout(SEND_TIMEOUT_WALL_S):
                             await ws.send_bytes(_frame_message(made))
-                    elif live:  # none newer: made just now (look again when the rate allows)
-                        if self._previews.fresh():  # or not made yet (the next tick looks)
-                            loop.call_later(self._previews.next_in(), viewer.wake)
-                    else:
-                        viewer.wants = None  # no such frame
                 await viewer.wait()
         except (TimeoutError, ConnectionError):
             await ws.close()
 
 
+def _drained(transport: asyncio.BaseTransport | None) -> bool:
+    """Whether everything sent on ``transport`` has left its write buffer for the socket
+    (the last frame is no longer in flight in this process)."""
+    if transport is None or transport.is_closing():
+        return False
+    size = getattr(transport, "get_write_buffer_size", None)
+    return size is None or int(size()) == 0
+
+
 class _Viewer:
-    """One page's request for its next frame (``"next"``, a ``seq``, or None), whether its
-    state is due, and the wake-up of its sender."""
+    """What one page is to be sent next: the live frame offered (latest wins), the stored
+    frame it asked for (``seq``, replay), whether its state is due; and the wake-up of its
+    sender."""
 
     def __init__(self) -> None:
         self.wants: str | None = None
+        self.offered: tuple[int, float, int, bytes, int] | None = None
         self.sent_seq: int | None = None
         self.state_is_due = True
         self._woken = asyncio.Event()
 
     def ask(self, text: str) -> None:
-        if text == "next":
-            self.wants = "next"
-        elif text.startswith("seq:") and text[4:].isdigit():
+        if text.startswith("seq:") and text[4:].isdigit():
             self.wants = text[4:]
-        else:
-            return
-        self._woken.set()
+            self._woken.set()
+
+    def offer(self, made: tuple[int, float, int, bytes, int]) -> None:
+        if made[0] != self.sent_seq:
+            self.offered = made
+            self._woken.set()
 
     def state_due(self) -> None:
         self.state_is_due = True
-        self._woken.set()
-
-    def wake(self) -> None:
         self._woken.set()
 
     async def wait(self) -> None:

@@ -149,7 +149,7 @@ def test_another_interface_is_an_explicit_choice_the_host_must_match() -> None:
         server.stop()
 
 
-async def test_a_frame_is_sent_on_the_websocket_when_asked_for() -> None:
+async def test_the_newest_frame_is_pushed_on_the_websocket_once() -> None:
     import aiohttp
 
     state = _state()
@@ -159,11 +159,16 @@ async def test_a_frame_is_sent_on_the_websocket_when_asked_for() -> None:
             aiohttp.ClientSession() as session,
             session.ws_connect(url, origin=f"http://{_host(server)}") as ws,
         ):
-            for _ in range(3):  # info, state, state: no frame unless asked
-                assert (await ws.receive(timeout=5)).type == aiohttp.WSMsgType.TEXT
-            await ws.send_str("next")
             while (msg := await ws.receive(timeout=5)).type != aiohttp.WSMsgType.BINARY:
-                pass
+                pass  # unasked: the server pushes the newest frame
             n = int.from_bytes(msg.data[:4], "big")
             head = json.loads(msg.data[4 : 4 + n])
             assert head["seq"] == 4 and msg.data[4 + n : 6 + n] == b"\xff\xd8"
+            # no newer frame: only states follow, never the same frame again
+            for _ in range(3):
+                assert (await ws.receive(timeout=5)).type == aiohttp.WSMsgType.TEXT
+            publish(state, 5)
+            while (msg := await ws.receive(timeout=5)).type != aiohttp.WSMsgType.BINARY:
+                pass
+            n = int.from_bytes(msg.data[:4], "big")
+            assert json.loads(msg.data[4 : 4 + n])["seq"] == 5

@@ -1,11 +1,12 @@
-// The STIP-I view: state over a websocket, frames as JPEG over HTTP, drawn with SVG.
+// The STIP-I view: state and frames over a websocket, drawn with SVG. Live, the server
+// pushes the newest frame (at most 10 a second, the next only once this one has left it);
+// replay, the page asks for the frame it shows ("seq:N").
 // Every text from the server is set with textContent (never parsed as markup).
 "use strict";
 (function () {
   const token = new URLSearchParams(location.search).get("token") || "";
   const q = "token=" + encodeURIComponent(token);
   const SVG = "http://www.w3.org/2000/svg";
-  const MIN_FRAME_INTERVAL_MS = 1000 / 10;
   const PARAMS = [
     ["depth_mm", "D_p", "mm"], ["rebound_force_n", "F_r", "N"],
     ["recovery_time_s", "T_r", "s"], ["elasticity_kpa", "E", "kPa"],
@@ -14,8 +15,8 @@
   const st = {
     info: null, force: [], sk: [], transitions: [], notes: [], now: 0, phase: "-",
     phaseSince: 0, prompt: "", t0: null, params: null, health: {}, frameSeq: null,
-    shownSeq: null, fetching: false, lastFetch: 0, ws: null, asked: null, step: 1, frames: [], marks: {}, cursorT: null,
-    finished: false,
+    shownSeq: null, fetching: false, lastFetch: 0, ws: null, step: 1, frames: [], marks: {}, cursorT: null,
+    finished: false, loading: false, pending: null,
   };
   const $ = (id) => document.getElementById(id);
   const text = (id, s) => { $(id).textContent = s; };
@@ -28,20 +29,26 @@
   }
 
   // ---------------------------------------------------------------- frames
+  // Replay only: ask for the frame the scrubber chose, once the last one asked for came.
   function wantFrame() {
+    if (!st.info || st.info.mode !== "replay") return;
     if (st.fetching && performance.now() - st.lastFetch > 2000) st.fetching = false;  // none came
     if (st.fetching || !st.ws || st.ws.readyState !== 1) return;
-    const replay = st.info && st.info.mode === "replay";
     if (st.frameSeq === null || st.frameSeq === st.shownSeq) return;
-    const wait = st.lastFetch + MIN_FRAME_INTERVAL_MS - performance.now();
-    if (wait > 0) { setTimeout(wantFrame, wait); return; }
     st.fetching = true;
     st.lastFetch = performance.now();
-    st.asked = replay ? st.frameSeq : null;
-    st.ws.send(replay ? "seq:" + st.frameSeq : "next");
+    st.ws.send("seq:" + st.frameSeq);
+  }
+
+  // A frame as it comes; one that comes while the last is still being decoded waits, and
+  // a newer one replaces it (latest wins).
+  function gotFrame(buf) {
+    if (st.loading) { st.pending = buf; return; }
+    showFrame(buf);
   }
 
   function showFrame(buf) {
+    st.loading = true;
     const n = new DataView(buf).getUint32(0);
     const f = JSON.parse(new TextDecoder().decode(new Uint8Array(buf, 4, n)));
     const blob = new Blob([new Uint8Array(buf, 4 + n)], { type: "image/jpeg" });
@@ -53,9 +60,11 @@
       st.step = f.step;
       img.dataset.seq = String(f.seq);
       drawRoi();
+      st.loading = false;
       st.fetching = false;
-      wantFrame();
+      if (st.pending) { const next = st.pending; st.pending = null; showFrame(next); } else wantFrame();
     };
+    img.onerror = img.onload;
     img.src = URL.createObjectURL(blob);
     text("frame-info", "frame " + f.seq + "   t = " + f.t_s.toFixed(3) + " s   S_k = " + f.s_k + " px");
     if (st.info && st.info.mode === "replay") { st.cursorT = f.t_s; drawTraces(); }
@@ -193,10 +202,7 @@
     text("clock", "t = " + st.now.toFixed(1) + " s");
     drawParams();
     drawHealth();
-    if (st.info.mode !== "replay") {
-      drawTraces();
-      if (msg.frame_seq !== null && msg.frame_seq !== undefined) { st.frameSeq = msg.frame_seq; wantFrame(); }
-    }
+    if (st.info.mode !== "replay") drawTraces();
   }
 
   // ---------------------------------------------------------------- replay
@@ -238,7 +244,7 @@
     st.ws = ws;
     st.fetching = false;
     ws.onmessage = (ev) => {
-      if (typeof ev.data === "string") apply(JSON.parse(ev.data)); else showFrame(ev.data);
+      if (typeof ev.data === "string") apply(JSON.parse(ev.data)); else gotFrame(ev.data);
     };
     ws.onclose = () => {
       if (!st.finished) text("mode", (st.info ? st.info.mode : "") + " (disconnected)");
