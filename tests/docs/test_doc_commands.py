@@ -105,6 +105,9 @@ EXPECTED_SKIPS = frozenset(
 BLOCK_TIMEOUT_S = 900
 #: How long terminal 1 (a server) may take to print its first line [s].
 SERVER_READY_TIMEOUT_S = 120.0
+#: Attempts at starting terminal 1 while its fixed port is taken, and the wait between [s].
+PORT_IN_USE_ATTEMPTS = 6
+PORT_IN_USE_WAIT_S = 10.0
 MODULE_TIMEOUT_S = 2400
 
 pytestmark = [pytest.mark.xdist_group("docs")]
@@ -468,28 +471,41 @@ class Runner:
                 path.unlink(missing_ok=True)
         return Outcome(True)
 
-    def run_two_terminals(self, block: Block) -> Outcome:
-        first, second = logical_lines(block.text)
-        out_path = self.root.parent / "terminal-1.out"
-        err_path = self.root.parent / "terminal-1.err"
+    def _start(self, command: str, out_path: Path, err_path: Path) -> subprocess.Popen[bytes]:
+        """Start ``command`` as terminal 1, its output to these files."""
         with out_path.open("w") as out, err_path.open("w") as err:
-            server = subprocess.Popen(
-                ["bash", "-c", f"exec {first}"],
+            return subprocess.Popen(
+                ["bash", "-c", f"exec {command}"],
                 cwd=self.root,
                 env=self.env,
                 stdout=out,
                 stderr=err,
                 start_new_session=True,
             )
-        try:
+
+    def run_two_terminals(self, block: Block) -> Outcome:
+        first, second = logical_lines(block.text)
+        out_path = self.root.parent / "terminal-1.out"
+        err_path = self.root.parent / "terminal-1.err"
+        for attempt in range(PORT_IN_USE_ATTEMPTS):
+            server = self._start(first, out_path, err_path)
             # A user switches terminals once terminal 1 has said it is ready; on a loaded
             # machine that takes longer than the second a quiet one needs.
-            if not wait_for_output(server, out_path, SERVER_READY_TIMEOUT_S):
+            ready = wait_for_output(server, out_path, SERVER_READY_TIMEOUT_S)
+            # A fixed port another process on the machine holds for the moment: a user
+            # tries again; the test does too, and says who held it if it stays taken.
+            if ready or "the port is in use" not in err_path.read_text():
+                break
+            if attempt + 1 < PORT_IN_USE_ATTEMPTS:
+                time.sleep(PORT_IN_USE_WAIT_S)
+        try:
+            if not ready:
                 return Outcome(
                     False,
                     f"{block.where}: terminal 1 printed nothing within "
                     f"{SERVER_READY_TIMEOUT_S:.0f} s (exit {server.returncode}):\n"
-                    + err_path.read_text()[-3000:],
+                    + err_path.read_text()[-3000:]
+                    + _listeners(),
                 )
             if server.poll() is not None:
                 return Outcome(
@@ -514,6 +530,17 @@ class Runner:
             if server.poll() is None:
                 os.killpg(server.pid, signal.SIGKILL)
                 server.wait()
+
+
+def _listeners() -> str:
+    """The machine's listening TCP sockets and their processes (``ss -ltnp``), or ''."""
+    try:
+        done = subprocess.run(
+            ["ss", "-ltnp"], capture_output=True, text=True, timeout=10, check=False
+        )
+    except (OSError, subprocess.TimeoutExpired):
+        return ""
+    return "\nlistening sockets (ss -ltnp):\n" + done.stdout[-3000:]
 
 
 def wait_for_output(proc: subprocess.Popen[bytes], path: Path, timeout_s: float) -> bool:
