@@ -36,8 +36,6 @@ W, H, FPS = 1280, 720, 60.0
 DAEMON_MODES = {"0 viewers": 0, "1 viewer": 1, "20 viewers": 20}
 #: Wall time from the view's address to the start of the CPU window [s] (viewers connect).
 WARM_S = 2.0
-#: Wall time from the probe's start to its scene's t = 0 (the daemon connects before) [s].
-PROBE_LEAD_S = 4.0
 #: Longest wait for the daemon to print the view's address [s].
 START_TIMEOUT_S = 120.0
 _TICK_S = 1.0 / os.sysconf("SC_CLK_TCK")
@@ -115,20 +113,10 @@ def _address(daemon: subprocess.Popen[bytes], err: Path) -> str:
 def _probe(scene: str, work: Path, cpus: set[int]) -> tuple[subprocess.Popen[bytes], Path]:
     """The emulated Feather in a process of its own on ``cpus``, on a pty at the returned
     path, until its stdin closes."""
+    from benchmarks.daemon_latency import start_probe
+
     link = work / "ttyFEATHER"
-    origin_mono = time.monotonic() + PROBE_LEAD_S
-    probe = subprocess.Popen(
-        [
-            *(sys.executable, str(ROOT / "benchmarks" / "daemon_latency.py")),
-            *("--probe", scene, "--link", str(link), "--origin-mono", repr(origin_mono)),
-            *("--cpus", ",".join(map(str, sorted(cpus)))),
-        ],
-        stdin=subprocess.PIPE,
-    )
-    while not link.exists():
-        if probe.poll() is not None or time.monotonic() > origin_mono:
-            raise RuntimeError("the emulated probe did not start")
-        time.sleep(0.02)
+    probe, _ = start_probe(scene, link, sorted(cpus))
     return probe, link
 
 

@@ -83,7 +83,6 @@ def worker(config_path: Path, cpus: set[int], result_path: Path, nice: int) -> N
     import asyncio
     import resource
     import sqlite3
-    import subprocess
     import tempfile
     import time
 
@@ -105,20 +104,11 @@ def worker(config_path: Path, cpus: set[int], result_path: Path, nice: int) -> N
     doc["probe"]["transport"] = {"kind": "serial", "port": str(link)}
     config_path.write_text(json.dumps(doc))
     config = load_config(config_path)
-    # The scene's t = 0 on the host's monotonic clock, shared with the probe's process.
-    origin_mono = time.monotonic() + PROBE_LEAD_S
     others = sorted(set(range(os.cpu_count() or 1)) - cpus) or sorted(cpus)
-    probe = subprocess.Popen(
-        [
-            *(sys.executable, __file__, "--probe", scene_path, "--link", str(link)),
-            *("--origin-mono", repr(origin_mono), "--cpus", ",".join(map(str, others))),
-        ],
-        stdin=subprocess.PIPE,
-    )
-    while not link.exists():
-        if probe.poll() is not None or time.monotonic() > origin_mono:
-            raise SystemExit("the emulated probe did not start")
-        time.sleep(0.02)
+    try:
+        probe, origin_mono = start_probe(scene_path, link, others)
+    except RuntimeError as exc:
+        raise SystemExit(str(exc)) from None
     origin_s = origin_mono - (time.monotonic() - clock.now())
     writers: list[SessionWriter] = []
 
@@ -308,6 +298,29 @@ def time_recording() -> list[float]:
 
 #: Wall time from the worker's start of the probe process to the scene's t = 0 [s].
 PROBE_LEAD_S = 4.0
+
+
+def start_probe(scene_path: str, link: Path, cpus: list[int]) -> tuple[Any, float]:
+    """Start the emulated Feather (:func:`probe_process`) in a process of its own on
+    ``cpus``, on a pty at ``link``, until its stdin closes; return it and the scene's t = 0
+    on the host's monotonic clock [s], shared with the probe's process."""
+    import subprocess
+    import time
+
+    origin_mono = time.monotonic() + PROBE_LEAD_S
+    probe = subprocess.Popen(
+        [
+            *(sys.executable, str(Path(__file__).resolve()), "--probe", scene_path),
+            *("--link", str(link), "--origin-mono", repr(origin_mono)),
+            *("--cpus", ",".join(map(str, cpus))),
+        ],
+        stdin=subprocess.PIPE,
+    )
+    while not link.exists():
+        if probe.poll() is not None or time.monotonic() > origin_mono:
+            raise RuntimeError("the emulated probe did not start")
+        time.sleep(0.02)
+    return probe, origin_mono
 
 
 def thread_cpu_s() -> dict[str, float]:
