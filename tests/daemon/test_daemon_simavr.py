@@ -24,7 +24,8 @@ it returns the scene model's rounded count, except within 0.16 count of a roundi
 the force stream's mapping onto the session clock is off by the link's least delay plus
 the firmware's ``micros()`` offset (~1 ms) and the harness's start latency: 1-2.5 ms
 measured on an idle machine, under one 16.7 ms camera frame (on a loaded machine simavr
-may lag wall time by tens of ms: the check below only bounds it at 0.1 s); (3) the
+falls behind wall time and catches up: the check below bounds the mapped times at 0.1 s
+beyond the lag the harness's own TIME lines show); (3) the
 firmware samples at its own instants, not the scene's 100 Hz grid (a phase shift < 10 ms,
 the same order). The test
 also checks every sample arrived (the firmware's counters against the session's) and the
@@ -36,7 +37,10 @@ from __future__ import annotations
 import json
 import time
 from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -95,32 +99,73 @@ def built() -> None:
     build("harness", "firmware")
 
 
+#: Session (= simulated) seconds per wall second of each attempt. The firmware on simavr
+#: and the daemon's camera both run on wall time (a real MCU cannot wait): an attempt that a
+#: loaded machine held back (:func:`_held_back`) is made again, slower. Beside the suite,
+#: two busy loops and other work, the daemon's frames lagged 2.3 s at speed 1 and the force
+#: left its band before the release prompt.
+SPEEDS = (1.0, 0.5, 0.25)
+#: Largest lag [s of session time] of the daemon's frames, or stray of simavr from its
+#: pace, of an attempt whose timing is judged; an idle machine shows a few ms.
+HELD_BACK_S = 0.5
+
+
+def harness_lag_spread_s(h: Harness, speed: float) -> float:
+    """How far simavr strayed from its pace over the run [s of simulated time]: the range of
+    ``wall_s * speed - sim_s`` over its TIME lines (every 0.25 s of simulated time, wall
+    time in ms). About 0 when simavr kept in step with wall time."""
+    lag_s = [float(kv["wall_s"]) * speed - float(kv["sim_s"]) for kv in h.log.of("TIME")]
+    assert lag_s, "the harness printed no TIME line"
+    return max(lag_s) - min(lag_s)
+
+
+def _held_back(summary: dict[str, Any], h: Harness, speed: float) -> str | None:
+    """Why this attempt's timing was the machine's rather than the firmware's, or None."""
+    lag_s = float((summary.get("run") or {}).get("lag_s", {}).get("max") or 0.0)
+    spread_s = harness_lag_spread_s(h, speed)
+    if lag_s > HELD_BACK_S or spread_s > HELD_BACK_S:
+        return f"speed {speed:g}: frames lagged {lag_s:.2f} s, simavr strayed {spread_s:.2f} s"
+    return None
+
+
 @pytest.fixture
-def firmware(built: None, tmp_path: Path) -> Iterator[tuple[Harness, Path]]:
-    scene = short_scene(tmp_path)
+def scene(built: None, tmp_path: Path) -> Path:
+    return short_scene(tmp_path)
+
+
+@contextmanager
+def _firmware(scene: Path, directory: Path, speed: float) -> Iterator[Harness]:
+    """The firmware on simavr at ``speed``, fed the scene's load-cell voltage."""
     t_s = np.arange(0.0, LEAD_S + SCENE_S, 0.001)
-    wave = write_wave(tmp_path / "scene_wave.txt", t_s, scene_wave_mv(scene, t_s))
+    wave = write_wave(directory / "scene_wave.txt", t_s, scene_wave_mv(scene, t_s))
     h = Harness(
         FIRMWARE_ELF,
         wave,
-        ["--speed", "1", "--no-exit-on-hangup", "--sim-time", f"{LEAD_S + SCENE_S:g}"],
+        ["--speed", f"{speed:g}", "--no-exit-on-hangup", "--sim-time", f"{LEAD_S + SCENE_S:g}"],
     )
     try:
-        yield h, scene
+        yield h
     finally:
         h.close()
 
 
-async def test_daemon_measures_the_real_firmware(
-    firmware: tuple[Harness, Path], tmp_path: Path
-) -> None:
-    h, scene = firmware
-    clock = ScaledClock(1.0)
-    # Session time of simulated time 0, and of scene time 0.
-    sim0_s = clock.now() + (h.started_s - time.monotonic())
+@dataclass
+class Attempt:
+    h: Harness
+    sim0_s: float
+    """Session time of simulated time 0 [s]."""
+    summary: dict[str, Any]
+    session_dir: Path
+    exit_code: int
+
+
+async def _measure(h: Harness, scene: Path, directory: Path, speed: float) -> Attempt:
+    """Hand the harness's pty to the daemon once the firmware is past its BLE probe, and
+    measure the scene (``scene_origin_s``: simulated time :data:`LEAD_S`)."""
+    clock = ScaledClock(speed)
+    sim0_s = clock.now() + (h.started_s - time.monotonic()) * speed
     origin_s = sim0_s + LEAD_S
-    # Let the firmware give up on the absent BLE module, then hand the pty to the daemon.
-    deadline = time.monotonic() + 10.0
+    deadline = time.monotonic() + 10.0 / speed
     while h.sim_time_s() < BLE_PROBE_DONE_S:
         assert time.monotonic() < deadline, "the simulation did not pass the BLE probe"
         h.check_alive("the BLE probe")
@@ -129,12 +174,11 @@ async def test_daemon_measures_the_real_firmware(
     assert h.port is not None
     h.port.close()
     h.port = None
-
     lc = Pipeline(load_scene(scene), None).load_cell
     zero_counts, span = round(lc.zero_counts), lc.span_un_per_count
     config = load_config(
         write_config(
-            tmp_path,
+            directory,
             {
                 "probe": {
                     "transport": {"kind": "serial", "port": port, "baudrate": 250000},
@@ -146,20 +190,41 @@ async def test_daemon_measures_the_real_firmware(
                 },
                 "camera": {"kind": "simulator", "scene": str(scene)},
                 "measurement": SHORT_MEASUREMENT,
+                "run": {"speed": speed},
             },
         )
     )
-    assert origin_s - clock.now() > 0.5, "too little lead for the daemon to start"
+    assert origin_s - clock.now() > 0.5 * speed, "too little lead for the daemon to start"
     outcome = await run_daemon(config, clock=clock, scene_origin_s=origin_s, quiet=True)
-
-    assert outcome.exit_code == 0, outcome.summary
     summary = json.loads((outcome.session_dir / "summary.json").read_text())
+    return Attempt(h, sim0_s, summary, outcome.session_dir, outcome.exit_code)
+
+
+@pytest.mark.timeout(900)  # wall time: up to three attempts, the last at a quarter speed
+async def test_daemon_measures_the_real_firmware(scene: Path, tmp_path: Path) -> None:
+    held_back: list[str] = []
+    for n, speed in enumerate(SPEEDS):
+        directory = tmp_path / f"attempt{n}"
+        directory.mkdir()
+        with _firmware(scene, directory, speed) as h:
+            got = await _measure(h, scene, directory, speed)
+            why = _held_back(got.summary, h, speed)
+            if why is None or n == len(SPEEDS) - 1:
+                _check_measurement(got, scene, held_back)
+                return
+        held_back.append(why)
+
+
+def _check_measurement(got: Attempt, scene: Path, held_back: list[str]) -> None:
+    """Everything the test asserts of one attempt; ``held_back``: the earlier attempts."""
+    h, summary = got.h, got.summary
+    assert got.exit_code == 0, (summary, held_back)
     errors = check_against_truth(summary, rel=TRUTH_TOLERANCES)
     assert max(errors.values()) < 0.01
     probe = summary["run"]["probe"]
     assert probe["samples_lost"] == 0 and probe["samples_received"] > 1500
     assert probe["decoder"]["crc_errors"] == 0
-    with SessionReader(outcome.session_dir) as reader:
+    with SessionReader(got.session_dir) as reader:
         firmware_info = reader.manifest["firmware"]
         assert firmware_info["calibration_source"] == "config"
         assert firmware_info["span_un_per_count"] == 0  # blank EEPROM
@@ -175,9 +240,14 @@ async def test_daemon_measures_the_real_firmware(
     assert any(kv["value"] == "180" for kv in h.log.of("REG"))
     # Mapped sample times against the harness's clock: the conversion of the sample with
     # t_us happens at simulated time t_us + ~1 ms, i.e. session time sim0_s + that.
-    late_s = force["t_host_s"] - (sim0_s + force["t_mcu_us"] * 1e-6)
-    # 1-2.5 ms on an idle machine; simavr lags wall time by tens of ms on a loaded one.
-    assert np.abs(late_s).max() < 0.1, np.percentile(late_s, [0, 50, 100])
+    late_s = force["t_host_s"] - (got.sim0_s + force["t_mcu_us"] * 1e-6)
+    # 1-2.5 ms on an idle machine. On a loaded one simavr falls behind wall time when it
+    # gets no CPU and then runs flat out to catch up (1.1 s once beside two busy loops):
+    # simulated time is then no longer a line in wall time, and no clock map can follow it.
+    # The bound is 0.1 s beyond how far the harness's own TIME lines say it strayed.
+    spread_s = harness_lag_spread_s(h, float(summary["run"]["speed"]))
+    assert np.abs(late_s).max() < 0.1 + spread_s, (np.percentile(late_s, [0, 50, 100]), spread_s)
+    lc = Pipeline(load_scene(scene), None).load_cell
     # Every count is the scene's count at that instant (the load-cell model's rounding).
     t_scene = force["t_mcu_us"] * 1e-6 + 0.983e-3 - LEAD_S
     model = Pipeline(load_scene(scene), None)
