@@ -12,7 +12,8 @@ What it serves, all ``GET``:
 * ``/ws`` a websocket on which the server sends the state as JSON at most
   :data:`STATE_RATE_HZ` times a second (the traces' new points only) and frames as binary
   messages: live, the server pushes the newest frame to every viewer at most
-  :data:`PREVIEW_RATE_HZ` times a second, unasked; replay, the frame a page asks for
+  :data:`PREVIEW_RATE_HZ` times a second, unasked (beyond four viewers they take turns,
+  :data:`FRAME_SENDS_RATE_HZ` frames a second in all); replay, the frame a page asks for
   (``seq:N``: frame N of the stored session). It reads nothing else;
 * ``/frame.jpg`` the newest frame (live) or frame ``seq`` (replay) as a preview JPEG
   (:mod:`.preview`), as on the websocket. A live preview is made in the view's thread, once
@@ -57,6 +58,7 @@ from stipi_daemon.app.liveview.state import PreviewFrame
 from stipi_daemon.errors import StipiError
 
 __all__ = [
+    "FRAME_SENDS_RATE_HZ",
     "PREVIEW_RATE_HZ",
     "STATE_RATE_HZ",
     "PreviewFrame",
@@ -72,6 +74,12 @@ STATE_RATE_HZ = 4.0
 #: encoding of the newest frame a tick, shared; the states due on the ticks that reach
 #: the next 1/:data:`STATE_RATE_HZ` s).
 PREVIEW_RATE_HZ = 10.0
+#: Most live frames sent per second to all viewers together [1/s]: up to
+#: ``FRAME_SENDS_RATE_HZ / PREVIEW_RATE_HZ`` viewers (4) get every preview, more take
+#: turns (20 viewers: 2 frames a second each), so the view's work per tick, and the
+#: stretches it holds the interpreter against the daemon's frame thread, stop growing with
+#: the number of viewers.
+FRAME_SENDS_RATE_HZ = 40.0
 #: Wall time a websocket send may take before the viewer is dropped [s].
 SEND_TIMEOUT_WALL_S = 60.0
 #: Files the page is made of (package data).
@@ -268,7 +276,12 @@ class ViewServer:
         self._ready = threading.Event()
         self._error: BaseException | None = None
         self._sockets: set[web.WebSocketResponse] = set()
-        self._viewers: set[_Viewer] = set()
+        # insertion-ordered, so that viewers take turns for frames in a stable order
+        self._viewers: dict[_Viewer, None] = {}
+        self._turn = 0
+        # this tick's state messages by the cursor they were made for: viewers in step
+        # share one snapshot and one JSON encoding
+        self._states: dict[tuple[tuple[str, int], ...], tuple[str, dict[str, int]]] = {}
         self._ticker: asyncio.Task[None] | None = None
         info = source.info()
         self._live = info.get("mode") != "replay"
@@ -398,7 +411,7 @@ class ViewServer:
         self._sockets.add(ws)
         self.viewers += 1
         viewer = _Viewer()
-        self._viewers.add(viewer)
+        self._viewers[viewer] = None
         if self._ticker is None or self._ticker.done():
             self._ticker = asyncio.create_task(self._tick())
         sender = asyncio.create_task(self._send(ws, viewer, transport))
@@ -414,15 +427,16 @@ class ViewServer:
             with contextlib.suppress(asyncio.CancelledError, Exception):
                 await sender
             self.viewers -= 1
-            self._viewers.discard(viewer)
+            self._viewers.pop(viewer, None)
             self._sockets.discard(ws)
         return ws
 
     async def _tick(self) -> None:
         """The view's one timer, for all viewers: every 1/:data:`PREVIEW_RATE_HZ` s (on a
         fixed grid, so ticks do not drift late) the newest live frame is encoded once and
-        offered to every viewer, and on the tick that reaches each next 1/:data:`STATE_RATE_HZ`
-        s each viewer's state is due (replay: it ticks only for the states,
+        offered to the viewers whose turn it is (:meth:`_offer`), and on the tick that
+        reaches each next 1/:data:`STATE_RATE_HZ` s each viewer's state is due (replay: it
+        ticks only for the states,
         :data:`STATE_RATE_HZ` times a second). One wake-up of this thread a tick; the task
         ends with the last viewer."""
         per_s = PREVIEW_RATE_HZ if self._live else STATE_RATE_HZ  # ticks a second [1/s]
@@ -436,12 +450,34 @@ class ViewServer:
             if loop.time() - (t0 + k * period_s) > period_s:  # far behind: skip, not catch up
                 t0, k = loop.time(), 0
             made = self._previews.newest() if self._live else None
-            state_due = int(k * STATE_RATE_HZ / per_s) != int((k - 1) * STATE_RATE_HZ / per_s)
-            for viewer in list(self._viewers):
-                if made is not None:
-                    viewer.offer(made)
-                if state_due:
+            if made is not None:
+                self._offer(made[0], _frame_message(made), int(FRAME_SENDS_RATE_HZ / per_s))
+            if int(k * STATE_RATE_HZ / per_s) != int((k - 1) * STATE_RATE_HZ / per_s):
+                self._states.clear()
+                for viewer in list(self._viewers):
                     viewer.state_due()
+
+    def _offer(self, seq: int, message: bytes, most: int) -> None:
+        """Offer frame ``seq`` (its websocket message, made once) to at most ``most``
+        viewers, those whose turn it is (round robin)."""
+        viewers = list(self._viewers)
+        n = min(max(1, most), len(viewers))
+        for i in range(n):
+            viewers[(self._turn + i) % len(viewers)].offer(seq, message)
+        self._turn = (self._turn + n) % len(viewers) if viewers else 0
+
+    def _state_text(self, cursor: dict[str, int]) -> str:
+        """The state message for a viewer at ``cursor`` (advanced): made once a tick for
+        all viewers at the same cursor."""
+        key = tuple(sorted(cursor.items()))
+        made = self._states.get(key)
+        if made is None:
+            text = json.dumps(self.source.snapshot(cursor))
+            self._states[key] = (text, dict(cursor))
+            return text
+        text, after = made
+        cursor.update(after)
+        return text
 
     async def _send(
         self, ws: web.WebSocketResponse, viewer: _Viewer, transport: asyncio.BaseTransport | None
@@ -458,12 +494,12 @@ class ViewServer:
                 if viewer.state_is_due:
                     viewer.state_is_due = False
                     async with asyncio.timeout(SEND_TIMEOUT_WALL_S):  # a stalled viewer waits
-                        await ws.send_json(self.source.snapshot(cursor))
+                        await ws.send_str(self._state_text(cursor))
                 offered, viewer.offered = viewer.offered, None
                 if offered is not None and offered[0] != viewer.sent_seq and _drained(transport):
                     viewer.sent_seq = offered[0]
                     async with asyncio.timeout(SEND_TIMEOUT_WALL_S):
-                        await ws.send_bytes(_frame_message(offered))
+                        await ws.send_bytes(offered[1])
                 if viewer.wants is not None:  # replay: the stored frame asked for
                     wants, viewer.wants = int(viewer.wants), None
                     made = await self._previews.get(wants)
@@ -491,7 +527,8 @@ class _Viewer:
 
     def __init__(self) -> None:
         self.wants: str | None = None
-        self.offered: tuple[int, float, int, bytes, int] | None = None
+        self.offered: tuple[int, bytes] | None = None
+        """The live frame offered: its ``seq`` and websocket message."""
         self.sent_seq: int | None = None
         self.state_is_due = True
         self._woken = asyncio.Event()
@@ -501,9 +538,9 @@ class _Viewer:
             self.wants = text[4:]
             self._woken.set()
 
-    def offer(self, made: tuple[int, float, int, bytes, int]) -> None:
-        if made[0] != self.sent_seq:
-            self.offered = made
+    def offer(self, seq: int, message: bytes) -> None:
+        if seq != self.sent_seq:
+            self.offered = (seq, message)
             self._woken.set()
 
     def state_due(self) -> None:

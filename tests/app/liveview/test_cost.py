@@ -4,7 +4,8 @@ With nobody connected, publishing a frame keeps it by reference (no copy) and th
 thread encodes nothing and stays asleep. A 720p frame's preview is subsampled, yet tints
 exactly the camera pixels S_k counts. Viewers share one timer for their state and the
 pushed frames' preview encodings (at most :data:`PREVIEW_RATE_HZ` a second, however many
-watch).
+watch); viewers in step share each state message, and many viewers take turns for the
+frames (at most :data:`FRAME_SENDS_RATE_HZ` sent a second in all).
 """
 
 from __future__ import annotations
@@ -13,13 +14,16 @@ import asyncio
 import json
 import threading
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from typing import Any
 
 import aiohttp
 import cv2
 import numpy as np
 
 from stipi_daemon.app.liveview.preview import preview_jpeg
-from stipi_daemon.app.liveview.server import PREVIEW_RATE_HZ, STATE_RATE_HZ
+from stipi_daemon.app.liveview.server import FRAME_SENDS_RATE_HZ, PREVIEW_RATE_HZ, STATE_RATE_HZ
 from stipi_daemon.app.liveview.state import LiveState
 from tests.app.liveview._view import THRESHOLD_P, frame_image, publish, served, view_info
 
@@ -83,11 +87,22 @@ async def _watch(url: str, origin: str, wall_s: float) -> dict[str, int]:
     return got
 
 
-async def test_viewers_share_the_state_timer_and_the_encodings() -> None:
-    state = LiveState(view_info())
+class _CountedState(LiveState):
+    """The live state, counting the snapshots the server asks of it."""
+
+    snapshots = 0
+
+    def snapshot(self, cursor: dict[str, int]) -> dict[str, Any]:
+        self.snapshots += 1
+        return super().snapshot(cursor)
+
+
+@contextmanager
+def _fed(state: LiveState) -> Iterator[None]:
+    """Frames published at 60 fps, as the acquisition publishes them, while inside."""
     stop = threading.Event()
 
-    def daemon() -> None:  # frames at 60 fps, as the acquisition publishes them
+    def daemon() -> None:
         k = 0
         while not stop.is_set():
             publish(state, k)
@@ -96,20 +111,49 @@ async def test_viewers_share_the_state_timer_and_the_encodings() -> None:
 
     feeder = threading.Thread(target=daemon, daemon=True)
     feeder.start()
-    wall_s = 1.5
     try:
-        with served(state) as server:
-            url = f"http://127.0.0.1:{server.port}/ws?token={server.token}"
-            origin = f"http://127.0.0.1:{server.port}"
-            t0 = time.monotonic()
-            got = await asyncio.gather(*(_watch(url, origin, wall_s) for _ in range(5)))
-            elapsed_s = time.monotonic() - t0
-            encoded = server.previews_encoded
+        yield
     finally:
         stop.set()
         feeder.join()
+
+
+async def _watched(
+    state: LiveState, viewers: int, wall_s: float
+) -> tuple[list[dict[str, int]], float, int]:
+    """``viewers`` pages watching ``state`` for ``wall_s``: what each got, the wall time
+    they watched [s] and the previews the server encoded."""
+    with _fed(state), served(state) as server:
+        url = f"http://127.0.0.1:{server.port}/ws?token={server.token}"
+        origin = f"http://127.0.0.1:{server.port}"
+        t0 = time.monotonic()
+        got = await asyncio.gather(*(_watch(url, origin, wall_s) for _ in range(viewers)))
+        return list(got), time.monotonic() - t0, server.previews_encoded
+
+
+async def test_viewers_share_the_state_timer_and_the_encodings() -> None:
+    got, elapsed_s, encoded = await _watched(LiveState(view_info()), 4, 1.5)
     for g in got:  # the first state at once, then one a tick
         assert 2 <= g["states"] <= STATE_RATE_HZ * elapsed_s + 2, g
         assert 5 <= g["frames"] <= PREVIEW_RATE_HZ * elapsed_s + 2, g  # pushed, unasked
     assert encoded <= PREVIEW_RATE_HZ * elapsed_s + 2
     assert sum(g["frames"] for g in got) > encoded  # a preview is shared by the viewers
+
+
+async def test_many_viewers_share_state_messages_and_take_turns_for_frames() -> None:
+    state = _CountedState(view_info())
+    viewers, wall_s = 12, 2.0
+    got, elapsed_s, _ = await _watched(state, viewers, wall_s)
+    frames = [g["frames"] for g in got]
+    # every viewer is shown the measurement, none is starved ...
+    assert min(frames) >= 1 and all(g["states"] >= 2 for g in got), got
+    # ... but the frames sent in all stay at the cap, not 10 a second times 12
+    assert sum(frames) <= FRAME_SENDS_RATE_HZ * elapsed_s + FRAME_SENDS_RATE_HZ / PREVIEW_RATE_HZ
+    # one snapshot a tick for the viewers in step (and one per cursor for late joiners),
+    # not one per viewer a tick
+    states_sent = sum(g["states"] for g in got)
+    assert state.snapshots <= STATE_RATE_HZ * elapsed_s * 2 + viewers, (
+        state.snapshots,
+        states_sent,
+    )
+    assert states_sent >= 3 * state.snapshots, (state.snapshots, states_sent)
