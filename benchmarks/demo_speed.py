@@ -9,10 +9,12 @@ judged).
 What runs: the demo exactly as ``./dev demo`` runs it (``stipi-daemon --config
 configs/demo.yaml`` in a child process: emulated Feather on a pty, simulator camera, FFV1
 video of the ROI, the report), each into a temporary sessions root: with ``--realtime``
-(pace 1), at the config's ``run.speed``, at ``run.speed`` 20, and at the config's speed
-beside two busy processes (``while True: pass``, one per CPU of this machine). Per child:
-wall time from start to exit, CPU time and peak RSS (``os.wait4``'s rusage of that child),
-and what it stored: every row of every table and ``summary.json``, compared with the
+(pace 1), at the config's ``run.speed`` (0: unpaced), at ``run.speed`` 20, and at the
+config's speed beside two busy processes (``while True: pass``, one per CPU of this
+machine). Per child: wall time from start to exit, CPU time and peak RSS (``os.wait4``'s
+rusage of that child; CPU includes the child's threads and any process it waited for),
+probe seconds per CPU second (the demo's throughput: :data:`PROBE_TIME_S` over that CPU
+time), and what it stored: every row of every table and ``summary.json``, compared with the
 first run's, bit for bit. Every device of the demo is simulated in the daemon's process,
 so its clock waits for the daemon (:class:`stipi_daemon.clock.VirtualClock`): the stored
 rows and the results must be identical in every run; only the wall time may differ.
@@ -167,8 +169,8 @@ def render(runs: dict[str, dict[str, Any]]) -> str:
     lines = [
         SECTION,
         "",
-        "What must hold: the demo's `summary.json` and stored rows are identical at "
-        "`run.speed` 1, 8 and 20 and beside two busy loops. Command: "
+        "What must hold: the demo's `summary.json` and stored rows are identical in every "
+        "run below (at each `run.speed`, 0 being unpaced, and beside two busy loops). Command: "
         "`./dev python benchmarks/demo_speed.py` (the demo as `./dev demo` runs it, in a "
         "child process per row; wall time from start to exit, CPU and peak RSS from the "
         "child's own rusage; rows: every row of every table of `session.sqlite`, digested "
@@ -178,15 +180,17 @@ def render(runs: dict[str, dict[str, Any]]) -> str:
         f"Python {platform.python_version()}; niceness {nice:+d}.",
         "",
         "| run | load average (1 min) at its end | wall, whole command [s] | probe time / wall "
-        "| acquisition wall [s] | CPU [s] | peak RSS [MiB] | frames | force samples | events "
-        "| rows (SHA-256, first 12) | summary.json (SHA-256, first 12) | exit |",
-        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|---|---:|",
+        "| acquisition wall [s] | CPU [s] | probe time / CPU | peak RSS [MiB] | frames "
+        "| force samples | events | rows (SHA-256, first 12) | summary.json (SHA-256, first 12) "
+        "| exit |",
+        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|---|---:|",
     ]
     for name, r in runs.items():
         c = r["counts"]
         lines.append(
             f"| {name} | {r['load']:.1f} | {r['wall_s']:.1f} | {PROBE_TIME_S / r['wall_s']:.1f}x "
-            f"| {r['acquisition_wall_s']:.1f} | {r['cpu_s']:.1f} | {r['maxrss_mib']:.0f} "
+            f"| {r['acquisition_wall_s']:.1f} | {r['cpu_s']:.1f} "
+            f"| {PROBE_TIME_S / r['cpu_s']:.1f} | {r['maxrss_mib']:.0f} "
             f"| {c.get('frames', 0)} | {c.get('force_samples', 0)} | {c.get('events', 0)} "
             f"| `{r['rows_sha256'][:12]}` | `{r['summary_sha256'][:12]}` | {r['exit']} |"
         )
@@ -238,10 +242,11 @@ def main() -> None:
     parser.add_argument("--short", action="store_true", help="two runs, no document")
     args = parser.parse_args()
     speed = float(yaml.safe_load((ROOT / "configs" / "demo.yaml").read_text())["run"]["speed"])
+    own = f"speed {speed:g}" + (" (unpaced)" if speed == 0 else "")
     plan: list[tuple[str, bool, float | None, int]] = [
-        (f"speed {speed:g}", False, None, 0),
+        (own, False, None, 0),
         ("speed 20", False, 20.0, 0),
-        (f"speed {speed:g}, 2 busy loops", False, None, 2),
+        (f"{own}, 2 busy loops", False, None, 2),
         ("speed 1 (`--realtime`)", True, None, 0),
     ]
     if args.short:

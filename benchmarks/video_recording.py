@@ -267,7 +267,8 @@ def render(
         RECORDING_NOTE,
         "",
         "Disk use per minute at 60 fps (3600 frames; the grade-III scene with sensor noise; "
-        "FFV1 level 3, every frame intra, encoded by the recorder's two encoder threads; "
+        "FFV1 as the recorder encodes it (`FFV1_OPTIONS`), every frame intra, encoded by the "
+        "recorder's two encoder threads; "
         "CPU of the whole process per frame, and wall time per frame with the process on "
         "one CPU):",
         "",

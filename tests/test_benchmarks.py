@@ -161,3 +161,21 @@ def test_liveview_cost_quick_writes_its_section(tmp_path: Path) -> None:
         assert f"\n| {mode} | " in text, mode
     assert "### The real daemon at 720p60" in text
     assert "One viewer, the real daemon: **" in text
+
+
+@pytest.mark.timeout(200)
+def test_lossless_codecs_quick_writes_its_section(tmp_path: Path) -> None:
+    """A row per candidate; the session video's FFV1 as recorded and at level 1 decodes
+    bit-exactly and reads back from Matroska (FFmpeg's behaviour, not a timing)."""
+    out = tmp_path / "performance.md"
+    out.write_text("# Performance\n\n## Demo speed\n\nkept text\n")
+    proc = run_benchmark("lossless_codecs.py", "--out", str(out), timeout_s=180.0)
+    assert proc.returncode == 0, proc.stderr
+    text = out.read_text()
+    assert "## Demo speed\n\nkept text" in text
+    assert text.count("## Lossless video codecs") == 1
+    rows = [line for line in text.splitlines() if line.startswith("| FFV1")]
+    for label in ("FFV1 as recorded (`FFV1_OPTIONS`: level 3, slicecrc 1)", "FFV1 level 1 ("):
+        (row,) = [r for r in rows if r.startswith(f"| {label}")]
+        assert row.endswith("| yes, 8 of 8 | yes, 8 of 8 equal |"), row
+    assert "| raw (rawvideo, no compression) | " in text

@@ -30,12 +30,11 @@ def test_demo_config_runs_a_whole_measurement(tmp_path: Path) -> None:
     cfg["probe"]["transport"]["scene"] = scene
     cfg["camera"]["scene"] = scene
     cfg["storage"]["root"] = str(tmp_path / "sessions")
-    # The demo's speed 8 needs about 1.5 of this machine's 2 CPUs (docs/performance.md,
-    # "Demo speed"; measured by benchmarks/demo_speed.py, not here): beside the suite's
-    # other worker and a CPU hog on every core it would fall behind and fault, as it
-    # should. This test checks the measurement, so it runs the same config at speed 4
-    # and allows the longest lag bound (15 s of wall time); tests/daemon/ test the lag
-    # policy and test_speed_identity.py that speed changes no result.
+    # The demo runs unpaced (run.speed 0), as fast as this machine's CPUs let it
+    # (docs/performance.md, "Demo speed"; measured by benchmarks/demo_speed.py, not here).
+    # This test checks the measurement beside the suite's other worker, so it caps the
+    # pace at speed 4 and allows the longest lag bound (15 s of wall time); tests/daemon/
+    # test the lag policy and test_speed_identity.py that speed changes no result.
     cfg["run"]["speed"] = 4.0
     cfg["run"]["max_lag_s"] = 60.0
     path = tmp_path / "demo.yaml"
