@@ -24,22 +24,24 @@ def _run_cli(config: Path, timeout_s: float = 60) -> subprocess.CompletedProcess
     )
 
 
+#: Wall time the whole demo may take here [s]: its CPU (20-45 s) on a loaded machine.
+DEMO_WALL_LIMIT_S = 900
+
+
+@pytest.mark.timeout(DEMO_WALL_LIMIT_S + 60)
 def test_demo_config_runs_a_whole_measurement(tmp_path: Path) -> None:
     cfg = yaml.safe_load((REPO_ROOT / "configs" / "demo.yaml").read_text())
     scene = str(REPO_ROOT / "configs" / "scenes" / "demo_grade3.yaml")
     cfg["probe"]["transport"]["scene"] = scene
     cfg["camera"]["scene"] = scene
     cfg["storage"]["root"] = str(tmp_path / "sessions")
-    # The demo runs unpaced (run.speed 0), as fast as this machine's CPUs let it
-    # (docs/performance.md, "Demo speed"; measured by benchmarks/demo_speed.py, not here).
-    # This test checks the measurement beside the suite's other worker, so it caps the
-    # pace at speed 4 and allows the longest lag bound (15 s of wall time); tests/daemon/
-    # test the lag policy and test_speed_identity.py that speed changes no result.
-    cfg["run"]["speed"] = 4.0
-    cfg["run"]["max_lag_s"] = 60.0
+    # The demo's own config: unpaced (run.speed 0) on the clock that waits for the daemon,
+    # so its rows are the same at any load (tests/daemon/test_speed_identity.py); beside the
+    # suite's other worker and two busy loops it took 180-350 s of wall time.
+    assert cfg["run"]["speed"] == 0
     path = tmp_path / "demo.yaml"
     path.write_text(yaml.safe_dump(cfg))
-    proc = _run_cli(path, timeout_s=120)
+    proc = _run_cli(path, timeout_s=DEMO_WALL_LIMIT_S)
     assert proc.returncode == 0, proc.stderr + proc.stdout[-2000:]
     out = proc.stdout
     for needle in (
@@ -62,11 +64,10 @@ def test_demo_config_runs_a_whole_measurement(tmp_path: Path) -> None:
         assert counts["live_parameters"] > 10
         stored = reader.video_frames()["seq"].size
     summary = json.loads((sessions[0] / "summary.json").read_text())
-    # the session holds its video: every frame stored or, on a machine too loaded for the
-    # encoders, counted as left out (benchmarks/demo_speed.py shows none left out)
+    # the session holds its video, every frame: the simulated camera waits for the encoders
     video = summary["run"]["video"]
     assert video["codec"] == "ffv1" and video["frames"] == stored > 0
-    assert stored + video["left_out"] == counts["frames"]
+    assert video["left_out"] == 0 and stored == counts["frames"]
     _assert_documented(summary)
     res, gt = summary["results"], summary["ground_truth"]
     assert res["pitting"]["depth_mm"] == pytest.approx(gt["depth_mm"], rel=0.01)
