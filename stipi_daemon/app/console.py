@@ -100,6 +100,8 @@ class OperatorConsole:
         self.fps: float | None = None
         self.params: LiveParameters | None = None
         self.notes: list[str] = []
+        #: A standing warning the live view shows (frames not processed), None: none.
+        self.warning: str | None = None
         self._prompt_key = ""
         self._prompt_t = -math.inf
 
@@ -214,6 +216,15 @@ class OperatorConsole:
         if self._live is not None:
             self._live.update(self._render())
 
+    def warn(self, text: str | None) -> None:
+        """Show ``text`` as the live view's standing warning (None: clear it); the line
+        that says so is printed by :meth:`line`."""
+        if text == self.warning:
+            return
+        self.warning = text
+        if self._live is not None:
+            self._live.update(self._render())
+
     def outputs(self, outputs: list[Output], now_s: float) -> None:
         """Show state-machine outputs (phase changes, instructions, notes, faults)."""
         self.now_s = now_s
@@ -278,7 +289,10 @@ class OperatorConsole:
                 "tau", _fmt(p.tau_s, "s", 4), "eta", _fmt(p.viscosity_n_s_per_mm2, "N*s/mm^2", 3)
             )
         prompt = Text(self.prompt or " ", style="bold yellow")
-        return Panel(Group(head, bar, readings, params, prompt), title="STIP-I measurement")
+        parts: list[Any] = [head, bar, readings, params, prompt]
+        if self.warning:
+            parts.append(Text(f"WARNING {self.warning}", style="bold red"))
+        return Panel(Group(*parts), title="STIP-I measurement")
 
 
 #: Rich style of the verdict line, by verdict status: green only for ``complete``.
