@@ -14,9 +14,11 @@ This module owns three pure parts and one thin I/O shell:
 * :class:`McuClock` maps session time onto the MCU's ``micros()`` with a boot offset and a
   rate error [ppm] (clock drift).
 * :class:`SceneAdc` gives the ADC reading at each MCU sample time from a simulator scene
-  (:mod:`stipi_daemon.sim`): the scene's own samples (effects included) where the MCU
-  samples fall on the scene's sample grid, the scene's force model through the load cell
-  model otherwise (another rate, clock drift, times outside the scene).
+  (:mod:`stipi_daemon.sim`): the scene's force model at that time through the scene's
+  force effects (drift, noise) and the load cell's ADC (its rails), as the offline
+  pipeline makes the scene's own samples (exactly those where the MCU's samples fall on
+  the scene's grid), and which samples a ``force_dropout`` loses on the link (the core
+  leaves them out of its SAMPLES frames).
 * :class:`EmulatedFeather` runs a core on a :class:`~stipi_daemon.clock.SessionClock` behind a
   pty pair: the slave is what a serial transport opens (through pyserial, the real path),
   reached through a stable symlink that disappears while the probe is "unplugged". It
