@@ -38,7 +38,11 @@ above ``run.max_lag_s`` ends the run with a fault and one line (:attr:`Acquisiti
 So does a frame of another size than the session's first (a gap, reason
 ``frame_size_changed``): its S_k would count pixels of another size. Before the first frame
 arrives, the lag of a camera that waits for the daemon (simulator, file) is that of its
-first frame, due since its known capture time.
+first frame, due since its known capture time. When no frame has been handled for 0.5 s
+of session time the console warns, with what the gap does to the results, and says when
+frames come again and which came too late to be measured
+(:class:`~stipi_daemon.app.frame_watch.FrameWatch`; events ``frames_not_processed`` and
+``frames_processed_again``).
 
 All times are on the session clock [s]. Opening devices, the summary, the stored frames
 and the report are not done here (:mod:`stipi_daemon.app.devices`,
