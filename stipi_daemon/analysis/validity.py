@@ -78,7 +78,7 @@ QUANTITY_SYMBOLS: Final[Mapping[str, str]] = MappingProxyType(
         "severity": "severity",
         "tau_s": "tau",
         "applied_force_n": "F_a",
-        "viscosity_fit_n_s_per_mm2": "eta (E*tau)",
+        "viscosity_fit_n_s_per_mm2": "eta_tau",
         "severity_fit": "severity (fit)",
     }
 )
@@ -438,7 +438,7 @@ def verdict(
     # the secondary quantities do not decide the verdict, but the line never calls a
     # flagged or invalid one valid
     others = [q for q in SECONDARY_QUANTITIES if q in validity and validity[q].status != "valid"]
-    # one derived from another listed (eta (E*tau) from tau) adds nothing to the line
+    # one derived from another listed (eta_tau = E*tau from tau) adds nothing to the line
     others = [q for q in others if not set(DEPENDS_ON.get(q, ())) & set(others)]
     if others:
         said = ", ".join(f"{QUANTITY_SYMBOLS[q]} {validity[q].status}" for q in others)

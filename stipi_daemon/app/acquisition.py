@@ -38,7 +38,11 @@ above ``run.max_lag_s`` ends the run with a fault and one line (:attr:`Acquisiti
 So does a frame of another size than the session's first (a gap, reason
 ``frame_size_changed``): its S_k would count pixels of another size. Before the first frame
 arrives, the lag of a camera that waits for the daemon (simulator, file) is that of its
-first frame, due since its known capture time.
+first frame, due since its known capture time. When no frame has been handled for 0.5 s
+of session time the console warns, with what the gap does to the results, and says when
+frames come again and which came too late to be measured
+(:class:`~stipi_daemon.app.frame_watch.FrameWatch`; events ``frames_not_processed`` and
+``frames_processed_again``).
 
 All times are on the session clock [s]. Opening devices, the summary, the stored frames
 and the report are not done here (:mod:`stipi_daemon.app.devices`,
@@ -68,6 +72,7 @@ from stipi_daemon.app.frame_measurer import (
     LateFrame,
     ResizedFrame,
 )
+from stipi_daemon.app.frame_watch import FrameWatch
 from stipi_daemon.app.liveview.live import live_statuses
 from stipi_daemon.app.liveview.state import LiveState
 from stipi_daemon.cameras import CameraRecovered as CamRecovered
@@ -228,6 +233,8 @@ class Acquisition:
         self.lag_s: list[float] = []
         self._lag_now_s = 0.0
         self._next_console_wall_s = float("-inf")
+        #: Whether frames are being processed: the console warns when they stop.
+        self.frame_watch = FrameWatch()
         self.fault_line: str | None = None
         #: What the live view shows (None: no view); written here, read by its server.
         self.live: LiveState | None = None
@@ -499,8 +506,34 @@ class Acquisition:
         }
         return self._end_with_fault(now, line, "frame_size_changed", detail)
 
+    def _watch_frame(self, t_capture_s: float, *, measured: bool) -> None:
+        """Tell the frame watch a frame was handled; show what it says (frames come again
+        after a stretch without, or frames came too late to be measured)."""
+        now = self._clock.now()
+        line = self.frame_watch.frame(
+            now, t_capture_s, measured=measured, phase=self._pipeline.phase
+        )
+        self._console.warn(None)
+        if line is not None:
+            self._console.line(f"[{now:7.2f} s] note: {line}")
+            self._writer.add_event(now, "frames_processed_again", {"detail": line})
+
+    def _watch_silence(self, now: float) -> None:
+        """Warn (console, event) when no frame has been handled for a while."""
+        line = self.frame_watch.tick(now, self._pipeline.phase)
+        if line is None:
+            return
+        self._console.warn(self.frame_watch.warning)
+        self._console.line(f"[{now:7.2f} s] WARNING {line}", style="bold red")
+        self._writer.add_event(
+            now,
+            "frames_not_processed",
+            {"detail": line, "last_capture_s": self.frame_watch.last_capture_s},
+        )
+
     def _on_late_frame(self, ev: LateFrame) -> list[Output]:
         self.counts["late_frames"] += 1
+        self._watch_frame(ev.t_capture_s, measured=False)
         self._camera_gaps(ev.seq, ev.t_capture_s, ev.dropped_before)
         self._writer.add_gap("frames", ev.seq, 1, ev.t_capture_s, LATE_GAP_REASON)
         return self._lag(ev.t_capture_s)
@@ -522,6 +555,7 @@ class Acquisition:
             self.counts["frames"] += 1
         if ev.dropped_before:
             self._camera_gaps(ev.seq, ev.t_capture_s, ev.dropped_before)
+        self._watch_frame(ev.t_capture_s, measured=True)
         self.merger.push("frame", ev.t_capture_s, (ev.t_capture_s, float(ev.s_k)), now)
         wall_s = time.monotonic()
         if wall_s >= self._next_console_wall_s:  # the console shows a few frames a second
@@ -607,6 +641,7 @@ class Acquisition:
         outputs = self._first_frame_lag()
         if self.fault_line is not None:  # the run has ended
             return outputs
+        self._watch_silence(ev.t_s)
         # Ticks only let timeouts fire when data stops: they lag the data by the merge hold
         # and never pass a held sample, so while data flows they change nothing (and an
         # offline replay, which has no ticks, agrees).

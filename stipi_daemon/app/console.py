@@ -41,6 +41,8 @@ from stipi_daemon.measurement.state_machine import (
 )
 
 __all__ = [
+    "ETA",
+    "ETA_TAU",
     "VERDICT_STYLES",
     "OperatorConsole",
     "format_results",
@@ -50,6 +52,11 @@ __all__ = [
 
 #: Plain mode repeats an unchanged instruction at most this often [s of session time].
 PROMPT_REPEAT_S = 5.0
+#: The console's (ASCII) symbols of the two viscosities: the paper's eta = E*T_r (Eq. 8)
+#: and eta_tau = E*tau from the fitted Kelvin-Voigt tau (docs/analysis.md, "Two
+#: viscosities"); the report writes them η and η_τ.
+ETA = "eta"
+ETA_TAU = "eta_tau"
 
 
 def _fmt(v: float | None, unit: str, digits: int = 3) -> str:
@@ -100,6 +107,8 @@ class OperatorConsole:
         self.fps: float | None = None
         self.params: LiveParameters | None = None
         self.notes: list[str] = []
+        #: A standing warning the live view shows (frames not processed), None: none.
+        self.warning: str | None = None
         self._prompt_key = ""
         self._prompt_t = -math.inf
 
@@ -209,8 +218,21 @@ class OperatorConsole:
                     f" F_r {_fmt(params.rebound_force_n, 'N')},"
                     f" T_r {'>=' if not params.settled else ''}"
                     f"{_fmt(params.recovery_time_s, 's')},"
-                    f" E {_fmt(params.elasticity_kpa, 'kPa')}, tau {_fmt(params.tau_s, 's')}"
+                    f" E {_fmt(params.elasticity_kpa, 'kPa')}, tau {_fmt(params.tau_s, 's')},"
+                    f" {ETA} {'>=' if not params.settled else ''}"
+                    f"{_fmt(params.viscosity_n_s_per_mm2, 'N*s/mm^2')},"
+                    f" {ETA_TAU} "
+                    f"{_fmt(params.viscosity_from_time_constant_n_s_per_mm2, 'N*s/mm^2')}"
                 )
+        if self._live is not None:
+            self._live.update(self._render())
+
+    def warn(self, text: str | None) -> None:
+        """Show ``text`` as the live view's standing warning (None: clear it); the line
+        that says so is printed by :meth:`line`."""
+        if text == self.warning:
+            return
+        self.warning = text
         if self._live is not None:
             self._live.update(self._render())
 
@@ -274,11 +296,16 @@ class OperatorConsole:
             params.add_row(
                 "T_r", ("" if p.settled else ">= ") + t_r, "E", _fmt(p.elasticity_kpa, "kPa", 4)
             )
+            eta = _fmt(p.viscosity_n_s_per_mm2, "N*s/mm^2", 3)
+            params.add_row("tau", _fmt(p.tau_s, "s", 4), ETA, ("" if p.settled else ">= ") + eta)
             params.add_row(
-                "tau", _fmt(p.tau_s, "s", 4), "eta", _fmt(p.viscosity_n_s_per_mm2, "N*s/mm^2", 3)
+                "", "", ETA_TAU, _fmt(p.viscosity_from_time_constant_n_s_per_mm2, "N*s/mm^2", 3)
             )
         prompt = Text(self.prompt or " ", style="bold yellow")
-        return Panel(Group(head, bar, readings, params, prompt), title="STIP-I measurement")
+        parts: list[Any] = [head, bar, readings, params, prompt]
+        if self.warning:
+            parts.append(Text(f"WARNING {self.warning}", style="bold red"))
+        return Panel(Group(*parts), title="STIP-I measurement")
 
 
 #: Rich style of the verdict line, by verdict status: green only for ``complete``.
@@ -370,12 +397,12 @@ def format_results(summary: dict[str, Any]) -> list[str]:
         f"  applied force      F_a = {val('applied_force_n', res['applied_force_n'], 'N')}",
         f"  elasticity         E   = {val('elasticity_kpa', paper.get('elasticity_kpa'), 'kPa')}"
         "  (Eq. 7)",
-        "  viscosity (paper)  eta = "
+        f"  viscosity          {ETA} = "
         + val("viscosity_n_s_per_mm2", paper.get("viscosity_n_s_per_mm2"), "N*s/mm^2")
         + " (Eq. 8, E*T_r)",
         f"  time constant      tau = {_shown(summary, 'tau_s', tau)}"
         "  (fitted Kelvin-Voigt recovery)",
-        "  viscosity (fit)    eta = "
+        f"  viscosity (fit)    {ETA_TAU} = "
         + val(
             ("viscosity_fit_n_s_per_mm2", "elasticity_kpa", "tau_s"),  # own, or E's and tau's
             fm.get("viscosity_n_s_per_mm2"),

@@ -39,7 +39,7 @@ from stipi_daemon.analysis.results import (
     applied_force_n_from_samples,
 )
 from stipi_daemon.analysis.severity import SeverityReference
-from stipi_daemon.analysis.vpr import elasticity_kpa
+from stipi_daemon.analysis.vpr import elasticity_kpa, viscosity_n_s_per_mm2
 from stipi_daemon.errors import AnalysisError
 from stipi_daemon.measurement.events import (
     AnalysisDone,
@@ -81,7 +81,11 @@ class LiveParameters:
     tau_s, tau_se_s : float or None
         Fitted Kelvin-Voigt time constant and its standard error [s].
     viscosity_n_s_per_mm2 : float or None
-        eta = E * tau from the fit [N*s/mm^2].
+        The paper's viscosity eta = E * T_r (Eq. 8) [N*s/mm^2]; a lower bound while
+        ``settled`` is False (as T_r is).
+    viscosity_from_time_constant_n_s_per_mm2 : float or None
+        eta_tau = E * tau, from the fitted Kelvin-Voigt tau [N*s/mm^2] (another quantity
+        than eta: a single exponential reaches 98 % at T_r = 3.9 tau).
     """
 
     t_s: float
@@ -94,6 +98,7 @@ class LiveParameters:
     tau_s: float | None
     tau_se_s: float | None
     viscosity_n_s_per_mm2: float | None
+    viscosity_from_time_constant_n_s_per_mm2: float | None = None
 
     def to_dict(self) -> dict[str, float | None]:
         """Flat numeric mapping with units in the keys, for storage (``settled``: 1 or 0)."""
@@ -107,6 +112,9 @@ class LiveParameters:
             "tau_s": self.tau_s,
             "tau_se_s": self.tau_se_s,
             "viscosity_n_s_per_mm2": self.viscosity_n_s_per_mm2,
+            "viscosity_from_time_constant_n_s_per_mm2": (
+                self.viscosity_from_time_constant_n_s_per_mm2
+            ),
         }
 
 
@@ -459,15 +467,20 @@ def compute_live(inputs: LiveInputs) -> LiveParameters | None:
             e_kpa = elasticity_kpa(f_a, params.depth_mm, analysis.indenter_radius_mm)
         except AnalysisError:
             e_kpa = None
-    tau = tau_se = eta = None
+    tau = tau_se = eta_tau = eta = None
+    if e_kpa is not None and params.recovery_time_s is not None:
+        try:
+            eta = viscosity_n_s_per_mm2(e_kpa, params.recovery_time_s)
+        except AnalysisError:
+            eta = None
     if elapsed >= LIVE_FIT_MIN_S:
         fit = fit_recovery(t, s, t0, elapsed)
         tau, tau_se = fit.tau_s, fit.tau_se_s
         if tau is not None and e_kpa is not None and math.isfinite(tau):
             try:
-                eta = fit.viscosity_n_s_per_mm2(e_kpa)
+                eta_tau = fit.viscosity_n_s_per_mm2(e_kpa)
             except AnalysisError:
-                eta = None
+                eta_tau = None
     return LiveParameters(
         t_s=float(t[-1]),
         elapsed_s=elapsed,
@@ -479,4 +492,5 @@ def compute_live(inputs: LiveInputs) -> LiveParameters | None:
         tau_s=tau,
         tau_se_s=tau_se,
         viscosity_n_s_per_mm2=eta,
+        viscosity_from_time_constant_n_s_per_mm2=eta_tau,
     )

@@ -49,7 +49,7 @@ COMPARE_PARAMETERS: Final[tuple[tuple[str, str, str, tuple[str, ...]], ...]] = (
     ("time_constant_s", "τ", "s", ("fitted_recovery", "tau_s")),
     (
         "viscosity_from_time_constant_n_s_per_mm2",
-        "η = E·τ",
+        "η_τ = E·τ",
         "N·s/mm²",
         ("fitted_recovery", "model", "viscosity_n_s_per_mm2"),
     ),

@@ -430,7 +430,7 @@ class NormalisedCurve:
     normalised_label : str
         Legend text in Fig. 12 (the normalised curve, decaying at
         :attr:`normalised_rate_per_s`). It differs from :attr:`label` exactly when the two
-        rates differ: the fit's curve is D_p exp(-t/tau) in Fig. 10 (eta = E tau) but is
+        rates differ: the fit's curve is D_p exp(-t/tau) in Fig. 10 (eta_tau = E tau) but is
         classified at 1/T_r(tau) in Fig. 12 (eta = E T_r(tau)), so each names its own time.
     nearest_grade : str or None
         The reference grade this curve's estimator found nearest (``results.severity``):
@@ -610,7 +610,7 @@ def _fitted_curve(
     label_prefix: str,
     depth: float | None,
 ) -> NormalisedCurve | None:
-    """The fit's curve: D_p exp(-t/tau) (eta = E tau), classified at 1/T_r(tau).
+    """The fit's curve: D_p exp(-t/tau) (eta_tau = E tau), classified at 1/T_r(tau).
 
     T_r(tau) is the 98 % settling time an ideal recovery with this tau, S_0 and S_inf
     shows (:func:`~stipi_daemon.analysis.recovery_fit.settling_time_from_time_constant`),
@@ -631,7 +631,7 @@ def _fitted_curve(
         except AnalysisError:
             t_r_equiv = None
     sev = value_at(results, "severity", "fitted_recovery")
-    label = f"{label_prefix}, fit: η = E·τ, τ = {value_text(tau, 's')}"
+    label = f"{label_prefix}, fit: η_τ = E·τ, τ = {value_text(tau, 's')}"
     if t_r_equiv is not None and t_r_equiv > 0.0:
         normalised_label = (
             f"{label_prefix}, fit: η = E·T_r(τ), T_r(τ) = {value_text(t_r_equiv, 's')} "
@@ -639,7 +639,7 @@ def _fitted_curve(
         )
         nrate: float | None = 1.0 / t_r_equiv
     else:
-        normalised_label = f"{label_prefix}, fit: η = E·τ (no settling time: not classified)"
+        normalised_label = f"{label_prefix}, fit: η_τ = E·τ (no settling time: not classified)"
         nrate = None
     return _curve(
         label,

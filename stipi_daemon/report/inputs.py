@@ -22,7 +22,7 @@ from stipi_daemon.errors import AnalysisError
 from stipi_daemon.report.frames import RepresentativeFrame
 from stipi_daemon.storage.schema import Transition
 
-__all__ = ["FloatArray", "ReportInput", "flags_at", "number_at", "value_at"]
+__all__ = ["FloatArray", "GapRecord", "ReportInput", "flags_at", "number_at", "value_at"]
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -48,6 +48,31 @@ def flags_at(d: Any) -> tuple[str, ...]:
     """``d["flags"]`` as strings; empty when ``d`` has no list of flags."""
     v = value_at(d, "flags")
     return tuple(str(f) for f in v) if isinstance(v, list) else ()
+
+
+@dataclass(frozen=True)
+class GapRecord:
+    """One row of the session's ``gaps`` table: samples or frames the session lacks.
+
+    Attributes
+    ----------
+    stream : str
+        ``force`` or ``frames``.
+    start_index : int
+        First missing sample index or frame number.
+    count : int
+        Samples or frames missing.
+    t_s : float
+        Session time the gap was recorded at [s].
+    cause : str
+        Why (``link``, ``probe``, ``camera``, ``processing_behind``, ...).
+    """
+
+    stream: str
+    start_index: int
+    count: int
+    t_s: float
+    cause: str
 
 
 @dataclass(frozen=True)
@@ -89,6 +114,9 @@ class ReportInput:
         recorded before metadata was kept.
     metadata_problem : str or None
         Why the manifest's ``metadata`` could not be read (one line), when it could not.
+    gap_records : tuple of GapRecord
+        The session's ``gaps`` rows in order (lost samples, frames dropped by the camera,
+        frames stored as gaps for coming too late).
     """
 
     session_id: str
@@ -108,6 +136,7 @@ class ReportInput:
     rescued_file: str | None = None
     metadata: Mapping[str, str | None] | None = None
     metadata_problem: str | None = None
+    gap_records: tuple[GapRecord, ...] = ()
 
     def __post_init__(self) -> None:
         if not (self.frame_seq.shape == self.frame_times_s.shape == self.s_k_px.shape):

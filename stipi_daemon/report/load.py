@@ -21,7 +21,7 @@ import numpy as np
 
 from stipi_daemon.errors import SessionError
 from stipi_daemon.report.frames import read_representative_frames
-from stipi_daemon.report.inputs import ReportInput
+from stipi_daemon.report.inputs import GapRecord, ReportInput
 from stipi_daemon.storage import SessionReader
 
 __all__ = ["ANALYSIS_FORMAT", "load_report_input", "read_rescued_analysis"]
@@ -66,6 +66,7 @@ def load_report_input(directory: str | Path) -> ReportInput:
             frames = reader.frames()
             force = reader.force_samples()
             transitions = tuple(reader.transitions())
+            gaps = reader.gaps()
         summary = reader.summary
         manifest = reader.manifest
         session_id = reader.session_id
@@ -92,6 +93,16 @@ def load_report_input(directory: str | Path) -> ReportInput:
         rescued_file=None if rescued is None else rescued[0],
         metadata=metadata,
         metadata_problem=metadata_problem,
+        gap_records=tuple(
+            GapRecord(
+                str(g["stream"]),
+                int(g["start_index"]),
+                int(g["count"]),
+                float(g["t_host_s"]),
+                str(g["cause"]),
+            )
+            for g in gaps
+        ),
     )
 
 

@@ -36,7 +36,7 @@ __all__ = [
 #: Sections of the table, in page order.
 PITTING: Final = "Pitting parameters (Eqs. 3-6)"
 VPR: Final = "VPR model, paper estimator (Eqs. 7-8, 10)"
-FIT: Final = "Kelvin-Voigt recovery fit (η = E·τ)"
+FIT: Final = "Kelvin-Voigt recovery fit (η_τ = E·τ)"
 SEVERITY: Final = "Edema severity (Section IV.C)"
 
 #: Estimators whose severity class is tabulated: key in ``results.severity``, label.
@@ -101,7 +101,7 @@ class ParameterRow:
 
 
 def _viscosity_from_tau_se(results: Mapping[str, Any]) -> float | None:
-    """SE of eta = E tau [N s/mm^2] from tau's alone (E has none): E [kPa] SE(tau) [s] / 1e3."""
+    """SE of eta_tau = E tau [N s/mm^2] from tau's alone (E has none): E [kPa] SE(tau) [s] / 1e3."""
     tau = number_at(results, "fitted_recovery", "tau_s")
     tau_se = number_at(results, "fitted_recovery", "tau_se_s")
     e_kpa = number_at(results, "fitted_recovery", "model", "elasticity_kpa")
@@ -332,7 +332,7 @@ def parameter_table(summary: Mapping[str, Any] | None) -> tuple[ParameterRow, ..
     """Every result of the session's summary, with uncertainties, flags, validity and truth.
 
     The lines of :data:`PARAMETER_ROWS`, then each estimator's severity. The standard
-    error of eta = E tau is propagated from tau's alone (E has none). Each row carries the
+    error of eta_tau = E tau is propagated from tau's alone (E has none). Each row carries the
     validity of the quantities it depends on (``unknown`` for a session recorded before
     validity was kept). Empty when the summary has no results.
     """

@@ -57,7 +57,8 @@ INTERVAL_QUANTITIES: Final[dict[str, tuple[str, str]]] = {
     "tau_s": ("τ", "s"),
     "recovery_time_s": ("T_r", "s"),
     "rebound_force_n": ("F_r", "N"),
-    "viscosity_n_s_per_mm2": ("η", "N·s/mm²"),
+    # the paper's eta = E T_r with the model's T_r (a Kelvin-Voigt row's is not its E tau)
+    "viscosity_n_s_per_mm2": ("η (E·T_r)", "N·s/mm²"),
 }
 #: A missing interval.
 NOT_AVAILABLE: Final = "n/a"
@@ -272,7 +273,7 @@ COLUMNS: Final = (
     "τ [s]",
     "T_r [s]",
     "F_r [N]",
-    "η [N·s/mm²]",
+    "η = E·T_r [N·s/mm²]",
 )
 
 

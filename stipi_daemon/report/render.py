@@ -597,7 +597,7 @@ def _titled(ax: Axes, title: str, note: str) -> None:
 def draw_vpr(data: VprFigure, title: str = "") -> Figure:
     """Fig. 10: D(t) = D_p exp(-(E/eta) t) of the reference grades and of this session.
 
-    The fit's curve decays at 1/tau (eta = E tau), the paper estimator's and the grades'
+    The fit's curve decays at 1/tau (eta_tau = E tau), the paper estimator's and the grades'
     at 1/T_r (Eq. 8); the legend names each one's time. A note says that the nearest grade
     is matched on the normalised shape (Fig. 12), not on the depth.
     """

@@ -7,7 +7,9 @@ intervals longer than :data:`GAP_FACTOR` times the median sampling period, and
 instead of drawing a straight segment across it (matplotlib leaves NaN points out).
 :func:`isolated_outliers` finds single frames far from their neighbours (a dark or bright
 frame in the recovery), when the analysis did not record which frames it rejected.
-Pure (no I/O, no drawing). Times are in seconds, S_k in pixels.
+:func:`gap_facts` says the same in words for the report's facts: the gaps the figures
+shade and the gap records the session stored. Pure (no I/O, no drawing). Times are in
+seconds, S_k in pixels.
 """
 
 from __future__ import annotations
@@ -19,7 +21,7 @@ import numpy as np
 import numpy.typing as npt
 
 from stipi_daemon.analysis.observation import GAP_FACTOR, find_frame_gaps, median_frame_period_s
-from stipi_daemon.report.inputs import FloatArray
+from stipi_daemon.report.inputs import FloatArray, GapRecord, ReportInput
 
 __all__ = [
     "GAP_FACTOR",
@@ -29,6 +31,7 @@ __all__ = [
     "TimeGap",
     "broken_line",
     "find_gaps",
+    "gap_facts",
     "isolated_outliers",
 ]
 
@@ -87,6 +90,42 @@ def find_gaps(times_s: FloatArray) -> tuple[TimeGap, ...]:
         TimeGap(g.start_s, g.end_s, max(1, round(g.length_s / period) - 1))
         for g in find_frame_gaps(t, period)
     )
+
+
+def _stream_facts(what: str, gaps: tuple[TimeGap, ...], records: list[GapRecord]) -> str:
+    """``<n> <what> gaps (longest <x> s; <k> <unit> recorded missing: <k1> <cause1>, ...)``."""
+    n = len(gaps)
+    text = f"{n} {what} gap{'' if n == 1 else 's'}"
+    inner = []
+    if gaps:
+        inner.append(f"longest {max(g.duration_s for g in gaps):.2f} s")
+    if records:
+        by_cause: dict[str, int] = {}
+        for g in records:
+            by_cause[g.cause] = by_cause.get(g.cause, 0) + g.count
+        unit = "samples" if what == "force" else "frames"
+        causes = ", ".join(f"{k} {c}" for c, k in by_cause.items())
+        inner.append(f"{sum(by_cause.values())} {unit} recorded missing: {causes}")
+    return text + (f" ({'; '.join(inner)})" if inner else "")
+
+
+def gap_facts(inp: ReportInput) -> str:
+    """The report's facts on gaps, from the records the figures use.
+
+    The gaps the force and S_k figures shade (:func:`find_gaps` on the stored sample and
+    frame times: the figures call it on the same arrays) with the longest of each, and the
+    session's own gap records (``gaps`` table: lost samples by cause; frames the camera
+    dropped or that came too late to be measured, ``processing_behind``), e.g. ``frames:
+    20 frame gaps (longest 47.45 s; 2847 frames recorded missing: 2847
+    processing_behind); force: 0 force gaps``.
+    """
+    frames = _stream_facts(
+        "frame", find_gaps(inp.frame_times_s), [g for g in inp.gap_records if g.stream == "frames"]
+    )
+    force = _stream_facts(
+        "force", find_gaps(inp.force_times_s), [g for g in inp.gap_records if g.stream == "force"]
+    )
+    return f"frames: {frames}; force: {force}"
 
 
 def broken_line(

@@ -51,6 +51,7 @@ from stipi_daemon.report.recovery_models import (
     recovery_models_text,
     recovery_models_view,
 )
+from stipi_daemon.report.series import gap_facts
 from stipi_daemon.report.verdict import VerdictView, read_validity, session_verdict
 
 __all__ = [
@@ -230,10 +231,7 @@ def _meta(inp: ReportInput, results_from: str) -> list[tuple[str, str]]:
             f"{inp.frame_times_s.size} frames, {inp.force_times_s.size} force samples over "
             f"{format_number(inp.t_end_s - inp.t_start_s, 's')}",
         ),
-        (
-            "Gaps",
-            f"{run.get('gaps', '-')} force gaps, {run.get('dropped_frames', '-')} dropped frames",
-        ),
+        ("Gaps", gap_facts(inp)),
         ("Camera", str(cam or "-")),
         ("Probe", str(((inp.config.get("probe") or {}).get("transport") or {}).get("kind", "-"))),
         ("Calibration", f"{cal.get('source', '-')}; threshold p = {cal.get('threshold_p', '-')}"),

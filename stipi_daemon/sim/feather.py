@@ -14,9 +14,11 @@ This module owns three pure parts and one thin I/O shell:
 * :class:`McuClock` maps session time onto the MCU's ``micros()`` with a boot offset and a
   rate error [ppm] (clock drift).
 * :class:`SceneAdc` gives the ADC reading at each MCU sample time from a simulator scene
-  (:mod:`stipi_daemon.sim`): the scene's own samples (effects included) where the MCU
-  samples fall on the scene's sample grid, the scene's force model through the load cell
-  model otherwise (another rate, clock drift, times outside the scene).
+  (:mod:`stipi_daemon.sim`): the scene's force model at that time through the scene's
+  force effects (drift, noise) and the load cell's ADC (its rails), as the offline
+  pipeline makes the scene's own samples (exactly those where the MCU's samples fall on
+  the scene's grid), and which samples a ``force_dropout`` loses on the link (the core
+  leaves them out of its SAMPLES frames).
 * :class:`EmulatedFeather` runs a core on a :class:`~stipi_daemon.clock.SessionClock` behind a
   pty pair: the slave is what a serial transport opens (through pyserial, the real path),
   reached through a stable symlink that disappears while the probe is "unplugged". It
@@ -173,16 +175,32 @@ class McuClock:
         return self.boot_session_s + (mcu_us - self.boot_offset_us) * 1e-6 / self._k
 
 
+#: Scene time the emulated probe's precomputed samples reach past the scene's end [s].
+SCHEDULE_MARGIN_S: Final = 60.0
+
+
 class SceneAdc:
-    """ADC counts from a simulator scene at the MCU's sample times.
+    """ADC counts from a simulator scene at the MCU's sample times, its force effects played.
 
     The scene's time 0 is the MCU time ``start_mcu_us`` (by default the first sample the
     probe takes); scene time is true time, so an MCU clock that runs ``rate_error_ppm``
     fast takes its samples at ``(t_mcu - start) / (1 + rate_error_ppm * 1e-6)`` scene
-    seconds. A sample within 1 µs of the scene's sample grid (``index / sample_rate_hz``,
-    inside the scene) reads the scene's own ADC count (``Pipeline.force_batch``, effects
-    included); any other sample reads ``LoadCellModel.counts(model.force_n(t))`` (the
-    force model through the load cell and ADC, without random effects).
+    seconds. Every sample reads the scene's force model at that time through the scene's
+    force effects (``force_drift``, ``force_noise``: ``Pipeline.force_counts``) and the
+    load cell's ADC (quantised, clipped at its rails), as the offline pipeline
+    (``Pipeline.force_batch``) makes the scene's own samples.
+
+    The probe samples every ``period_us`` of MCU time; the counts are computed ahead over
+    that schedule, which starts at the schedule's first sample at or after scene time 0
+    (so that its j-th sample draws the effects' j-th random numbers, as the scene's j-th
+    sample does: where the MCU's samples fall on the scene's grid, with the scene's rate,
+    they read exactly the scene's own counts) and reaches :data:`SCHEDULE_MARGIN_S` past
+    the scene's end (or past its first sample, after the end). A sample off that schedule
+    (the rate was changed, the schedule's end was passed) starts a new one from it.
+
+    Samples a ``force_dropout`` loses (taken at a true time in its span) are taken but not
+    delivered (:meth:`lost`): the firmware model leaves them out of its SAMPLES frames, so
+    the host sees an index gap and a link loss, as the effect defines.
 
     Parameters
     ----------
@@ -208,21 +226,21 @@ class SceneAdc:
 
         if not isinstance(scene, Scene):
             raise TypeError(f"scene must be a stipi_daemon.sim.Scene, got {type(scene).__name__}")
-        pipeline = Pipeline(scene, seed)
-        batch = pipeline.force_batch()
+        self._pipeline = Pipeline(scene, seed)
         self.scene = scene
         self.rate_hz = float(scene.load_cell.sample_rate_hz)
-        n = int(batch.index.max()) + 1 if len(batch) else 0
-        grid = np.full(n, -1, dtype=np.int64)
-        grid[batch.index] = batch.adc_counts
-        self._grid = grid
-        self._model = pipeline.model
-        self._load_cell = pipeline.load_cell
+        self._end_s = float(scene.force_profile.duration_s) + SCHEDULE_MARGIN_S
+        load_cell = self._pipeline.load_cell
         self.start_mcu_us = start_mcu_us
         self._k = 1.0 + rate_error_ppm * 1e-6
-        self.zero_counts = round(self._load_cell.zero_counts)
+        # the schedule: MCU time of its sample 0 [µs], its period [µs], counts, losses
+        self._anchor_us = 0
+        self._period_us = 0
+        self._counts: NDArray[np.int64] = np.zeros(0, dtype=np.int64)
+        self._lost: NDArray[np.bool_] = np.zeros(0, dtype=np.bool_)
+        self.zero_counts = round(load_cell.zero_counts)
         """Tare of the scene's load cell, rounded as GET_INFO reports it [counts]."""
-        self.span_un_per_count = self._load_cell.span_un_per_count
+        self.span_un_per_count = load_cell.span_un_per_count
         """Span of the scene's load cell as GET_INFO reports it [µN/count]."""
 
     def scene_time_s(self, t_mcu_us: NDArray[np.int64]) -> NDArray[np.float64]:
@@ -232,17 +250,57 @@ class SceneAdc:
         t: NDArray[np.float64] = (t_mcu_us - self.start_mcu_us).astype(np.float64) * 1e-6 / self._k
         return t
 
-    def counts(self, t_mcu_us: NDArray[np.int64]) -> NDArray[np.int64]:
-        if self.start_mcu_us is None and t_mcu_us.size:
+    def _on_schedule(self, t_mcu_us: NDArray[np.int64]) -> NDArray[np.int64] | None:
+        """Rows of the schedule of samples at MCU times ``t_mcu_us``; None when one is not
+        on it."""
+        if not self._period_us:
+            return None
+        d = t_mcu_us - self._anchor_us
+        j = d // self._period_us
+        ok = bool(np.all((d % self._period_us == 0) & (j >= 0) & (j < self._counts.size)))
+        return j if ok else None
+
+    def _rows(self, t_mcu_us: NDArray[np.int64]) -> NDArray[np.int64]:
+        """Rows of the schedule of samples at MCU times ``t_mcu_us``, a new schedule made
+        from the first of them and the step to the second when they are not on the current
+        one. Raises ValueError for times not evenly spaced (not a sampling timer's)."""
+        if self.start_mcu_us is None:
             self.start_mcu_us = int(t_mcu_us[0])
-        t_s = self.scene_time_s(t_mcu_us)
-        k = np.rint(t_s * self.rate_hz).astype(np.int64)
-        on_grid = (np.abs(t_s - k / self.rate_hz) <= 1e-6) & (k >= 0) & (k < self._grid.size)
-        out = np.empty(t_s.shape, dtype=np.int64)
-        out[on_grid] = self._grid[k[on_grid]]
-        need = ~on_grid | (out < 0)
-        if need.any():
-            out[need] = self._load_cell.counts(self._model.force_n(t_s[need]))
+        rows = self._on_schedule(t_mcu_us)
+        if rows is not None:
+            return rows
+        period = int(t_mcu_us[1] - t_mcu_us[0]) if t_mcu_us.size > 1 else 0
+        if period <= 0:
+            period = round(1e6 / self.rate_hz)
+        first_s = float(self.scene_time_s(t_mcu_us[:1])[0])
+        step_s = period * 1e-6 / self._k
+        j0 = max(0, math.floor(first_s / step_s + 1e-9))
+        horizon_s = max(self._end_s, first_s + SCHEDULE_MARGIN_S)
+        n = j0 + max(t_mcu_us.size, math.ceil((horizon_s - first_s) / step_s) + 1)
+        self._anchor_us = int(t_mcu_us[0]) - j0 * period
+        self._period_us = period
+        times_s = self.scene_time_s(self._anchor_us + period * np.arange(n, dtype=np.int64))
+        self._counts = self._pipeline.force_counts(times_s)
+        self._lost = self._pipeline.link_lost(times_s)
+        rows = self._on_schedule(t_mcu_us)
+        if rows is None:
+            raise ValueError("sample times are not evenly spaced (a sampling timer's are)")
+        return rows
+
+    def counts(self, t_mcu_us: NDArray[np.int64]) -> NDArray[np.int64]:
+        if t_mcu_us.size == 0:
+            return np.zeros(0, dtype=np.int64)
+        rows = self._rows(t_mcu_us)  # (may make a new schedule: before its counts are read)
+        out: NDArray[np.int64] = self._counts[rows]
+        return out
+
+    def lost(self, t_mcu_us: NDArray[np.int64]) -> NDArray[np.bool_]:
+        """Which samples taken at MCU times ``t_mcu_us`` the link loses (the scene's
+        ``force_dropout`` spans, in true time)."""
+        if t_mcu_us.size == 0:
+            return np.zeros(0, dtype=np.bool_)
+        rows = self._rows(t_mcu_us)
+        out: NDArray[np.bool_] = self._lost[rows]
         return out
 
 
@@ -677,9 +735,32 @@ class FeatherCore:
     # ------------------------------------------------------------------ frames out
 
     def _send_batch(self, batch: _Batch) -> None:
-        if batch.adc:
-            msg = Samples(batch.first_index % _U32, batch.period_us, batch.adc)
-            self._emit(msg, batch.t_us)
+        """One SAMPLES frame per batch; samples the ADC source says the link loses
+        (:meth:`SceneAdc.lost`, a scene's ``force_dropout``) are left out: each run of
+        delivered samples goes in a frame of its own, and each run of lost ones takes the
+        sequence number of a frame the link lost (the host sees an index gap, cause link)."""
+        if not batch.adc:
+            return
+        lost_of = getattr(self._adc, "lost", None)
+        n = len(batch.adc)
+        lost = (
+            np.zeros(n, dtype=np.bool_)
+            if lost_of is None
+            else np.asarray(lost_of(batch.t_us + batch.period_us * np.arange(n, dtype=np.int64)))
+        )
+        start = 0
+        while start < n:
+            end = start + 1
+            while end < n and lost[end] == lost[start]:
+                end += 1
+            if lost[start]:  # a frame sent and lost on the link
+                self.seq = (self.seq + 1) & 0xFFFF
+                self.frames_sent += 1
+            else:
+                first = (batch.first_index + start) % _U32
+                msg = Samples(first, batch.period_us, batch.adc[start:end])
+                self._emit(msg, batch.t_us + start * batch.period_us)
+            start = end
 
     def _send_status(self) -> None:
         msg = Status(

@@ -332,6 +332,46 @@ class Pipeline:
         out: NDArray[np.uint8] = (acc // n).astype(np.uint8)
         return out
 
+    def force_counts(self, t_true_s: NDArray[np.float64]) -> NDArray[np.int64]:
+        """ADC codes of samples taken at true times ``t_true_s`` [s], every force effect of
+        the scene applied, as :meth:`force_batch` applies them.
+
+        The model's force at each time goes through each :class:`ForceEffect` in registry
+        order (its ``apply_force``, then the load cell's quantisation and clipping to the
+        ADC's range, then its ``apply_counts``). Each effect draws from its own generator,
+        seeded by (seed, effect) as in :meth:`force_batch` and started afresh at every
+        call, over the array in order: element j of a call gets the draws sample j of the
+        scene's own schedule gets, whatever the times (the emulated probe's sample times,
+        :class:`stipi_daemon.sim.feather.SceneAdc`).
+        """
+        force = self.model.force_n(t_true_s)
+        force_fx: list[tuple[ForceEffect, np.random.Generator]] = [
+            (fe, np.random.default_rng(ss)) for fe, ss in self._of(ForceEffect, 1)
+        ]
+        for fe, fg in force_fx:
+            force = fe.apply_force(t_true_s, force, fg)
+        counts = self.load_cell.counts(force)
+        for fe, fg in force_fx:
+            counts = fe.apply_counts(counts, fg)
+        return counts
+
+    def link_lost(self, t_true_s: NDArray[np.float64]) -> NDArray[np.bool_]:
+        """Which samples taken at true times ``t_true_s`` [s] the scene's ``force_dropout``
+        effects lose on the link (each effect's own ``delivered``); all False without one.
+
+        Only ``force_dropout`` is a loss defined by the time a sample is taken; the other
+        losses (``ble_link``'s random batches) belong to a link model of their own.
+        """
+        lost = np.zeros(t_true_s.shape, dtype=np.bool_)
+        index = np.arange(t_true_s.size, dtype=np.int64)
+        for ce, ss in self._of(SampleClockEffect, 1):
+            if getattr(getattr(ce, "params", None), "name", None) != "force_dropout":
+                continue
+            g = np.random.default_rng(ss)
+            ce.true_time_s(t_true_s, g)  # the effect keeps the times delivered() judges
+            lost |= ~ce.delivered(index, g)
+        return lost
+
     def force_batch(self) -> ForceBatch:
         """All load-cell samples the host receives, as arrays."""
         spec = self.scene.load_cell
@@ -355,15 +395,7 @@ class Pipeline:
         for ce, g in gens:
             t_host = ce.host_time_s(index, t_host, delivered, g)
         true_force = self.model.force_n(t_true)
-        force = true_force
-        force_fx: list[tuple[ForceEffect, np.random.Generator]] = [
-            (fe, np.random.default_rng(ss)) for fe, ss in self._of(ForceEffect, 1)
-        ]
-        for fe, fg in force_fx:
-            force = fe.apply_force(t_true, force, fg)
-        counts = self.load_cell.counts(force)
-        for fe, fg in force_fx:
-            counts = fe.apply_counts(counts, fg)
+        counts = self.force_counts(t_true)
         t_mcu = spec.mcu_boot_offset_us + np.rint(mcu_us).astype(np.int64)
         return ForceBatch(
             index=index[delivered],

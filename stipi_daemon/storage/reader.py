@@ -732,6 +732,10 @@ QUANTITY_PATHS: Final[dict[str, tuple[tuple[str, ...], str]]] = {
     "viscosity_n_s_per_mm2": (("paper_estimator", "viscosity_n_s_per_mm2"), "N*s/mm^2"),
     "severity": (("severity", "paper_estimator", "severity"), ""),
     "tau_s": (("fitted_recovery", "tau_s"), "s"),
+    "viscosity_fit_n_s_per_mm2": (
+        ("fitted_recovery", "model", "viscosity_n_s_per_mm2"),
+        "N*s/mm^2",
+    ),
     "applied_force_n": (("applied_force_n",), "N"),
 }
 

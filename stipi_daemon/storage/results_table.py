@@ -58,7 +58,10 @@ _MODEL_QUANTITIES: Final[dict[str, tuple[str, str]]] = {
     "tau_s": ("s", "effective time constant (1 - 1/e of the recovery done) of the fitted curve"),
     "recovery_time_s": ("s", "T_r (Eq. 6) on the fitted curve"),
     "rebound_force_n": ("N", "F_r (Eq. 5) at the fitted curve's S_max"),
-    "viscosity_n_s_per_mm2": ("N*s/mm^2", "eta = E*T_r (Eq. 8) with the fitted curve's T_r"),
+    "viscosity_n_s_per_mm2": (
+        "N*s/mm^2",
+        "eta = E*T_r (Eq. 8) with this model's T_r (not a Kelvin-Voigt eta_tau = E*tau)",
+    ),
 }
 
 TableFormat = Literal["csv", "parquet"]
@@ -73,6 +76,9 @@ _QUANTITY_DOCS: Final[dict[str, str]] = {
     "viscosity_n_s_per_mm2": "viscosity eta = E*T_r (Eq. 8), paper estimator",
     "severity": "severity class (mild/severe, Sec. IV.C), paper estimator",
     "tau_s": "fitted Kelvin-Voigt recovery time constant",
+    "viscosity_fit_n_s_per_mm2": (
+        "viscosity eta_tau = E*tau from the fitted Kelvin-Voigt tau (not the paper's eta)"
+    ),
     "applied_force_n": "applied force F_a during the pitting hold",
 }
 

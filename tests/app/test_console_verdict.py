@@ -119,8 +119,8 @@ def test_the_fitted_viscosity_takes_the_worst_status_of_e_and_tau() -> None:
         (line,) = [x for x in format_results(summary) if "viscosity (fit)" in x]
         return line
 
-    assert shown().endswith("eta = 13.16 N*s/mm^2 (E*tau)")
+    assert shown().endswith("eta_tau = 13.16 N*s/mm^2 (E*tau)")
     assert "13.16 N*s/mm^2 (flagged)" in shown(elasticity_kpa=("flagged", "extrapolated"))
     assert "13.16 N*s/mm^2 (flagged)" in shown(tau_s=("flagged", "poor fit"))
     no_tau = shown(tau_s=("invalid", "no fit"), elasticity_kpa=("flagged", "extrapolated"))
-    assert "eta = invalid (E*tau)" in no_tau and "13.16" not in no_tau
+    assert "eta_tau = invalid (E*tau)" in no_tau and "13.16" not in no_tau

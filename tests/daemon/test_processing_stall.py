@@ -26,6 +26,7 @@ stall but after its frames that become gaps):
 
 from __future__ import annotations
 
+import asyncio
 from pathlib import Path
 from typing import Any
 
@@ -35,6 +36,7 @@ import yaml
 from stipi_daemon.app.config import load_config
 from stipi_daemon.app.daemon import run_daemon
 from tests.daemon._support import (
+    SCENES,
     SHORT_MEASUREMENT,
     TRUTH_TOLERANCES,
     check_against_truth,
@@ -153,3 +155,88 @@ async def test_a_40_s_stall_beyond_the_lag_bound_is_a_fault_that_names_the_stall
     reason = summary["end_reason"]
     assert reason.startswith("falling behind: a frame was handled 40.0 s after"), reason
     assert "processing stall" in reason and "run.speed" not in reason, reason
+
+
+#: The shipped scene's stall, in scene time [s] (configs/scenes/processing_stall.yaml).
+SHIPPED_STALL_S = (30.0, 50.0)
+
+
+@pytest.mark.timeout(900)
+async def test_the_console_warns_within_a_second_of_the_stall_and_says_what_it_means(
+    tmp_path: Path,
+) -> None:
+    """The shipped processing_stall scene (its 20 s stall from 30 s, the demo's measurement
+    and lag bound) at 160x120 and with a 35 s recovery window: the console's warning
+    comes at most 1 s of session time after the stall's start, says the recovery time
+    cannot be read inside the gap, and the lines after the stall say how long it was and
+    which frames came too late to be measured."""
+    import html
+    import io
+    import re
+
+    from stipi_daemon.app.devices import DaemonHandles
+
+    doc = yaml.safe_load((SCENES / "processing_stall.yaml").read_text())
+    assert [(e["t_start_s"], e["t_end_s"]) for e in doc["effects"]] == [SHIPPED_STALL_S]
+    doc["camera"].update({"width": 160, "height": 120})
+    doc["force_profile"]["recovery_s"] = 40.0
+    scene = tmp_path / "processing_stall.yaml"
+    scene.write_text(yaml.safe_dump(doc))
+    demo = yaml.safe_load((SCENES.parent / "demo.yaml").read_text())
+    cfg = write_config(
+        tmp_path,
+        {
+            "probe": {"transport": {"kind": "emulated", "scene": str(scene)}},
+            "camera": {"kind": "simulator", "scene": str(scene)},
+            "measurement": {**demo["measurement"], "recovery_max_s": 35.0},
+            "storage": {"root": str(tmp_path / "sessions"), "min_free_mb": 0, "video": "off"},
+            "run": {"speed": 0, "max_lag_s": demo["run"]["max_lag_s"]},
+        },
+    )
+    origin: list[float] = []
+
+    async def grab_origin(h: DaemonHandles) -> None:
+        cam: Any = h.camera.camera
+        while cam.t0_s is None:
+            await asyncio.sleep(0.01)
+        origin.append(float(cam.t0_s))
+
+    out = io.StringIO()
+    outcome = await run_daemon(load_config(cfg), out=out, live=False, on_running=grab_origin)
+    text = out.getvalue()
+    assert outcome.exit_code == 0 and origin, text
+    stall_start_s = origin[0] + SHIPPED_STALL_S[0]  # session time [s]
+    warnings = re.findall(
+        r"\[\s*([0-9.]+) s\] WARNING frames not processed for ([0-9.]+) s(.*)", text
+    )
+    assert len(warnings) == 1, text
+    t_warn, idle, rest = float(warnings[0][0]), float(warnings[0][1]), warnings[0][2]
+    assert 0.0 < t_warn - stall_start_s <= 1.0, (t_warn, stall_start_s)
+    assert idle <= 1.0
+    assert "the recovery time T_r" in rest and "cannot be read inside this gap" in rest, rest
+    again = re.findall(r"frames arrive again after ([0-9.]+) s without", text)
+    assert len(again) == 1 and abs(float(again[0]) - 20.0) <= 0.1, text
+    # frames captured 30-35 s (more than max_lag_s / 2 = 15 s late) were not measured
+    late = re.findall(r"(\d+) frames captured ([0-9.]+)-([0-9.]+) s came too late", text)
+    assert len(late) == 1, text
+    n, first, last = int(late[0][0]), float(late[0][1]), float(late[0][2])
+    assert (
+        abs(first - stall_start_s) <= 1 / 60 + 1e-6 and abs(last - (stall_start_s + 5.0)) <= 1 / 60
+    )
+    record = session_record(outcome.session_dir)
+    behind = [g for g in record["tables"]["gaps"] if g[5] == "processing_behind"]
+    assert sum(g[3] for g in behind) == n
+    # The report's facts count the same gap records its S_k figure shades (issue 37: the
+    # row read "0 force gaps, 0 dropped frames" above a figure with 20 frame gaps).
+    from stipi_daemon.report.figures import s_k_figure
+    from stipi_daemon.report.load import load_report_input
+    from stipi_daemon.report.series import gap_facts
+
+    inp = load_report_input(outcome.session_dir)
+    shaded = s_k_figure(inp).gaps
+    assert len(shaded) >= 1
+    facts = gap_facts(inp)
+    assert facts.startswith(f"frames: {len(shaded)} frame gap"), facts
+    assert f"{n} frames recorded missing: {n} processing_behind" in facts, facts
+    page = (Path(outcome.session_dir) / "report" / "report.html").read_text()
+    assert html.escape(facts) in page

@@ -346,6 +346,66 @@ def test_scene_adc_reads_the_scene_on_its_grid_and_the_model_off_it() -> None:
     assert (adc.zero_counts, adc.span_un_per_count) == (102, 54297)
 
 
+def _effects_scene(tmp_path: Path, effects: list[dict[str, object]]) -> Path:
+    import yaml
+
+    doc = yaml.safe_load((SCENES / "grade2.yaml").read_text())
+    doc["effects"] = effects
+    path = tmp_path / "effects.yaml"
+    path.write_text(yaml.safe_dump(doc))
+    return path
+
+
+def test_scene_adc_plays_the_force_effects_between_the_scenes_samples(tmp_path: Path) -> None:
+    """Drift at any sample time (F + offset + rate t, the effect's definition, in counts of
+    the FC22's 54.3 mN); on the scene's grid the scene's own counts, noise included."""
+    drift = {"name": "force_drift", "offset_n": 0.5, "rate_n_per_s": 0.05}
+    scene = load_scene(_effects_scene(tmp_path, [drift]))
+    pipeline = Pipeline(scene)
+    adc = SceneAdc(scene, start_mcu_us=5_000_000)
+    off = 5_000_000 + 3_333 + np.arange(0, 3000, dtype=np.int64) * 10_000
+    t_s = (off - 5_000_000) * 1e-6
+    n_per_count = 44.48 / 819.2
+    want = np.rint(102.4 + (pipeline.model.force_n(t_s) + 0.5 + 0.05 * t_s) / n_per_count)
+    assert np.array_equal(adc.counts(off), want.astype(np.int64))
+
+    noisy = load_scene(_effects_scene(tmp_path, [drift, {"name": "force_noise", "sigma_n": 0.3}]))
+    batch = Pipeline(noisy).force_batch()
+    on_grid = 5_000_000 + np.arange(0, 3000, dtype=np.int64) * 10_000
+    a, b = SceneAdc(noisy, start_mcu_us=5_000_000), SceneAdc(noisy, start_mcu_us=5_000_000)
+    got = np.concatenate([a.counts(on_grid[i : i + 256]) for i in range(0, 3000, 256)])
+    assert np.array_equal(got, batch.adc_counts[:3000])  # in batches as the firmware asks
+    assert np.array_equal(b.counts(on_grid), got)  # the same for the same seed
+    other = SceneAdc(noisy, seed=noisy.seed + 1, start_mcu_us=5_000_000).counts(on_grid)
+    assert not np.array_equal(other, got)
+
+
+def test_a_force_dropout_is_an_index_gap_lost_on_the_link(tmp_path: Path) -> None:
+    """The samples taken in [1.5, 2.0) s are not sent: the SAMPLES frames around them leave
+    out exactly those 50 indices, and the frames that held them took sequence numbers (lost
+    on the link, not in the probe: STATUS ``dropped`` stays 0)."""
+    span = {"name": "force_dropout", "t_start_s": 1.5, "t_end_s": 2.0}
+    scene = load_scene(_effects_scene(tmp_path, [span]))
+    adc = SceneAdc(scene)
+    core = FeatherCore(adc, boot_us=1_000, zero_counts=102, span_un_per_count=54297)
+    dec = FrameDecoder()
+    _send(core, StreamStart(), 0, 2_000)
+    core.advance(4_000_000)
+    frames = _frames(core, dec)
+    got: list[int] = []
+    for f in frames:
+        if isinstance(f.message, Samples):
+            got += range(f.message.first_index, f.message.first_index + len(f.message.adc))
+    period = period_for_rate(100)
+    missing = sorted(set(range(got[0], got[-1] + 1)) - set(got))
+    times_s = [(k - got[0]) * period * 1e-6 for k in missing]
+    assert len(missing) == 50 and min(times_s) >= 1.5 - 1e-9 and max(times_s) < 2.0
+    every = [f.seq for f in frames]  # SAMPLES and STATUS
+    lost_frames = set(range(every[0], every[-1] + 1)) - set(every)
+    assert len(lost_frames) in (5, 6)  # 50 samples in batches of 10, on the link
+    assert core.dropped == 0
+
+
 def test_flip_bits_counts_exactly() -> None:
     rng = np.random.default_rng(3)
     data = bytes(range(1, 200))

@@ -44,9 +44,9 @@ def view_wanted(settings: ViewSettings, console: OperatorConsole) -> bool:
 
 def live_statuses(params: LiveParameters) -> dict[str, str]:
     """Each live parameter's status as the view colours it: ``invalid`` (not computable
-    yet), ``provisional`` (T_r before S_k has settled, and E, eta that depend on it or on
-    the fit), ``flagged`` (no pit: D_p <= 0; a fit whose tau has a standard error above
-    :data:`RELATIVE_SE_FLAG` of it, and eta from it), ``ok``."""
+    yet), ``provisional`` (T_r before S_k has settled, and eta = E*T_r and eta_tau = E*tau
+    that depend on it or on the fit), ``flagged`` (no pit: D_p <= 0; a fit whose tau has a
+    standard error above :data:`RELATIVE_SE_FLAG` of it, and eta_tau from it), ``ok``."""
 
     def present(v: float | None) -> bool:
         return v is not None and math.isfinite(v)
@@ -58,6 +58,9 @@ def live_statuses(params: LiveParameters) -> dict[str, str]:
         "elasticity_kpa": "ok" if present(params.elasticity_kpa) else "invalid",
         "tau_s": "ok" if present(params.tau_s) else "invalid",
         "viscosity_n_s_per_mm2": "ok" if present(params.viscosity_n_s_per_mm2) else "invalid",
+        "viscosity_from_time_constant_n_s_per_mm2": (
+            "ok" if present(params.viscosity_from_time_constant_n_s_per_mm2) else "invalid"
+        ),
     }
     if present(params.depth_mm) and params.depth_mm <= 0.0:
         status["depth_mm"] = "flagged"
@@ -66,10 +69,11 @@ def live_statuses(params: LiveParameters) -> dict[str, str]:
         not present(se) or (tau is not None and se is not None and se > RELATIVE_SE_FLAG * abs(tau))
     ):
         status["tau_s"] = "flagged"
-        if status["viscosity_n_s_per_mm2"] == "ok":
-            status["viscosity_n_s_per_mm2"] = "flagged"
-    if not params.settled and status["viscosity_n_s_per_mm2"] == "ok":
-        status["viscosity_n_s_per_mm2"] = "provisional"
+        if status["viscosity_from_time_constant_n_s_per_mm2"] == "ok":
+            status["viscosity_from_time_constant_n_s_per_mm2"] = "flagged"
+    for eta in ("viscosity_n_s_per_mm2", "viscosity_from_time_constant_n_s_per_mm2"):
+        if not params.settled and status[eta] == "ok":
+            status[eta] = "provisional"
     return status
 
 

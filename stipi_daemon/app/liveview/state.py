@@ -187,6 +187,9 @@ class LiveState:
                 "elasticity_kpa": _finite(params.elasticity_kpa),
                 "tau_s": _finite(params.tau_s),
                 "viscosity_n_s_per_mm2": _finite(params.viscosity_n_s_per_mm2),
+                "viscosity_from_time_constant_n_s_per_mm2": _finite(
+                    params.viscosity_from_time_constant_n_s_per_mm2
+                ),
             },
             "status": dict(flags),
         }

@@ -8,10 +8,11 @@ time in ``[t_start_s, t_end_s)`` is taken but not delivered: it appears in
 index, so the host sees one index gap (the daemon records it as a ``force`` gap). Sample
 times, forces and the other samples are unchanged.
 
-The serial emulator's firmware model (:class:`stipi_daemon.sim.feather.SceneAdc`) samples
-every tick and reads the model's force where the scene lost a sample, so on that path the
-same dropout is produced on the link itself (``EmulatedFeather.silence``), as
-``tests/faults/matrix.py`` does.
+The emulated probe (:class:`stipi_daemon.sim.feather.SceneAdc` under the firmware model,
+serial and BLE alike) plays the same span: the samples it takes at a true time in it are
+counted (their indices are used) and left out of its SAMPLES frames, whose sequence numbers
+are used as by frames lost on the link, so the daemon records one ``force`` gap with
+cause ``link`` and exactly these samples missing.
 """
 
 from __future__ import annotations

@@ -57,7 +57,8 @@ def flagged_params() -> LiveParameters:
         elasticity_kpa=12.0,
         tau_s=5.0,
         tau_se_s=4.0,
-        viscosity_n_s_per_mm2=0.06,
+        viscosity_n_s_per_mm2=0.096,  # eta = E T_r = 12 kPa * 8 s (Eq. 8)
+        viscosity_from_time_constant_n_s_per_mm2=0.06,  # eta_tau = E tau = 12 kPa * 5 s
     )
 
 

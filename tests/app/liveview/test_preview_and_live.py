@@ -96,5 +96,8 @@ def test_a_port_in_use_is_a_warning_not_a_failure() -> None:
 
 def test_live_statuses() -> None:
     st = live_statuses(flagged_params())
-    assert st["tau_s"] == "flagged" and st["viscosity_n_s_per_mm2"] == "flagged"
+    # eta_tau = E*tau follows tau's flag; eta = E*T_r does not use tau: provisional while
+    # T_r is a lower bound (not settled)
+    assert st["tau_s"] == "flagged" and st["viscosity_from_time_constant_n_s_per_mm2"] == "flagged"
+    assert st["viscosity_n_s_per_mm2"] == "provisional"
     assert st["recovery_time_s"] == "provisional" and st["depth_mm"] == "ok"

@@ -10,7 +10,8 @@
   const PARAMS = [
     ["depth_mm", "D_p", "mm"], ["rebound_force_n", "F_r", "N"],
     ["recovery_time_s", "T_r", "s"], ["elasticity_kpa", "E", "kPa"],
-    ["tau_s", "tau", "s"], ["viscosity_n_s_per_mm2", "eta", "N*s/mm^2"],
+    ["tau_s", "tau", "s"], ["viscosity_n_s_per_mm2", "eta = E*T_r", "N*s/mm^2"],
+    ["viscosity_from_time_constant_n_s_per_mm2", "eta_tau = E*tau", "N*s/mm^2"],
   ];
   const st = {
     info: null, force: [], sk: [], transitions: [], notes: [], now: 0, phase: "-",
