@@ -282,9 +282,10 @@ def model_checks(
         out.append(
             ResultCheck(
                 Flag.MODEL_NOT_SETTLED,
-                f"the best recovery model ({best.model}) reaches {100 * f:g} % of its settled "
-                f"level ({best.parameters['offset']:.0f} px) {when}{past} at {span:.1f} s: "
-                "T_r and S_max are lower bounds",
+                f"the recovery did not settle within the record: the best recovery model "
+                f"({best.model}) reaches {100 * f:g} % of its settled level "
+                f"({best.parameters['offset']:.0f} px) {when}{past} at {span:.1f} s: T_r and "
+                "S_max are lower bounds",
             )
         )
     fits = supported_fits(comparison)
