@@ -383,7 +383,6 @@ def analyze_recovery(
         severity_fit = replace(severity_fit, flags=severity_fit.flags | {Flag.ESTIMATORS_DISAGREE})
 
     checks = _result_checks(pitting, fit, models, settings.settle_fraction)
-    checks += _severity_checks(pitting, models, checks, severity_paper, reference)
     return MeasurementResult(
         pitting=pitting,
         applied_force_n=float(applied_force_n),
@@ -395,7 +394,7 @@ def analyze_recovery(
         severity_fit=severity_fit,
         notes=tuple(notes),
         models=models,
-        checks=checks,
+        checks=checks + _severity_checks(pitting, models, checks, severity_paper, reference),
     )
 
 
