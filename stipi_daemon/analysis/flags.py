@@ -36,6 +36,7 @@ class Flag(StrEnum):
     CALIBRATION_EXTRAPOLATED = "calibration_extrapolated"
     EARLY_NOISY_CROSSING = "early_noisy_crossing"
     RISE_WITHIN_SETTLING_BAND = "rise_within_settling_band"
+    S0_BELOW_CONTACT_FLOOR = "s0_below_contact_floor"
     # what the camera observed (observation.py)
     RELEASE_NOT_OBSERVED = "release_not_observed"
     FRAME_GAP_AT_SETTLING = "frame_gap_at_settling"
@@ -57,6 +58,15 @@ class Flag(StrEnum):
     TOO_FEW_POINTS = "too_few_points"
     PARAMETER_AT_BOUND = "parameter_at_bound"
     NO_CONFIDENCE_INTERVALS = "no_confidence_intervals"
+    # the primary quantities against the recovery models (model_checks.py)
+    MODEL_NOT_SETTLED = "model_not_settled"
+    MODELS_DISAGREE = "models_disagree"
+    SETTLED_LEVEL_OFF_MODEL = "settled_level_off_model"
+    RECOVERY_TIME_OUTSIDE_MODEL_INTERVAL = "recovery_time_outside_model_interval"
+    # uncertainty beyond tolerance (model_checks.py, results.py)
+    RECOVERY_TIME_UNCERTAIN = "recovery_time_uncertain"
+    TIME_CONSTANT_UNCERTAIN = "time_constant_uncertain"
+    SEVERITY_AMBIGUOUS = "severity_ambiguous"
     # severity (Section IV.C)
     OUTSIDE_REFERENCE_RANGE = "outside_reference_range"
     ESTIMATORS_DISAGREE = "estimators_disagree"
@@ -97,6 +107,11 @@ FLAG_DESCRIPTIONS: Final[Mapping[Flag, str]] = MappingProxyType(
         Flag.RISE_WITHIN_SETTLING_BAND: (
             "S_k rose by less than the settling band (2 % of S_max) after T_0: the 98 % rule "
             "cannot time this recovery, so T_r is not a measurement."
+        ),
+        Flag.S0_BELOW_CONTACT_FLOOR: (
+            "S_0 is below C1 of Eq. 5, the least pixel count a contact image shows: the "
+            "release frame is no image of the pit, and D_p (Eq. 4 at no contact: the whole "
+            "indenter) is not a measurement."
         ),
         # what the camera observed
         Flag.RELEASE_NOT_OBSERVED: (
@@ -168,6 +183,35 @@ FLAG_DESCRIPTIONS: Final[Mapping[Flag, str]] = MappingProxyType(
         Flag.NO_CONFIDENCE_INTERVALS: (
             "This recovery model's 95 % intervals were not computed: fewer than 12 samples, or "
             "more than 10 % of the bootstrap refits failed."
+        ),
+        # the primary quantities against the recovery models
+        Flag.MODEL_NOT_SETTLED: (
+            "The best recovery model reaches 98 % of its settled level after the recording "
+            "ended: the recovery had not settled, so T_r and S_max (hence F_r) are lower bounds."
+        ),
+        Flag.MODELS_DISAGREE: (
+            "The recovery models with weight (at least 1/8 of the best's) put T_r further "
+            "apart than its tolerance (5 % or 2 frames): the data do not decide T_r."
+        ),
+        Flag.SETTLED_LEVEL_OFF_MODEL: (
+            "The measured S_max is off the level the best recovery model reads, by enough to "
+            "move the 98 % crossing (T_r) by more than its tolerance."
+        ),
+        Flag.RECOVERY_TIME_OUTSIDE_MODEL_INTERVAL: (
+            "The reported T_r (Eq. 6) lies outside the best recovery model's 95 % interval "
+            "by more than T_r's tolerance (5 % or 2 frames)."
+        ),
+        Flag.RECOVERY_TIME_UNCERTAIN: (
+            "T_r's own uncertainty (a frame gap at the 98 % crossing) exceeds its tolerance "
+            "(5 % or 2 frames): T_r is not a measurement."
+        ),
+        Flag.TIME_CONSTANT_UNCERTAIN: (
+            "The fitted tau's standard error exceeds its tolerance (5 % or 2 frames): tau is "
+            "not a measurement."
+        ),
+        Flag.SEVERITY_AMBIGUOUS: (
+            "The uncertainty of T_r spans more than one severity class or grade: the class "
+            "is not named (the reason lists those that remain)."
         ),
         # severity (Section IV.C)
         Flag.OUTSIDE_REFERENCE_RANGE: (

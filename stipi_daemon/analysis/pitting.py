@@ -907,7 +907,10 @@ def compute_pitting_parameters(
 
     S_0 and S_max are taken as :func:`recovery_time` defines them; d_s is
     ``calibration.depth_change_mm(S_0)`` (Eq. 4), D_p follows from Eq. (3) with the
-    calibration's indenter length, F_r from Eq. (5). ``CALIBRATION_EXTRAPOLATED`` is added
+    calibration's indenter length, F_r from Eq. (5). ``S0_BELOW_CONTACT_FLOOR`` is added when
+    S_0 is below C1 of Eq. (5), the least count a contact image shows (an empty or
+    all-zero image: D_p would be Eq. (4) at no contact, the whole indenter).
+    ``CALIBRATION_EXTRAPOLATED`` is added
     when S_0 lies outside the calibration's measured S_0 range or past the vertex of Eq. (4),
     or F_r outside its measured force range.
 
@@ -950,6 +953,9 @@ def compute_pitting_parameters(
     depth = pitting_depth_mm(d_s, calibration.indenter_length_mm)
     force = rebound_force_n(rt.s_max_px, calibration)
     extra: set[Flag] = set()
+    if rt.s0_px < calibration.c1_px:
+        # fewer pixels than any contact image shows: no image of the pit to read D_p from
+        extra.add(Flag.S0_BELOW_CONTACT_FLOOR)
     s0_range = calibration.s0_valid_range_px
     if rt.s0_px >= calibration.vertex_px or (
         s0_range is not None and not s0_range[0] <= rt.s0_px <= s0_range[1]

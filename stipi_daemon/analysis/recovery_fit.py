@@ -23,6 +23,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from stipi_daemon.analysis.flags import Flag
 from stipi_daemon.analysis.pitting import DEFAULT_SETTLE_FRACTION, DEFAULT_WINDOW_S
+from stipi_daemon.analysis.tolerances import recovery_time_tolerance_s
 from stipi_daemon.analysis.vpr import KPA_PER_N_PER_MM2, VPRModel, elasticity_kpa
 from stipi_daemon.errors import AnalysisError
 
@@ -372,6 +373,8 @@ def fit_recovery(
     frame = float(np.median(np.diff(tw))) if n > 1 else span
     if tau > span or tau < frame:
         flags.add(Flag.TIME_CONSTANT_OUTSIDE_WINDOW)
+    if tau_se is None or not tau_se <= recovery_time_tolerance_s(tau, frame):
+        flags.add(Flag.TIME_CONSTANT_UNCERTAIN)  # its own uncertainty exceeds its tolerance
     return replace(
         base,
         tau_s=tau,

@@ -31,6 +31,12 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from stipi_daemon.analysis.calibration import Calibration
 from stipi_daemon.analysis.flags import Flag
+from stipi_daemon.analysis.model_checks import (
+    ResultCheck,
+    model_checks,
+    supported_fits,
+    uncertainty_checks,
+)
 from stipi_daemon.analysis.observation import noise_sigma
 from stipi_daemon.analysis.pitting import (
     DEFAULT_PERSIST_FRAMES,
@@ -49,6 +55,7 @@ from stipi_daemon.analysis.recovery_models import (
 from stipi_daemon.analysis.severity import (
     SeverityReference,
     SeverityResult,
+    classify_decay_rate,
     classify_fit,
     classify_vpr,
 )
@@ -139,6 +146,10 @@ class MeasurementResult:
     models : RecoveryModelComparison or None
         Every recovery model fitted to the frames of ``fit``, with AICc weights and 95 %
         intervals; None when the comparison could not run (the reason is in ``notes``).
+    checks : tuple[ResultCheck, ...]
+        The rules of :mod:`~stipi_daemon.analysis.model_checks` (and the severity's
+        ambiguity) that fired, each with its flag and the amount; their flags are in
+        :attr:`flags`.
     """
 
     pitting: PittingParameters
@@ -151,6 +162,7 @@ class MeasurementResult:
     severity_fit: SeverityResult | None
     notes: tuple[str, ...]
     models: RecoveryModelComparison | None = None
+    checks: tuple[ResultCheck, ...] = ()
 
     @property
     def flags(self) -> frozenset[Flag]:
@@ -161,6 +173,7 @@ class MeasurementResult:
         for sev in (self.severity_paper, self.severity_fit):
             if sev is not None:
                 out |= sev.flags
+        out |= {c.flag for c in self.checks}
         return frozenset(out)
 
     def to_dict(self) -> dict[str, Any]:
@@ -226,6 +239,7 @@ class MeasurementResult:
                 "fitted_recovery": severity(self.severity_fit),
             },
             "recovery_models": None if self.models is None else self.models.to_dict("px"),
+            "checks": [{"flag": str(c.flag), "reason": c.reason} for c in self.checks],
             "flags": sorted(self.flags),
             "notes": list(self.notes),
         }
@@ -368,6 +382,7 @@ def analyze_recovery(
         )
         severity_fit = replace(severity_fit, flags=severity_fit.flags | {Flag.ESTIMATORS_DISAGREE})
 
+    checks = _result_checks(pitting, fit, models, settings.settle_fraction)
     return MeasurementResult(
         pitting=pitting,
         applied_force_n=float(applied_force_n),
@@ -379,6 +394,87 @@ def analyze_recovery(
         severity_fit=severity_fit,
         notes=tuple(notes),
         models=models,
+        checks=checks + _severity_checks(pitting, models, checks, severity_paper, reference),
+    )
+
+
+def _result_checks(
+    pitting: PittingParameters,
+    fit: RecoveryFit,
+    models: RecoveryModelComparison | None,
+    settle_fraction: float,
+) -> tuple[ResultCheck, ...]:
+    """The primary quantities against the recovery models, and the uncertainties beyond
+    tolerance (:mod:`~stipi_daemon.analysis.model_checks`)."""
+    obs = pitting.observed
+    out = uncertainty_checks(
+        obs,
+        recovery_time_s=pitting.recovery_time_s,
+        tau_s=fit.tau_s if Flag.TIME_CONSTANT_UNCERTAIN in fit.flags else None,
+        tau_se_s=fit.tau_se_s,
+        tau_frame_s=obs.frame_period_s,
+    )
+    if Flag.NO_RECOVERY in pitting.flags or Flag.RISE_WITHIN_SETTLING_BAND in pitting.flags:
+        return out  # no rise to time: T_r is invalid already, the models have nothing to say
+    return out + model_checks(
+        models,
+        recovery_time_s=pitting.recovery_time_s,
+        s_max_px=pitting.s_max_px,
+        frame_period_s=obs.frame_period_s,
+        settle_fraction=settle_fraction,
+    )
+
+
+def _severity_checks(
+    pitting: PittingParameters,
+    models: RecoveryModelComparison | None,
+    checks: tuple[ResultCheck, ...],
+    severity: SeverityResult | None,
+    reference: SeverityReference,
+) -> tuple[ResultCheck, ...]:
+    """``SEVERITY_AMBIGUOUS`` when T_r's uncertainty spans more than one class or grade.
+
+    The paper's class follows the decay rate 1/T_r (Section IV.C). T_r's range is the
+    reported T_r, the frame gap its crossing lies in, the T_r of every recovery model with
+    weight and the best model's 95 % interval; the class at both ends of the range (the
+    classification is monotonic in the rate) says which classes remain.
+    """
+    tr = pitting.recovery_time_s
+    if severity is None or tr is None or tr <= 0.0:
+        return ()
+    times = [tr]
+    gap = pitting.observed.settling_gap
+    if gap is not None:
+        times += [gap.start_s - pitting.t0_s, gap.end_s - pitting.t0_s]
+    if (
+        models is not None
+        and models.best_model is not None
+        and not any(c.flag is Flag.MODEL_NOT_SETTLED for c in checks)
+    ):
+        times += [q for f in supported_fits(models) if (q := f.quantities.get("recovery_time_s"))]
+        ci = models.fit(models.best_model).ci95.get("recovery_time_s")
+        times += list(ci or ())
+    times = [t for t in times if t > 0.0 and math.isfinite(t)]
+    lo, hi = min(times), max(times)
+    ends = []
+    for t in (lo, hi):
+        try:
+            ends.append(classify_decay_rate(1.0 / t, reference))
+        except AnalysisError:
+            return ()
+    names = {(e.severity, e.nearest_grade) for e in ends}
+    if len(names) == 1:
+        return ()
+    grades = [g.name for g in reference.grades]
+    first, last = sorted(grades.index(e.nearest_grade) for e in ends)
+    remain = ", ".join(grades[first : last + 1])
+    classes = " or ".join(sorted({e.severity for e in ends}))
+    return (
+        ResultCheck(
+            Flag.SEVERITY_AMBIGUOUS,
+            f"T_r between {lo:.2f} and {hi:.2f} s leaves grades {remain} ({classes}): "
+            "the class is not named",
+        ),
     )
 
 

@@ -133,10 +133,13 @@ FLAG_RULES: Final[Mapping[Flag, FlagRule]] = MappingProxyType(
         Flag.SATURATED_FRAME: FlagRule(FROM_SK, (), "saturated frames may bias S_k low"),
         Flag.EMPTY_ROI: FlagRule(FROM_SK, FROM_SK, "the ROI does not overlap the frame"),
         Flag.ROI_CLIPPED: FlagRule(FROM_SK, (), "part of the ROI lies outside the frame"),
+        # The settled-level rule: S_max of a recovery that did not settle is not its
+        # settled level, so F_r (Eq. 5 at S_max) is a lower bound too (an aborted recovery).
         Flag.NOT_SETTLED: FlagRule(
-            ("recovery_time_s",),
-            ("recovery_time_s",),
-            "recovery did not settle within the window (T_r is only a lower bound)",
+            ("recovery_time_s", "rebound_force_n"),
+            ("recovery_time_s", "rebound_force_n"),
+            "recovery did not settle within the window (T_r, and S_max hence F_r, are only "
+            "lower bounds)",
         ),
         Flag.SETTLED_WITHIN_ONE_FRAME: FlagRule(
             ("depth_mm", "recovery_time_s"),
@@ -152,6 +155,11 @@ FLAG_RULES: Final[Mapping[Flag, FlagRule]] = MappingProxyType(
         ),
         Flag.DEPTH_CLIPPED: FlagRule(
             ("depth_mm", "elasticity_kpa"), (), "the depth change was clipped to [0, l]"
+        ),
+        Flag.S0_BELOW_CONTACT_FLOOR: FlagRule(
+            ("depth_mm", "elasticity_kpa"),
+            ("depth_mm",),
+            "S_0 is below the least count a contact image shows (C1): no image of the pit",
         ),
         Flag.CALIBRATION_EXTRAPOLATED: FlagRule(
             ("depth_mm", "rebound_force_n", "elasticity_kpa"),
@@ -233,6 +241,39 @@ FLAG_RULES: Final[Mapping[Flag, FlagRule]] = MappingProxyType(
         Flag.TOO_FEW_POINTS: FlagRule((), (), "a recovery model had too few samples to fit"),
         Flag.PARAMETER_AT_BOUND: FlagRule((), (), "a model parameter is at its search bound"),
         Flag.NO_CONFIDENCE_INTERVALS: FlagRule((), (), "a model has no bootstrap intervals"),
+        # The primary quantities against the recovery models (model_checks.py); the
+        # reasons with the amounts come from the result's checks.
+        Flag.MODEL_NOT_SETTLED: FlagRule(
+            ("recovery_time_s", "rebound_force_n"),
+            ("recovery_time_s", "rebound_force_n"),
+            "the best recovery model settles after the record ends: T_r and S_max (F_r) are "
+            "lower bounds",
+        ),
+        Flag.MODELS_DISAGREE: FlagRule(
+            ("recovery_time_s",), (), "the recovery models with weight disagree about T_r"
+        ),
+        Flag.SETTLED_LEVEL_OFF_MODEL: FlagRule(
+            ("recovery_time_s",),
+            (),
+            "S_max is off the best recovery model's level by more than T_r's tolerance",
+        ),
+        Flag.RECOVERY_TIME_OUTSIDE_MODEL_INTERVAL: FlagRule(
+            ("recovery_time_s",), (), "T_r lies outside the best recovery model's 95 % interval"
+        ),
+        # Uncertainty beyond tolerance is invalid, not a caveat.
+        Flag.RECOVERY_TIME_UNCERTAIN: FlagRule(
+            ("recovery_time_s",),
+            ("recovery_time_s",),
+            "T_r's uncertainty (a frame gap at the crossing) exceeds its tolerance",
+        ),
+        Flag.TIME_CONSTANT_UNCERTAIN: FlagRule(
+            ("tau_s",), ("tau_s",), "tau's standard error exceeds its tolerance"
+        ),
+        Flag.SEVERITY_AMBIGUOUS: FlagRule(
+            ("severity",),
+            ("severity",),
+            "T_r's uncertainty spans more than one severity class",
+        ),
         Flag.ESTIMATORS_DISAGREE: FlagRule(
             ("severity", "severity_fit"),
             (),
@@ -286,6 +327,9 @@ class Verdict:
 def _specific_reason(flag: Flag, result: MeasurementResult) -> str | None:
     """A flag's reason with this measurement's facts (times, lengths), when it has them."""
     p, obs = result.pitting, result.pitting.observed
+    for check in result.checks:  # rules with their amounts (model_checks.py)
+        if check.flag is flag:
+            return check.reason
     if flag is Flag.RELEASE_NOT_OBSERVED and obs.release_gap is not None:
         return f"{obs.release_gap.describe()} around the release at {p.t0_s:.2f} s"
     if flag is Flag.FRAME_GAP_AT_SETTLING and obs.settling_gap is not None:
@@ -295,6 +339,11 @@ def _specific_reason(flag: Flag, result: MeasurementResult) -> str | None:
         )
     if flag is Flag.FRAME_GAP_AT_MAXIMUM and obs.maximum_gap is not None:
         return f"S_max may lie in a gap ({obs.maximum_gap.describe()})"
+    if flag is Flag.S0_BELOW_CONTACT_FLOOR:
+        return (
+            f"S_0 = {p.s0_px:.0f} px is below C1, the least count a contact image shows: no "
+            f"image of the pit (D_p = {p.depth_mm:.2f} mm is Eq. 4 at no contact)"
+        )
     if flag is Flag.S0_EXTRAPOLATED and obs.s0_frame_s is not None:
         return (
             f"the frame after the release at {p.t0_s:.3f} s is missing or an outlier: S_0 "

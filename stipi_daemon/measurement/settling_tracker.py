@@ -24,22 +24,36 @@ What it tracks (times on the host's monotonic clock [s], S_k in pixels):
   analysis' T_s is at or before p: p - T_0 bounds its T_r from above.
 * The least-squares sums of S_k since the rise start (:class:`LineSums`), with a
   snapshot at each run start, so the slope over the plateau is a difference of two sums.
+* The frames of the rise themselves (:attr:`SettlingTracker.record`, a linked list: one
+  cell per frame, O(1)), read only when the state machine asks the recovery models
+  whether the rise may end (:meth:`SettlingTracker.frames`, O(frames), at a few decision
+  points; :func:`~stipi_daemon.analysis.model_checks.early_stop_check`).
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Final
 
 from stipi_daemon.analysis.settling_rules import LineSums, still_rising, truncation_hold_factor
 from stipi_daemon.measurement.evolve import evolve
 
-__all__ = ["LEVELS_PER_BAND", "SettlingTracker"]
+__all__ = ["LEVELS_PER_BAND", "FrameCell", "SettlingTracker"]
 
 #: Grid levels per settling band (1 - f) of S_k: the plateau start is found to within
 #: (1 - f) / LEVELS_PER_BAND of S_k (0.1 % for f = 0.98) [1].
 LEVELS_PER_BAND: Final = 20
+
+
+@dataclass(frozen=True, slots=True, eq=False, repr=False)
+class FrameCell:
+    """One frame of the rise and the cell of the frame before it (a linked list; compared
+    by identity and not shown, so that neither walks the whole list recursively)."""
+
+    t_s: float
+    s_px: float
+    before: FrameCell | None
 
 
 @dataclass(frozen=True, slots=True)
@@ -81,6 +95,8 @@ class SettlingTracker:
         frames at or above the level, None when the latest frame is below it.
         ``runs[0]`` is the lowest grid level at or above f x peak. Empty while
         f x peak is 0 (every frame is then inside the band).
+    record : FrameCell
+        The latest frame of the rise, linked to the earlier ones (:meth:`frames`).
     """
 
     settle_fraction: float
@@ -92,6 +108,7 @@ class SettlingTracker:
     sums: LineSums
     level_base: int
     runs: tuple[_Run | None, ...]
+    record: FrameCell = field(compare=False, repr=False)
 
     # ------------------------------------------------------------------ building
 
@@ -110,6 +127,7 @@ class SettlingTracker:
             sums=sums,
             level_base=base,
             runs=runs,
+            record=FrameCell(t_s, s_px, None),
         )
 
     def add(self, t_s: float, s_px: float) -> SettlingTracker:
@@ -130,9 +148,29 @@ class SettlingTracker:
             sums=sums,
             level_base=base,
             runs=runs,
+            record=FrameCell(t_s, s_px, self.record),
         )
 
     # ------------------------------------------------------------------ reading
+
+    def frames(self) -> tuple[list[float], list[float]]:
+        """Times [s] and S_k [px] of every frame of the rise, in time order (O(frames))."""
+        times: list[float] = []
+        values: list[float] = []
+        cell: FrameCell | None = self.record
+        while cell is not None:
+            times.append(cell.t_s)
+            values.append(cell.s_px)
+            cell = cell.before
+        times.reverse()
+        values.reverse()
+        return times, values
+
+    @property
+    def has_rise(self) -> bool:
+        """Whether S_k rose beyond the settling band since the rise start (S_0 below f x
+        peak): a rise with a time scale, which the recovery models can time."""
+        return self.peak_px > 0.0 and self.rise_start_px < self.settle_fraction * self.peak_px
 
     @property
     def plateau_start_s(self) -> float | None:

@@ -85,6 +85,16 @@ Policies (all thresholds are fields of :class:`MeasurementConfig`):
      replaced by that upper bound. If the whole rise so far lies inside the band
      (r >= ``settle_fraction``: no recovery, or one within a frame) there is no rise time
      to scale with, and the slope is continued to the end of the recovery window instead.
+  5. *The recovery models allow it* (only when 1-4 hold and S_0 lies below the band):
+     every recovery model is fitted to the rise so far
+     (:func:`~stipi_daemon.analysis.model_checks.early_stop_check`) and, for each model
+     with weight, Eq. (6) on its curve recorded to now differs from Eq. (6) recorded to the
+     end of the window by at most ``settle_bias_fraction``: the bound of 3-4 for the curve
+     the tissue follows (power law, two time constants), not only for a Kelvin-Voigt
+     solid. After a refusal the next check waits :data:`MODEL_CHECK_MIN_S` or
+     :data:`MODEL_CHECK_FRACTION` of the recovery so far: a fit at a few decision points
+     (about 0.1-0.2 s each; at most about 20 per recovery), never per frame.
+     ``settle_check`` holds what the latest check found.
 
   Settling only decides when acquisition may stop; T_s and T_r of Eq. (6) are computed
   by the analysis from the stored series. With ``stop_when_settled=False`` the recovery
@@ -92,7 +102,7 @@ Policies (all thresholds are fields of :class:`MeasurementConfig`):
   flag: whether S_k settled within it is the analysis' ``not_settled``). With
   ``stop_when_settled=True`` a recovery that times out (also one that settles too late
   for an unbiased early stop) goes to ANALYSIS with the machine's flag ``not_settled``.
-  The bound holds for the machine's T_0 and a single-exponential rise.
+  The bound holds for the machine's T_0 and the recovery models that fit the rise.
   Frame noise above ~0.3 % of S_k (one standard deviation) keeps the plateau from
   holding: no early stop. A slow second phase (creep) whose rise over p - T_0 stays
   inside the band is not detected, as the analysis' own still-rising test does not
@@ -120,6 +130,7 @@ from enum import StrEnum
 from typing import Final, Literal
 
 from stipi_daemon.analysis.flags import Flag
+from stipi_daemon.analysis.model_checks import early_stop_check
 from stipi_daemon.measurement.events import (
     EVENT_TYPES,
     AnalysisDone,
@@ -152,6 +163,12 @@ from stipi_daemon.measurement.outputs import (
 )
 from stipi_daemon.measurement.settings import MeasurementConfig
 from stipi_daemon.measurement.settling_tracker import SettlingTracker
+
+#: After the recovery models refused an early stop, the next check waits at least this
+#: long [s] ...
+MODEL_CHECK_MIN_S: Final = 1.0
+#: ... and this fraction of the recovery so far [-]: about 20 checks from 10 to 105 s.
+MODEL_CHECK_FRACTION: Final = 0.1
 
 __all__ = [
     "CAMERA_POLICY",
@@ -276,6 +293,11 @@ class MachineState:
     last_frame_t_s: float | None = None
     settling: SettlingTracker | None = None
     """Rise, peak and plateau of S_k since T_0 (None before the first recovery frame)."""
+    settle_check_s: float | None = None
+    """Earliest frame time of the next early-stop check by the recovery models (after one
+    refused the stop) [s]."""
+    settle_check: str | None = None
+    """What the latest early-stop check by the recovery models found."""
     # bookkeeping
     flags: frozenset[str] = field(default_factory=frozenset)
     last_prompt: str = ""
@@ -591,6 +613,8 @@ def _start_analysis(
     assert t0_s is not None and pit_start_s is not None and pit_end_s is not None
     if settled:
         reason = "recovery settled"
+        if state.settle_check is not None:
+            reason += f" (recovery models: {state.settle_check})"
     elif config.stop_when_settled:
         # the machine watched for settling and did not see it within the window
         state = _with_flag(state, Flag.NOT_SETTLED)
@@ -967,9 +991,40 @@ def _frame_recovery(state: MachineState, event: Event, config: MeasurementConfig
         bias_fraction=config.settle_bias_fraction,
         window_end_s=t0_s + config.recovery_max_s,
     ):
-        state = evolve(state, t_settled_s=event.t_s)
-        return _start_analysis(state, event.t_s, config, settled=True)
+        return _models_allow_stop(state, tracker, event.t_s, config)
     return state, []
+
+
+def _models_allow_stop(
+    state: MachineState, tracker: SettlingTracker, t_s: float, config: MeasurementConfig
+) -> Result:
+    """Test 5 (module docstring): the recovery models that fit the rise allow the stop.
+
+    Runs at most once per :data:`MODEL_CHECK_MIN_S`, or :data:`MODEL_CHECK_FRACTION` of
+    the recovery so far, after a refusal: a fit of every recovery model (no bootstrap) at a
+    few decision points, never per frame.
+    """
+    t0_s = state.t_release_s
+    assert t0_s is not None
+    if not tracker.has_rise:  # nothing to time (no recovery, or one within a frame)
+        state = evolve(state, t_settled_s=t_s)
+        return _start_analysis(state, t_s, config, settled=True)
+    if state.settle_check_s is not None and t_s < state.settle_check_s:
+        return state, []
+    times, values = tracker.frames()
+    check = early_stop_check(
+        times,
+        values,
+        t0_s,
+        t0_s + config.recovery_max_s,
+        settle_fraction=config.settle_fraction,
+        bias_fraction=config.settle_bias_fraction,
+    )
+    if not check.allowed:
+        wait_s = max(MODEL_CHECK_MIN_S, MODEL_CHECK_FRACTION * (t_s - t0_s))
+        return evolve(state, settle_check_s=t_s + wait_s, settle_check=check.reason), []
+    state = evolve(state, t_settled_s=t_s, settle_check=check.reason)
+    return _start_analysis(state, t_s, config, settled=True)
 
 
 def _analysis_done(state: MachineState, event: Event, config: MeasurementConfig) -> Result:

@@ -151,17 +151,22 @@ def test_frames_lost_just_after_a_fast_release_do_not_bias_the_depth(lost: int) 
     assert "s0_extrapolated" in v["depth_mm"]["flags"]
 
 
-def test_gap_over_the_settling_crossing_flags_tr_with_the_gap_length() -> None:
+@pytest.mark.parametrize(("half_gap_s", "status"), [(0.5, "flagged"), (1.0, "invalid")])
+def test_gap_over_the_settling_crossing_flags_tr_with_the_gap_length(
+    half_gap_s: float, status: str
+) -> None:
+    # T_r = 7.5 s ln((1 - r)/0.02) = 27.0 s: tolerance 5 % = 1.35 s. A 1 s gap is a
+    # caveat; a 2 s gap is an uncertainty beyond the tolerance: invalid, not flagged.
     t, s = noisy_kv(7.5, noise_px=0.0)
     clean = analyse(t, s, 19.5)
     ts = clean.pitting.ts_s
     assert ts is not None
-    t2, s2 = gap(t, s, ts - 1.0, ts + 1.0)
+    t2, s2 = gap(t, s, ts - half_gap_s, ts + half_gap_s)
     res = analyse(t2, s2, 19.5)
     v = assess_validity(res, ended_done=True)["validity"]["recovery_time_s"]
     assert Flag.FRAME_GAP_AT_SETTLING in res.flags
-    assert v["status"] == "flagged"
-    assert "uncertain by 2.0" in v["reason"]
+    assert v["status"] == status
+    assert f"uncertain by {2 * half_gap_s:.1f}" in v["reason"]
     assert res.pitting.observed.settling_gap is not None
     assert (
         res.pitting.observed.settling_gap.start_s <= ts <= res.pitting.observed.settling_gap.end_s
