@@ -264,8 +264,9 @@ class RecoveryModelComparison:
             "intervals": "95 % percentile, moving-block bootstrap of the residuals; each "
             "replicate also moves the settled level by U(-q/2, q/2) (q = value_resolution: the "
             "rounding of an integer S_k) and tau and T_r by U(-dt, dt) (dt = frame_period_s: "
-            "where the release lies within a frame of T_0); eta's also draws D_p (hence E, "
-            "Eq. 7) with its standard uncertainty",
+            "where the release lies within a frame of T_0; U(0, dt) or U(-dt, 0) when "
+            "release_side is before or after); eta's also draws D_p (hence E, Eq. 7) with its "
+            "standard uncertainty",
             "value_resolution": self.value_resolution,
             "frame_period_s": self.frame_period_s,
             "release_side": self.release_side,
