@@ -7,6 +7,7 @@ its truth written there from the literature), and the public edges of the recove
 from __future__ import annotations
 
 import math
+from typing import Literal
 
 import numpy as np
 import pytest
@@ -88,7 +89,8 @@ def test_a_known_release_side_draws_one_side_of_t0() -> None:
     dt = 1.0 / fps
     t = T0 + np.arange(0.0, 40.0, dt)
     s = 12000.0 - 8000.0 * np.exp(-(t - T0) / 5.0)
-    for side, sign in (("after", -1.0), ("before", 1.0)):
+    sides: tuple[tuple[Literal["after", "before"], float], ...] = (("after", -1.0), ("before", 1.0))
+    for side, sign in sides:
         kv = fit_recovery_models(
             t, s, T0, 40.0, models=["kelvin_voigt"], replicates=200, release_side=side
         ).fit("kelvin_voigt")
