@@ -540,9 +540,7 @@ def write_tissue_report(
         f"{np.__version__}.\n"
     )
     lines += tissue.report_lines(tissue_runs, tissue_costs, out_dir / "accuracy-vs-time")
-    out = out_dir / "accuracy-vs-time.md"
-    out.write_text("\n".join(lines) + "\n")
-    return out
+    return _write_keeping_coverage(out_dir / "accuracy-vs-time.md", lines)
 
 
 def write_report(
@@ -1026,8 +1024,27 @@ def write_report(
     add("## Plots\n")
     add("![error against compute per frame](accuracy-vs-time/error_vs_compute.png)\n")
     add("![error against recording time](accuracy-vs-time/error_vs_recording.png)\n")
-    out = out_dir / "accuracy-vs-time.md"
-    out.write_text("\n".join(lines) + "\n")
+    return _write_keeping_coverage(out_dir / "accuracy-vs-time.md", lines)
+
+
+#: The section of accuracy-vs-time.md that another command writes
+#: (``python -m tests.analysis.recovery_models.coverage --write``): kept on a rewrite.
+COVERAGE_SECTION = "## Coverage of the 95 % intervals over seeds"
+
+
+def _write_keeping_coverage(out: Path, lines: list[str]) -> Path:
+    """Write ``lines`` to ``out``, the existing :data:`COVERAGE_SECTION` appended again."""
+    kept = ""
+    if out.exists():
+        old = out.read_text()
+        start = old.find(COVERAGE_SECTION)
+        if start >= 0:
+            nxt = old.find("\n## ", start + len(COVERAGE_SECTION))
+            kept = old[start:] if nxt < 0 else old[start : nxt + 1]
+    text = "\n".join(lines) + "\n"
+    if kept:
+        text = text.rstrip("\n") + "\n\n" + kept.rstrip("\n") + "\n"
+    out.write_text(text)
     return out
 
 

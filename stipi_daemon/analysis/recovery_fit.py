@@ -28,9 +28,11 @@ from stipi_daemon.analysis.vpr import KPA_PER_N_PER_MM2, VPRModel, elasticity_kp
 from stipi_daemon.errors import AnalysisError
 
 __all__ = [
+    "MAX_ABS_VALUE",
     "MIN_FIT_POINTS",
     "TAU_SEARCH_RANGE_S",
     "RecoveryFit",
+    "check_value_domain",
     "fit_recovery",
     "fit_window",
     "grid_start",
@@ -45,6 +47,10 @@ __all__ = [
 TAU_SEARCH_RANGE_S = (1e-3, 1e4)
 #: Fewest finite samples in the window for a 3-parameter fit with one degree of freedom left.
 MIN_FIT_POINTS = 4
+#: Largest |value| of a fitted series [series unit]: squared residuals and ranges of values
+#: up to it stay finite in float64 (1e150^2 = 1e300 < 1.8e308); S_k is a pixel count far
+#: below it, so a larger value is a unit or data error, not a tissue.
+MAX_ABS_VALUE = 1e150
 #: Points of the log-spaced tau grid used to find the starting point (variable projection).
 _GRID_POINTS = 121
 
@@ -106,7 +112,10 @@ class RecoveryFit:
     offset : float or None
         y(inf), unit of the fitted series.
     tau_se_s, amplitude_se, offset_se : float or None
-        One-sigma standard errors (linearised, residual variance from the fit).
+        One-sigma standard errors (linearised, residual variance from the fit); for an
+        integer-valued series (S_k) offset's and amplitude's also hold the rounding of the
+        settled level, a uniform +-0.5 count (variance 1/12). tau of one exponential does
+        not depend on where T_0 lies within a frame, so its error has no timing term.
     t0_s : float
         T_0 the model is anchored at [s].
     t_start_s, t_end_s : float
@@ -260,6 +269,17 @@ def _check_conversion(
         raise AnalysisError(f"settle_fraction must be in (0, 1), got {settle_fraction}")
 
 
+def check_value_domain(y_lo: float, y_hi: float) -> None:
+    """Raise :class:`AnalysisError` when a series' smallest ``y_lo`` or largest ``y_hi``
+    value lies outside +-:data:`MAX_ABS_VALUE` (the fits' domain) or is not finite."""
+    for name, v in (("smallest", y_lo), ("largest", y_hi)):
+        if not (math.isfinite(v) and abs(v) <= MAX_ABS_VALUE):
+            raise AnalysisError(
+                f"the {name} value {v:g} is outside the fits' domain |value| <= "
+                f"{MAX_ABS_VALUE:g} (series unit): squared residuals would overflow"
+            )
+
+
 def grid_start(x: NDArray[np.float64], z: NDArray[np.float64]) -> tuple[float, float, float]:
     """Best (offset, amplitude, log tau) on a log tau grid; linear least squares per tau."""
     log_taus = np.linspace(
@@ -323,16 +343,15 @@ def fit_recovery(
     ------
     AnalysisError
         Bad shapes, non-finite or non-increasing times, non-finite T_0 or window, fewer than
-        :data:`MIN_FIT_POINTS` finite samples in the window, or values whose range overflows.
+        :data:`MIN_FIT_POINTS` finite samples in the window, or a value outside
+        |value| <= :data:`MAX_ABS_VALUE`.
     """
     tw, yw, flags = fit_window(times_s, values, t0_s, window_s)
     n = int(tw.size)
     x = tw - t0_s
     y_lo = float(np.min(yw))
-    with np.errstate(over="ignore"):
-        y_span = float(np.max(yw)) - y_lo
-    if not math.isfinite(y_span):
-        raise AnalysisError("the values' range exceeds the floating-point range")
+    check_value_domain(y_lo, float(np.max(yw)))
+    y_span = float(np.max(yw)) - y_lo
 
     base = RecoveryFit(
         tau_s=None,
@@ -368,6 +387,14 @@ def fit_recovery(
     sst = float(np.sum(np.square(z - z.mean())))
     tau = math.exp(p[2])
     offset_se, amplitude_se, tau_se = _standard_errors(_jacobian(p, x, z), ssr, y_span, tau)
+    # an integer series (S_k) is rounded: its settled level by up to half a count, which no
+    # average of the rounded samples removes (docs/analysis.md, "Error model of the
+    # intervals"); offset and amplitude (= offset - S_0) carry it
+    quantum_var = 1.0 / 12.0 if bool(np.all(yw == np.round(yw))) else 0.0
+    if offset_se is not None:
+        offset_se = math.hypot(offset_se, math.sqrt(quantum_var))
+    if amplitude_se is not None:
+        amplitude_se = math.hypot(amplitude_se, math.sqrt(quantum_var))
 
     span = float(x[-1])
     frame = float(np.median(np.diff(tw))) if n > 1 else span

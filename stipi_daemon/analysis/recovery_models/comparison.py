@@ -42,14 +42,14 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 from numpy.typing import ArrayLike
 
 from stipi_daemon.analysis.flags import Flag
 from stipi_daemon.analysis.pitting import DEFAULT_SETTLE_FRACTION, DEFAULT_WINDOW_S
-from stipi_daemon.analysis.recovery_fit import fit_window
+from stipi_daemon.analysis.recovery_fit import MAX_ABS_VALUE, check_value_domain, fit_window
 from stipi_daemon.analysis.recovery_fit import solve_scaled as kv_solve_scaled
 from stipi_daemon.analysis.recovery_models.base import (
     FloatArray,
@@ -79,6 +79,7 @@ __all__ = [
     "BOOTSTRAP_FAILURE_LIMIT",
     "CI_QUANTITIES",
     "DEFAULT_REPLICATES",
+    "MAX_ABS_VALUE",
     "ModelFit",
     "RecoveryModelComparison",
     "fit_recovery_models",
@@ -212,6 +213,12 @@ class RecoveryModelComparison:
         Bootstrap settings.
     depth_rel_sd : float
         D_p's relative standard uncertainty carried into eta's interval [-] (0: E fixed).
+    value_resolution : float
+        Quantum of the values in the intervals [series unit] (1 for an integer S_k).
+    frame_period_s : float
+        How well T_0 places the release in the intervals [s] (+- this).
+    release_side : str
+        ``"either"``, ``"before"`` or ``"after"`` T_0 (``fit_recovery_models``).
     flags : frozenset[Flag]
         ``KELVIN_VOIGT_REJECTED`` (Kelvin-Voigt's QAICc exceeds the best by more than 10),
         ``MODEL_SELECTION_UNAVAILABLE``, ``NON_FINITE_INPUT``, ``CONSTANT_SERIES``.
@@ -229,6 +236,9 @@ class RecoveryModelComparison:
     seed: int
     flags: frozenset[Flag]
     depth_rel_sd: float = 0.0
+    value_resolution: float = 0.0
+    frame_period_s: float = 0.0
+    release_side: str = "either"
 
     @property
     def kelvin_voigt_rejected(self) -> bool:
@@ -251,8 +261,15 @@ class RecoveryModelComparison:
             "(noise variance); decision by QAICc (log-likelihood / variance_inflation)",
             "kelvin_voigt_rejection_rule": f"QAICc(kelvin_voigt) - min QAICc > "
             f"{KV_REJECTION_DELTA:g}",
-            "intervals": "95 % percentile, moving-block bootstrap of the residuals; eta's "
-            "also draws D_p (hence E, Eq. 7) with its standard uncertainty",
+            "intervals": "95 % percentile, moving-block bootstrap of the residuals; each "
+            "replicate also moves the settled level by U(-q/2, q/2) (q = value_resolution: the "
+            "rounding of an integer S_k) and tau and T_r by U(-dt, dt) (dt = frame_period_s: "
+            "where the release lies within a frame of T_0; U(0, dt) or U(-dt, 0) when "
+            "release_side is before or after); eta's also draws D_p (hence E, Eq. 7) with its "
+            "standard uncertainty",
+            "value_resolution": self.value_resolution,
+            "frame_period_s": self.frame_period_s,
+            "release_side": self.release_side,
             "depth_relative_sd": self.depth_rel_sd,
             "variance_inflation": _finite(self.variance_inflation),
             "best_model": self.best_model,
@@ -279,14 +296,36 @@ class _Series:
     rebound_force: Callable[[float], float | None] | None
     elasticity_kpa: float | None
     depth_rel_sd: float = 0.0
+    #: Resolution of the values [series unit] (1 px for an integer S_k; 0: continuous).
+    resolution: float = 0.0
+    #: Frame period [s]: T_0 is known to within it (the median sample interval).
+    frame_period_s: float = 0.0
+    #: Which side of T_0 the release lies on (``fit_recovery_models``' ``release_side``).
+    release_side: str = "either"
 
     def unscale(self, p: FloatArray) -> tuple[float, float]:
         """(offset, amplitude) in the series' unit."""
         return self.y_lo + self.y_span * float(p[0]), self.y_span * float(p[1])
 
 
-def _quantities(model: RecoveryModel, p: FloatArray, s: _Series) -> dict[str, float | None]:
-    """tau, S_0, S_max, T_r, F_r, eta of the curve p (module docstring)."""
+def _quantised(p: FloatArray, level_error: float) -> FloatArray:
+    """The curve p with its settled level moved by ``level_error`` [scaled units] and S_0
+    kept: offset and amplitude both move (the rounding of a level the data sit at for
+    most of the window, which no average of the rounded samples removes)."""
+    out = p.copy()
+    out[0] += level_error
+    out[1] += level_error
+    return out
+
+
+def _quantities(
+    model: RecoveryModel, p: FloatArray, s: _Series, origin_error_s: float = 0.0
+) -> dict[str, float | None]:
+    """tau, S_0, S_max, T_r, F_r, eta of the curve p (module docstring).
+
+    ``origin_error_s`` [s] is added to the times read off the curve (tau, T_r; not below
+    0): where the release lies relative to the T_0 the curve is anchored at.
+    """
     offset, amplitude = s.unscale(p)
     u = p[2:]
     out: dict[str, float | None] = dict.fromkeys(
@@ -298,7 +337,7 @@ def _quantities(model: RecoveryModel, p: FloatArray, s: _Series) -> dict[str, fl
     out["s0"], out["s_max"] = s0, max(s0, s_end)
     if amplitude != 0.0:
         tau = model.time_to_remaining(u, math.exp(-1.0))
-        out["tau_s"] = tau if math.isfinite(tau) else None
+        out["tau_s"] = max(tau + origin_error_s, 0.0) if math.isfinite(tau) else None
     if amplitude > 0.0 and s_end > 0.0:
         level = s.settle_fraction * s_end
         if level <= s0:
@@ -306,6 +345,7 @@ def _quantities(model: RecoveryModel, p: FloatArray, s: _Series) -> dict[str, fl
         else:
             r = min(max((offset - level) / amplitude, 1e-300), 1.0)
             tr = model.time_to_remaining(u, r) if r < 1.0 else 0.0
+            tr = max(tr + origin_error_s, 0.0) if tr > 0.0 else tr
             out["recovery_time_s"] = tr if math.isfinite(tr) else None
     if s.rebound_force is not None and out["s_max"] is not None:
         out["rebound_force_n"] = s.rebound_force(out["s_max"])
@@ -356,13 +396,19 @@ def _bootstrap(
     # E = c / D_p (Eq. 7): each replicate's D_p drawn with its standard uncertainty, after
     # the block indices so that the other intervals do not depend on it
     depth_factor = 1.0 + s.depth_rel_sd * rng.standard_normal(replicates)
+    # the quantisation no resampling of residuals carries (docs/analysis.md, "Error model
+    # of the intervals"): the settled level's rounding and T_0's place within a frame
+    level_error = s.resolution * rng.uniform(-0.5, 0.5, replicates) / s.y_span
+    lo_hi = {"either": (-1.0, 1.0), "before": (0.0, 1.0), "after": (-1.0, 0.0)}[s.release_side]
+    origin_error_s = s.frame_period_s * rng.uniform(*lo_hi, replicates)
     samples: dict[str, list[float]] = {k: [] for k in CI_QUANTITIES}
     failed = 0
     for lo in range(0, replicates, _CHUNK):
         z_star = fitted + resid[block_indices(starts[lo : lo + _CHUNK], length, s.x.size)]
         p_star, ok = solve_batch(model, s.x, z_star, p)
         for b in range(p_star.shape[0]):
-            q = _quantities(model, p_star[b], s) if ok[b] else None
+            shifted = _quantised(p_star[b], level_error[lo + b])
+            q = _quantities(model, shifted, s, origin_error_s[lo + b]) if ok[b] else None
             d = float(depth_factor[lo + b])
             if q is None or not np.all(np.isfinite(p_star[b])) or d <= 0.0:
                 failed += 1
@@ -410,6 +456,9 @@ def fit_recovery_models(
     rebound_force: Callable[[float], float | None] | None = None,
     elasticity_kpa: float | None = None,
     depth_rel_sd: float = 0.0,
+    value_resolution: float | None = None,
+    frame_period_s: float | None = None,
+    release_side: Literal["either", "before", "after"] = "either",
 ) -> RecoveryModelComparison:
     """Fit every recovery model to one series; AICc weights; bootstrap 95 % intervals.
 
@@ -435,18 +484,37 @@ def fit_recovery_models(
     rebound_force : callable, optional
         Eq. (5), S_max [px] -> F_r [N] (None for an S_max it cannot take).
     elasticity_kpa : float, optional
-        E [kPa] for eta = E T_r (Eq. 8).
+        E [kPa] for eta = E T_r (Eq. 8), finite and > 0.
     depth_rel_sd : float
         Relative standard uncertainty of D_p [-], >= 0 and finite (0: E held fixed). E =
         c/D_p (Eq. 7), so each bootstrap replicate's eta is divided by 1 + depth_rel_sd z,
         z standard normal: eta's interval carries E's uncertainty through D_p (F_a's is
         not in it).
+    value_resolution : float, optional
+        The values' quantum [series unit], finite and >= 0: each bootstrap replicate moves
+        the settled level by a uniform draw in +-resolution/2 (the rounding of S_max that
+        no average of rounded samples removes). Default: 1 when every value is an integer
+        (S_k, a pixel count), else 0 (a continuous series: a depth, a sub-pixel area).
+    frame_period_s : float, optional
+        How well T_0 places the release [s], finite and >= 0: each replicate's tau and T_r
+        move by a uniform draw in +-frame_period_s (the release lies within one frame
+        period of the frame T_0 is, on either side). Default: the median sample interval.
+    release_side : {"either", "before", "after"}
+        Where the release lies relative to T_0, when the caller knows: ``"before"`` (T_0 is
+        the first frame that shows the release: tau and T_r from the release are longer by
+        U(0, frame_period_s)), ``"after"`` (T_0 is the last frame that shows the pit:
+        shorter by U(0, frame_period_s)); ``"either"`` (default) draws U(-dt, dt).
+
+    Domain: |values| <= :data:`MAX_ABS_VALUE` (1e150 in the series' unit) so that squared
+    residuals stay finite; times as :func:`~stipi_daemon.analysis.recovery_fit.fit_window`.
 
     Raises
     ------
     AnalysisError
-        Input as :func:`~stipi_daemon.analysis.recovery_fit.fit_recovery` refuses it, an
-        unknown model name, or a setting outside its domain.
+        Input as :func:`~stipi_daemon.analysis.recovery_fit.fit_recovery` refuses it, a
+        value outside the domain, an unknown model name, or a setting outside its domain
+        (a non-finite or non-positive ``elasticity_kpa``, a negative or non-finite
+        ``value_resolution`` or ``frame_period_s``), each naming the parameter.
     """
     if not 0.0 < settle_fraction < 1.0:
         raise AnalysisError(f"settle_fraction must be in (0, 1), got {settle_fraction}")
@@ -454,16 +522,25 @@ def fit_recovery_models(
         raise AnalysisError(f"replicates and seed must be >= 0, got {replicates}, {seed}")
     if not (math.isfinite(depth_rel_sd) and depth_rel_sd >= 0.0):
         raise AnalysisError(f"depth_rel_sd must be finite and >= 0, got {depth_rel_sd}")
+    if elasticity_kpa is not None and not (math.isfinite(elasticity_kpa) and elasticity_kpa > 0.0):
+        raise AnalysisError(f"elasticity_kpa must be finite and > 0, got {elasticity_kpa}")
+    if release_side not in ("either", "before", "after"):
+        raise AnalysisError(f"release_side must be either, before or after, got {release_side!r}")
+    for name, v in (("value_resolution", value_resolution), ("frame_period_s", frame_period_s)):
+        if v is not None and not (math.isfinite(v) and v >= 0.0):
+            raise AnalysisError(f"{name} must be finite and >= 0, got {v}")
     names = [_KV, *[m for m in (models or MODELS) if m != _KV]]
     unknown = [m for m in names if m not in MODELS]
     if unknown:
         raise AnalysisError(f"unknown recovery model {unknown[0]!r} (known: {', '.join(MODELS)})")
     x, y, flags = _series(times_s, values, t0_s, window_s)
     y_lo, y_hi = float(np.min(y)), float(np.max(y))
-    with np.errstate(over="ignore"):
-        span = y_hi - y_lo
-    if not math.isfinite(span):
-        raise AnalysisError("the values' range exceeds the floating-point range")
+    check_value_domain(y_lo, y_hi)
+    span = y_hi - y_lo
+    if value_resolution is None:
+        value_resolution = 1.0 if bool(np.all(y == np.round(y))) else 0.0
+    if frame_period_s is None:
+        frame_period_s = float(np.median(np.diff(x))) if x.size > 1 else 0.0
     common = {
         "t0_s": float(t0_s),
         "t_start_s": float(t0_s + x[0]),
@@ -472,6 +549,9 @@ def fit_recovery_models(
         "replicates": replicates,
         "seed": seed,
         "depth_rel_sd": float(depth_rel_sd),
+        "value_resolution": float(value_resolution),
+        "frame_period_s": float(frame_period_s),
+        "release_side": release_side,
     }
     if span <= 1e-12 * max(abs(y_lo), abs(y_hi)) or span == 0.0:
         fits = tuple(
@@ -496,6 +576,9 @@ def fit_recovery_models(
         rebound_force,
         elasticity_kpa,
         depth_rel_sd,
+        value_resolution,
+        frame_period_s,
+        release_side,
     )
     return _compare(names, s, replicates, seed, flags, common)
 
