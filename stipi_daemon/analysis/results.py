@@ -31,6 +31,12 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from stipi_daemon.analysis.calibration import Calibration
 from stipi_daemon.analysis.flags import Flag
+from stipi_daemon.analysis.image_quality import (
+    FramePictures,
+    ImageQuality,
+    QualityRule,
+    judge_pictures,
+)
 from stipi_daemon.analysis.observation import noise_sigma
 from stipi_daemon.analysis.pitting import (
     DEFAULT_PERSIST_FRAMES,
@@ -64,6 +70,7 @@ __all__ = [
     "analyze_recovery",
     "applied_force_n_from_samples",
     "depth_relative_sd",
+    "force_at_rail_fraction",
 ]
 
 
@@ -78,6 +85,9 @@ POOR_FIT_R_SQUARED = 0.99
 #: explain. A faithful fit of a noisy, barely rising series has a low R^2 but residuals at
 #: the noise level: it is not poor [-].
 POOR_FIT_NOISE_RATIO = 3.0
+#: F_a is invalid (``FORCE_AT_FULL_SCALE``) when more than this fraction of the hold's
+#: load-cell samples sit at full scale [-].
+FORCE_RAIL_FRACTION = 0.01
 
 
 class AnalysisSettings(BaseModel):
@@ -151,11 +161,16 @@ class MeasurementResult:
     severity_fit: SeverityResult | None
     notes: tuple[str, ...]
     models: RecoveryModelComparison | None = None
+    image_quality: ImageQuality | None = None
+    quality_rules: tuple[QualityRule, ...] = ()
+    force_at_rail_fraction: float = 0.0
 
     @property
     def flags(self) -> frozenset[Flag]:
         """Union of every part's flags (of the model comparison: ``KELVIN_VOIGT_REJECTED``)."""
         out = set(self.pitting.flags) | set(self.fit.flags)
+        if self.force_at_rail_fraction > FORCE_RAIL_FRACTION:
+            out.add(Flag.FORCE_AT_FULL_SCALE)
         if self.models is not None and self.models.kelvin_voigt_rejected:
             out.add(Flag.KELVIN_VOIGT_REJECTED)
         for sev in (self.severity_paper, self.severity_fit):
@@ -194,6 +209,9 @@ class MeasurementResult:
         return {
             "pitting": {
                 "depth_mm": p.depth_mm,
+                "indentation_depth_mm": p.depth_mm,
+                "residual_depth_mm": p.residual_depth_mm,
+                "spring_back_px": p.spring_back_px,
                 "depth_change_mm": p.depth_change_mm,
                 "rebound_force_n": p.rebound_force_n,
                 "recovery_time_s": p.recovery_time_s,
@@ -226,6 +244,12 @@ class MeasurementResult:
                 "fitted_recovery": severity(self.severity_fit),
             },
             "recovery_models": None if self.models is None else self.models.to_dict("px"),
+            "image_quality": None if self.image_quality is None else self.image_quality.to_dict(),
+            "image_quality_rules": [
+                {"quantity": r.quantity, "invalid": r.invalid, "reason": r.reason}
+                for r in self.quality_rules
+            ],
+            "force_at_full_scale_fraction": self.force_at_rail_fraction,
             "flags": sorted(self.flags),
             "notes": list(self.notes),
         }
@@ -263,6 +287,31 @@ def applied_force_n_from_samples(
     return mean
 
 
+def force_at_rail_fraction(
+    times_s: ArrayLike,
+    force_n: ArrayLike,
+    t_start_s: float,
+    t_end_s: float,
+    full_scale_n: float,
+    resolution_n: float,
+) -> float:
+    """Fraction of the hold's load-cell samples at the sensor's full scale [-].
+
+    A sample within half a count (``resolution_n`` / 2 [N]) of ``full_scale_n`` [N] (the
+    force of the ADC's largest count, or the load cell's range) is at the rail: the true
+    force there is at least that, so their mean, F_a, is a lower bound. Samples as in
+    :func:`applied_force_n_from_samples`; 0 when none lies in the hold or the full scale
+    is not finite.
+    """
+    t = np.asarray(times_s, dtype=np.float64)
+    f = np.asarray(force_n, dtype=np.float64)
+    sel = (t >= t_start_s) & (t <= t_end_s) & np.isfinite(t) & np.isfinite(f)
+    if not np.any(sel) or not math.isfinite(full_scale_n):
+        return 0.0
+    at_rail = f[sel] >= full_scale_n - 0.5 * max(resolution_n, 0.0)
+    return float(np.mean(at_rail))
+
+
 def analyze_recovery(
     times_s: ArrayLike,
     s_k: ArrayLike,
@@ -271,6 +320,9 @@ def analyze_recovery(
     applied_force_n: float,
     settings: AnalysisSettings,
     reference: SeverityReference,
+    *,
+    pictures: FramePictures | None = None,
+    force_rail_fraction: float = 0.0,
 ) -> MeasurementResult:
     """Analyse one measurement's S_k series from T_0 on, with both recovery estimators.
 
@@ -290,6 +342,12 @@ def analyze_recovery(
         Radius, window, settling fraction.
     reference : SeverityReference
         Reference grade curves for Section IV.C.
+    pictures : FramePictures or None
+        Picture statistics of (some of) the frames (the image-quality rules,
+        :mod:`~stipi_daemon.analysis.image_quality`); None: not judged.
+    force_rail_fraction : float
+        :func:`force_at_rail_fraction` of the hold (``FORCE_AT_FULL_SCALE`` above
+        :data:`FORCE_RAIL_FRACTION`) [-].
 
     Raises
     ------
@@ -368,6 +426,7 @@ def analyze_recovery(
         )
         severity_fit = replace(severity_fit, flags=severity_fit.flags | {Flag.ESTIMATORS_DISAGREE})
 
+    quality, rules = _judged_pictures(pictures, times_s, s_k, pitting, calibration, settings)
     return MeasurementResult(
         pitting=pitting,
         applied_force_n=float(applied_force_n),
@@ -379,6 +438,41 @@ def analyze_recovery(
         severity_fit=severity_fit,
         notes=tuple(notes),
         models=models,
+        image_quality=quality,
+        quality_rules=tuple(rules),
+        force_at_rail_fraction=float(force_rail_fraction),
+    )
+
+
+def _judged_pictures(
+    pictures: FramePictures | None,
+    times_s: ArrayLike,
+    s_k: ArrayLike,
+    pitting: PittingParameters,
+    calibration: Calibration,
+    settings: AnalysisSettings,
+) -> tuple[ImageQuality | None, list[QualityRule]]:
+    """:func:`~stipi_daemon.analysis.image_quality.judge_pictures` on this measurement."""
+    if pictures is None:
+        return None, []
+    slope = abs(2.0 * calibration.alpha1_mm_per_px2 * pitting.s0_px - calibration.alpha2_mm_per_px)
+    quantities = {
+        "depth_mm": pitting.depth_mm,
+        "depth_slope_mm_per_px": slope,
+        "c2_px_per_n": calibration.c2_px_per_n,
+        "rebound_force_n": pitting.rebound_force_n,
+    }
+    if pitting.recovery_time_s is not None:
+        quantities["recovery_time_s"] = pitting.recovery_time_s
+    return judge_pictures(
+        pictures,
+        times_s,
+        s_k,
+        t0_s=pitting.t0_s,
+        ts_s=pitting.ts_s,
+        window_s=settings.recovery_window_s,
+        quantities=quantities,
+        period_s=pitting.observed.frame_period_s,
     )
 
 
