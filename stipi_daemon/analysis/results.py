@@ -22,6 +22,7 @@ fit that does not converge leaves the fitted estimator undefined.
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass, replace
 from typing import Any
 
@@ -71,6 +72,7 @@ __all__ = [
     "applied_force_n_from_samples",
     "depth_relative_sd",
     "force_at_rail_fraction",
+    "force_full_scale_n",
 ]
 
 
@@ -310,6 +312,30 @@ def force_at_rail_fraction(
         return 0.0
     at_rail = f[sel] >= full_scale_n - 0.5 * max(resolution_n, 0.0)
     return float(np.mean(at_rail))
+
+
+def force_full_scale_n(info: Mapping[str, Any] | None) -> tuple[float, float] | None:
+    """The load cell's full scale and one count [N] from what the probe reported.
+
+    ``info`` is the probe's information as the session records it (the manifest's
+    ``firmware``: ``adc_bits``, and the calibration the forces were computed with,
+    ``zero_counts_used`` and ``span_un_per_count_used``, else the probe's own
+    ``zero_counts`` and ``span_un_per_count``). The full scale is the force of the ADC's
+    largest code, (2^bits - 1 - zero) * span [N]. None when any of these is missing.
+    """
+    if not info:
+        return None
+    bits = info.get("adc_bits")
+    zero = info.get("zero_counts_used", info.get("zero_counts"))
+    span = info.get("span_un_per_count_used", info.get("span_un_per_count"))
+    if not all(isinstance(v, int | float) and math.isfinite(v) for v in (bits, zero, span)):
+        return None
+    assert isinstance(bits, int | float) and isinstance(zero, int | float)
+    assert isinstance(span, int | float)
+    count_n = float(span) * 1e-6
+    if not (1 <= bits <= 32 and count_n > 0.0):
+        return None
+    return ((2 ** int(bits) - 1 - float(zero)) * count_n, count_n)
 
 
 def analyze_recovery(

@@ -37,6 +37,7 @@ from stipi_daemon.analysis.results import (
     MeasurementResult,
     analyze_recovery,
     force_at_rail_fraction,
+    force_full_scale_n,
 )
 from stipi_daemon.analysis.severity import load_reference
 from stipi_daemon.analysis.validity import assess_validity
@@ -359,3 +360,19 @@ def test_force_below_full_scale_is_not_at_the_rail() -> None:
     f = np.full_like(ft, 16.0)
     assert force_at_rail_fraction(ft, f, 1.0, 15.0, 44.48, 0.0543) == 0.0
     assert force_at_rail_fraction(ft, f, 1.0, 15.0, math.inf, 0.0543) == 0.0
+
+
+def test_full_scale_is_the_adc_top_code_of_the_probe_info() -> None:
+    # FC22 10 lbf (44.48 N): V = 5 (0.1 + 0.8 F / 44.48), divided by 0.66 onto a 3.3 V
+    # 10-bit ADC (1024 codes); the top code 1023 is reached at
+    volts = 1023 / 1024 * 3.3 / 0.66
+    top_n = (volts / 5 - 0.1) / 0.8 * 44.48
+    info = {"adc_bits": 10, "zero_counts": 102, "span_un_per_count": 54297}
+    full = force_full_scale_n(info)
+    assert full is not None
+    assert full[0] == pytest.approx(top_n, rel=0.005)
+    assert full[1] == pytest.approx(0.054297)
+    used = force_full_scale_n({**info, "zero_counts_used": 110, "span_un_per_count_used": 50000})
+    assert used == pytest.approx(((1023 - 110) * 0.05, 0.05))
+    assert force_full_scale_n({"adc_bits": 10}) is None
+    assert force_full_scale_n(None) is None

@@ -32,7 +32,11 @@ from stipi_daemon.sim.truth import ground_truth
 from tests.conftest import REPO_ROOT
 
 
-def _run(tmp_path: Path, effects: list[dict[str, Any]]) -> tuple[dict[str, Any], Any, Any]:
+def _run(
+    tmp_path: Path, effects: list[dict[str, Any]], force_rail_n: float | None = None
+) -> tuple[dict[str, Any], Any, Any]:
+    """The scene through the pipeline; ``force_rail_n``: the load cell reads at most this
+    [N] (pinned at its full scale above it), and the pipeline is told so."""
     spec = yaml.safe_load((REPO_ROOT / "configs" / "scenes" / "grade3.yaml").read_text())
     spec["camera"].update(width=160, height=120, fps=30.0)
     spec["effects"] = effects
@@ -55,6 +59,10 @@ def _run(tmp_path: Path, effects: list[dict[str, Any]]) -> tuple[dict[str, Any],
         reference=load_reference(),
     )
     batch = sim.force_batch()
+    force = np.asarray(batch.force_n, dtype=np.float64)
+    if force_rail_n is not None:
+        force = np.minimum(force, force_rail_n)
+        mp.force_full_scale_n = (force_rail_n, 0.0543)
     mp.arm(0.0)
     fi = 0
     for fr in sim.frames():
@@ -63,7 +71,7 @@ def _run(tmp_path: Path, effects: list[dict[str, Any]]) -> tuple[dict[str, Any],
             meter = LevelMeter(fr.image.shape, p, roi)
             mp.picture_setup = (p, proc.roi_pixel_count, 0.01)
         while fi < batch.index.size and batch.t_true_s[fi] <= fr.t_s:
-            mp.force(float(batch.t_true_s[fi]), float(batch.force_n[fi]))
+            mp.force(float(batch.t_true_s[fi]), float(force[fi]))
             fi += 1
         mp.picture(fr.t_s, meter.measure(fr.image))
         mp.frame(fr.t_s, float(proc.count(fr.image)))
@@ -121,3 +129,12 @@ def test_a_camera_effect_never_leaves_a_wrong_result_valid(
     judged = [q for q, v in validity.items() if "image_quality" in v["flags"]]
     assert off or judged  # the effect is seen: a result is off (and invalid) or flagged
     assert np.isfinite(result.image_quality.noise_levels) if result.image_quality else True
+
+
+def test_a_load_cell_pinned_at_full_scale_invalidates_fa_and_e(tmp_path: Path) -> None:
+    validity, result, _truth = _run(tmp_path, [], force_rail_n=15.0)
+    assert result.applied_force_n < 0.95 * 16.0  # the mean of pinned samples is low
+    assert validity["applied_force_n"]["status"] == "invalid"
+    assert "full scale" in validity["applied_force_n"]["reason"]
+    assert validity["elasticity_kpa"]["status"] == "invalid"
+    assert validity["depth_mm"]["status"] == "valid"
