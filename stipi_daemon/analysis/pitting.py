@@ -890,7 +890,7 @@ class PittingParameters:
         With ``RELEASE_STEP``: the pit left once the instantaneous spring-back is done,
         l - d_s (Eqs. 3-4) of S_k at the first frame after the release frame, in [0, l]
         [mm]; ``depth_mm`` stays the indentation depth at the release frame (S_0). None
-        without a step.
+        without a step, or when that S_k is past the vertex of Eq. (4).
     spring_back_px : float or None
         With ``RELEASE_STEP``: the step of S_k right after the release frame [px].
     """
@@ -985,7 +985,8 @@ def compute_pitting_parameters(
     if rt.after_step_px is not None:
         step = rt.after_step_px - rt.s0_px
         d_after = float(calibration.depth_change_mm(rt.after_step_px))
-        if math.isfinite(d_after):
+        # past the vertex of Eq. (4) d_s no longer grows with S: no depth to read there
+        if math.isfinite(d_after) and rt.after_step_px < calibration.vertex_px:
             residual = pitting_depth_mm(d_after, calibration.indenter_length_mm).value
     return PittingParameters(
         depth_mm=depth.value,

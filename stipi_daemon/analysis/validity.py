@@ -320,7 +320,10 @@ def _specific_reason(flag: Flag, result: MeasurementResult) -> str | None:
                 f"{p.depth_mm:.2f} mm at the release frame"
             )
         )
-        return f"S_k sprang back by {p.spring_back_px:.0f} px right after the release{share}{pit}"
+        return (
+            f"an instantaneous spring-back: S_k rose by {p.spring_back_px:.0f} px right after "
+            f"the release frame{share}{pit}"
+        )
     if flag is Flag.FORCE_AT_FULL_SCALE:
         return (
             f"{100 * result.force_at_rail_fraction:.0f} % of the hold's load-cell samples sit "

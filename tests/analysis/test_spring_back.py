@@ -57,7 +57,7 @@ def test_a_spring_back_spanning_a_frame_reports_the_residual_pit_apart() -> None
     out = assess_validity(r, ended_done=True)
     d = out["validity"]["depth_mm"]
     assert d["status"] == "flagged"
-    assert "sprang back by" in d["reason"] and "residual pit" in d["reason"]
+    assert "spring-back" in d["reason"] and "residual pit" in d["reason"]
     e = out["validity"]["elasticity_kpa"]
     assert e["status"] == "flagged"
     summary = r.to_dict()["pitting"]
