@@ -27,6 +27,8 @@ class Flag(StrEnum):
     SATURATED_FRAME = "saturated_frame"
     EMPTY_ROI = "empty_roi"
     ROI_CLIPPED = "roi_clipped"
+    IMAGE_QUALITY = "image_quality"
+    FORCE_AT_FULL_SCALE = "force_at_full_scale"
     # pitting parameters (Eqs. 3-6)
     NOT_SETTLED = "not_settled"
     SETTLED_WITHIN_ONE_FRAME = "settled_within_one_frame"
@@ -82,6 +84,15 @@ FLAG_DESCRIPTIONS: Final[Mapping[Flag, str]] = MappingProxyType(
         Flag.EMPTY_ROI: "The ROI does not overlap the frame; S_k is 0 by definition.",
         Flag.ROI_CLIPPED: (
             "Part of the ROI lies outside the frame; only its pixels inside the frame are counted."
+        ),
+        Flag.IMAGE_QUALITY: (
+            "Flicker, pixel noise or vignetting measured on the steady frames (or frames at "
+            "the sensor's rail) can move this quantity by the amount stated: beyond its "
+            "tolerance it is invalid."
+        ),
+        Flag.FORCE_AT_FULL_SCALE: (
+            "Load-cell samples of the pitting hold sit at the ADC's full scale: the force "
+            "there is unknown (at least full scale), so F_a, and E with it, is invalid."
         ),
         # pitting parameters (Eqs. 3-6)
         Flag.NOT_SETTLED: (

@@ -285,6 +285,9 @@ class RecoveryTime:
         Caveats (see :class:`Flag`).
     observed : Observed
         Frame gaps and outlier frames of the recovery, and where they matter.
+    after_step_px : float or None
+        With ``RELEASE_STEP``: S_k of the first usable frame after the release frame, the
+        residual pit once the spring-back is done [px]; None otherwise.
     """
 
     t0_s: float
@@ -296,6 +299,7 @@ class RecoveryTime:
     n_frames: int
     flags: frozenset[Flag]
     observed: Observed = NOTHING_OBSERVED
+    after_step_px: float | None = None
 
 
 def _s_max(values: NDArray[np.float64], top_frames: int) -> float:
@@ -475,6 +479,7 @@ def _timed(
         n_frames=win.n_frames,
         flags=frozenset(flags),
         observed=observed,
+        after_step_px=win.after_step_px,
     )
 
 
@@ -519,6 +524,7 @@ class _RecoveryFrames:
     release_gap: FrameGap | None
     outlier_times_s: tuple[float, ...]
     flags: frozenset[Flag]
+    after_step_px: float | None = None
 
     @classmethod
     def of(
@@ -551,6 +557,7 @@ class _RecoveryFrames:
                 "the series ends at T_0"
             )
         fraction, floor = levels
+        after_step: float | None = None
         before = t[t < t0]
         t_before = float(before[-1]) if before.size else t0
         # the release frame itself: no frame lost between the pitting phase and it
@@ -564,6 +571,7 @@ class _RecoveryFrames:
         elif outlier[0] and on_time and _release_step(ts_, ss_, outlier, floor):
             outlier[0] = False
             flags.add(Flag.RELEASE_STEP)
+            after_step = float(ss_[1:][~outlier[1:]][0])
         if outlier.any():
             flags.add(Flag.OUTLIER_FRAMES)
         keep_t, keep_s = ts_[~outlier], ss_[~outlier]
@@ -589,6 +597,7 @@ class _RecoveryFrames:
             release_gap=at_release,
             outlier_times_s=tuple(float(v) for v in ts_[outlier]),
             flags=frozenset(flags),
+            after_step_px=after_step,
         )
 
     def interval_gap(self, lo_s: float, hi_s: float, min_s: float = 0.0) -> FrameGap | None:
@@ -877,6 +886,13 @@ class PittingParameters:
         Union of the flags of all three parameters.
     observed : Observed
         Frame gaps and outlier frames of the recovery (see :class:`RecoveryTime`).
+    residual_depth_mm : float or None
+        With ``RELEASE_STEP``: the pit left once the instantaneous spring-back is done,
+        l - d_s (Eqs. 3-4) of S_k at the first frame after the release frame, in [0, l]
+        [mm]; ``depth_mm`` stays the indentation depth at the release frame (S_0). None
+        without a step, or when that S_k is past the vertex of Eq. (4).
+    spring_back_px : float or None
+        With ``RELEASE_STEP``: the step of S_k right after the release frame [px].
     """
 
     depth_mm: float
@@ -889,6 +905,8 @@ class PittingParameters:
     s_max_px: float
     flags: frozenset[Flag]
     observed: Observed = NOTHING_OBSERVED
+    residual_depth_mm: float | None = None
+    spring_back_px: float | None = None
 
 
 def compute_pitting_parameters(
@@ -968,6 +986,14 @@ def compute_pitting_parameters(
         and not f_range[0] <= force.value <= f_range[1]
     ):
         extra.add(Flag.CALIBRATION_EXTRAPOLATED)
+    residual: float | None = None
+    step: float | None = None
+    if rt.after_step_px is not None:
+        step = rt.after_step_px - rt.s0_px
+        d_after = float(calibration.depth_change_mm(rt.after_step_px))
+        # past the vertex of Eq. (4) d_s no longer grows with S: no depth to read there
+        if math.isfinite(d_after) and rt.after_step_px < calibration.vertex_px:
+            residual = pitting_depth_mm(d_after, calibration.indenter_length_mm).value
     return PittingParameters(
         depth_mm=depth.value,
         depth_change_mm=d_s,
@@ -979,4 +1005,6 @@ def compute_pitting_parameters(
         s_max_px=rt.s_max_px,
         flags=rt.flags | depth.flags | force.flags | frozenset(extra),
         observed=rt.observed,
+        residual_depth_mm=residual,
+        spring_back_px=step,
     )

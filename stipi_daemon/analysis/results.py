@@ -22,6 +22,7 @@ fit that does not converge leaves the fitted estimator undefined.
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass, replace
 from typing import Any, Literal
 
@@ -31,6 +32,12 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from stipi_daemon.analysis.calibration import Calibration
 from stipi_daemon.analysis.flags import Flag
+from stipi_daemon.analysis.image_quality import (
+    FramePictures,
+    ImageQuality,
+    QualityRule,
+    judge_pictures,
+)
 from stipi_daemon.analysis.model_checks import (
     ResultCheck,
     model_checks,
@@ -71,6 +78,8 @@ __all__ = [
     "analyze_recovery",
     "applied_force_n_from_samples",
     "depth_relative_sd",
+    "force_at_rail_fraction",
+    "force_full_scale_n",
 ]
 
 
@@ -85,6 +94,9 @@ POOR_FIT_R_SQUARED = 0.99
 #: explain. A faithful fit of a noisy, barely rising series has a low R^2 but residuals at
 #: the noise level: it is not poor [-].
 POOR_FIT_NOISE_RATIO = 3.0
+#: F_a is invalid (``FORCE_AT_FULL_SCALE``) when more than this fraction of the hold's
+#: load-cell samples sit at full scale [-].
+FORCE_RAIL_FRACTION = 0.01
 
 
 class AnalysisSettings(BaseModel):
@@ -163,11 +175,16 @@ class MeasurementResult:
     notes: tuple[str, ...]
     models: RecoveryModelComparison | None = None
     checks: tuple[ResultCheck, ...] = ()
+    image_quality: ImageQuality | None = None
+    quality_rules: tuple[QualityRule, ...] = ()
+    force_at_rail_fraction: float = 0.0
 
     @property
     def flags(self) -> frozenset[Flag]:
         """Union of every part's flags (of the model comparison: ``KELVIN_VOIGT_REJECTED``)."""
         out = set(self.pitting.flags) | set(self.fit.flags)
+        if self.force_at_rail_fraction > FORCE_RAIL_FRACTION:
+            out.add(Flag.FORCE_AT_FULL_SCALE)
         if self.models is not None and self.models.kelvin_voigt_rejected:
             out.add(Flag.KELVIN_VOIGT_REJECTED)
         for sev in (self.severity_paper, self.severity_fit):
@@ -207,6 +224,9 @@ class MeasurementResult:
         return {
             "pitting": {
                 "depth_mm": p.depth_mm,
+                "indentation_depth_mm": p.depth_mm,
+                "residual_depth_mm": p.residual_depth_mm,
+                "spring_back_px": p.spring_back_px,
                 "depth_change_mm": p.depth_change_mm,
                 "rebound_force_n": p.rebound_force_n,
                 "recovery_time_s": p.recovery_time_s,
@@ -240,6 +260,12 @@ class MeasurementResult:
             },
             "recovery_models": None if self.models is None else self.models.to_dict("px"),
             "checks": [{"flag": str(c.flag), "reason": c.reason} for c in self.checks],
+            "image_quality": None if self.image_quality is None else self.image_quality.to_dict(),
+            "image_quality_rules": [
+                {"quantity": r.quantity, "invalid": r.invalid, "reason": r.reason}
+                for r in self.quality_rules
+            ],
+            "force_at_full_scale_fraction": self.force_at_rail_fraction,
             "flags": sorted(self.flags),
             "notes": list(self.notes),
         }
@@ -277,6 +303,55 @@ def applied_force_n_from_samples(
     return mean
 
 
+def force_at_rail_fraction(
+    times_s: ArrayLike,
+    force_n: ArrayLike,
+    t_start_s: float,
+    t_end_s: float,
+    full_scale_n: float,
+    resolution_n: float,
+) -> float:
+    """Fraction of the hold's load-cell samples at the sensor's full scale [-].
+
+    A sample within half a count (``resolution_n`` / 2 [N]) of ``full_scale_n`` [N] (the
+    force of the ADC's largest count, or the load cell's range) is at the rail: the true
+    force there is at least that, so their mean, F_a, is a lower bound. Samples as in
+    :func:`applied_force_n_from_samples`; 0 when none lies in the hold or the full scale
+    is not finite.
+    """
+    t = np.asarray(times_s, dtype=np.float64)
+    f = np.asarray(force_n, dtype=np.float64)
+    sel = (t >= t_start_s) & (t <= t_end_s) & np.isfinite(t) & np.isfinite(f)
+    if not np.any(sel) or not math.isfinite(full_scale_n):
+        return 0.0
+    at_rail = f[sel] >= full_scale_n - 0.5 * max(resolution_n, 0.0)
+    return float(np.mean(at_rail))
+
+
+def force_full_scale_n(info: Mapping[str, Any] | None) -> tuple[float, float] | None:
+    """The load cell's full scale and one count [N] from what the probe reported.
+
+    ``info`` is the probe's information as the session records it (the manifest's
+    ``firmware``: ``adc_bits``, and the calibration the forces were computed with,
+    ``zero_counts_used`` and ``span_un_per_count_used``, else the probe's own
+    ``zero_counts`` and ``span_un_per_count``). The full scale is the force of the ADC's
+    largest code, (2^bits - 1 - zero) * span [N]. None when any of these is missing.
+    """
+    if not info:
+        return None
+    bits = info.get("adc_bits")
+    zero = info.get("zero_counts_used", info.get("zero_counts"))
+    span = info.get("span_un_per_count_used", info.get("span_un_per_count"))
+    if not all(isinstance(v, int | float) and math.isfinite(v) for v in (bits, zero, span)):
+        return None
+    assert isinstance(bits, int | float) and isinstance(zero, int | float)
+    assert isinstance(span, int | float)
+    count_n = float(span) * 1e-6
+    if not (1 <= bits <= 32 and count_n > 0.0):
+        return None
+    return ((2 ** int(bits) - 1 - float(zero)) * count_n, count_n)
+
+
 def analyze_recovery(
     times_s: ArrayLike,
     s_k: ArrayLike,
@@ -285,6 +360,9 @@ def analyze_recovery(
     applied_force_n: float,
     settings: AnalysisSettings,
     reference: SeverityReference,
+    *,
+    pictures: FramePictures | None = None,
+    force_rail_fraction: float = 0.0,
 ) -> MeasurementResult:
     """Analyse one measurement's S_k series from T_0 on, with both recovery estimators.
 
@@ -304,6 +382,12 @@ def analyze_recovery(
         Radius, window, settling fraction.
     reference : SeverityReference
         Reference grade curves for Section IV.C.
+    pictures : FramePictures or None
+        Picture statistics of (some of) the frames (the image-quality rules,
+        :mod:`~stipi_daemon.analysis.image_quality`); None: not judged.
+    force_rail_fraction : float
+        :func:`force_at_rail_fraction` of the hold (``FORCE_AT_FULL_SCALE`` above
+        :data:`FORCE_RAIL_FRACTION`) [-].
 
     Raises
     ------
@@ -383,6 +467,7 @@ def analyze_recovery(
         severity_fit = replace(severity_fit, flags=severity_fit.flags | {Flag.ESTIMATORS_DISAGREE})
 
     checks = _result_checks(pitting, fit, models, settings.settle_fraction)
+    quality, rules = _judged_pictures(pictures, times_s, s_k, pitting, calibration, settings)
     return MeasurementResult(
         pitting=pitting,
         applied_force_n=float(applied_force_n),
@@ -395,6 +480,9 @@ def analyze_recovery(
         notes=tuple(notes),
         models=models,
         checks=checks + _severity_checks(pitting, models, checks, severity_paper, reference),
+        image_quality=quality,
+        quality_rules=tuple(rules),
+        force_at_rail_fraction=float(force_rail_fraction),
     )
 
 
@@ -475,6 +563,38 @@ def _severity_checks(
             f"T_r between {lo:.2f} and {hi:.2f} s leaves grades {remain} ({classes}): "
             "the class is not named",
         ),
+    )
+
+
+def _judged_pictures(
+    pictures: FramePictures | None,
+    times_s: ArrayLike,
+    s_k: ArrayLike,
+    pitting: PittingParameters,
+    calibration: Calibration,
+    settings: AnalysisSettings,
+) -> tuple[ImageQuality | None, list[QualityRule]]:
+    """:func:`~stipi_daemon.analysis.image_quality.judge_pictures` on this measurement."""
+    if pictures is None:
+        return None, []
+    slope = abs(2.0 * calibration.alpha1_mm_per_px2 * pitting.s0_px - calibration.alpha2_mm_per_px)
+    quantities = {
+        "depth_mm": pitting.depth_mm,
+        "depth_slope_mm_per_px": slope,
+        "c2_px_per_n": calibration.c2_px_per_n,
+        "rebound_force_n": pitting.rebound_force_n,
+    }
+    if pitting.recovery_time_s is not None:
+        quantities["recovery_time_s"] = pitting.recovery_time_s
+    return judge_pictures(
+        pictures,
+        times_s,
+        s_k,
+        t0_s=pitting.t0_s,
+        ts_s=pitting.ts_s,
+        window_s=settings.recovery_window_s,
+        quantities=quantities,
+        period_s=pitting.observed.frame_period_s,
     )
 
 

@@ -133,6 +133,11 @@ FLAG_RULES: Final[Mapping[Flag, FlagRule]] = MappingProxyType(
         Flag.SATURATED_FRAME: FlagRule(FROM_SK, (), "saturated frames may bias S_k low"),
         Flag.EMPTY_ROI: FlagRule(FROM_SK, FROM_SK, "the ROI does not overlap the frame"),
         Flag.ROI_CLIPPED: FlagRule(FROM_SK, (), "part of the ROI lies outside the frame"),
+        # Carried per quantity with its amount by the result's image-quality rules.
+        Flag.IMAGE_QUALITY: FlagRule((), (), "the picture can move S_k"),
+        Flag.FORCE_AT_FULL_SCALE: FlagRule(
+            ("applied_force_n",), ("applied_force_n",), "load-cell samples at full scale"
+        ),
         # The settled-level rule: S_max of a recovery that did not settle is not its
         # settled level, so F_r (Eq. 5 at S_max) is a lower bound too (an aborted recovery).
         Flag.NOT_SETTLED: FlagRule(
@@ -352,6 +357,27 @@ def _specific_reason(flag: Flag, result: MeasurementResult) -> str | None:
     if flag is Flag.OUTLIER_FRAMES and obs.outlier_times_s:
         n = len(obs.outlier_times_s)
         return f"{n} outlier frame{'s' if n > 1 else ''} left out of S_max, T_s and the fit"
+    if flag is Flag.RELEASE_STEP and p.spring_back_px is not None:
+        rise = p.s_max_px - p.s0_px
+        share = f" ({100 * p.spring_back_px / rise:.0f} % of the recovery)" if rise > 0 else ""
+        residual = p.residual_depth_mm
+        pit = (
+            ""
+            if residual is None
+            else (
+                f": residual pit {residual:.2f} mm against the indentation depth D_p = "
+                f"{p.depth_mm:.2f} mm at the release frame"
+            )
+        )
+        return (
+            f"an instantaneous spring-back: S_k rose by {p.spring_back_px:.0f} px right after "
+            f"the release frame{share}{pit}"
+        )
+    if flag is Flag.FORCE_AT_FULL_SCALE:
+        return (
+            f"{100 * result.force_at_rail_fraction:.0f} % of the hold's load-cell samples sit "
+            "at full scale: F_a is only a lower bound"
+        )
     if flag is Flag.POOR_FIT and result.fit.r_squared is not None:
         return f"the Kelvin-Voigt model fits the recovery poorly (R^2 = {result.fit.r_squared:.2f})"
     if flag is Flag.ESTIMATORS_DISAGREE:
@@ -420,6 +446,9 @@ def quantity_validity(
         for q in rule.quantities:
             flags[q].add(str(flag))
             (invalid if q in rule.invalidates else caveats)[q].append(reason)
+    for qrule in result.quality_rules:
+        flags[qrule.quantity].add(str(Flag.IMAGE_QUALITY))
+        (invalid if qrule.invalid else caveats)[qrule.quantity].append(qrule.reason)
     for extra, into in ((extra_reasons, invalid), (extra_caveats, caveats)):
         for q, reason in (extra or {}).items():
             into[q].append(reason)

@@ -45,7 +45,7 @@ from pydantic import BaseModel, ValidationError
 from stipi_daemon import __version__
 from stipi_daemon.analysis.calibration import Calibration, load_calibration
 from stipi_daemon.analysis.imaging import CircleROI, RectROI, describe_roi
-from stipi_daemon.analysis.results import AnalysisSettings
+from stipi_daemon.analysis.results import AnalysisSettings, force_full_scale_n
 from stipi_daemon.analysis.severity import load_reference
 from stipi_daemon.analysis.summary_diff import diff_results
 from stipi_daemon.analysis.truth_comparison import ParameterComparison, compare_ground_truth
@@ -819,7 +819,13 @@ def replay_session(
             frame_size=_frame_size(truth),
         )
     status = data.status
-    setup = ReplaySetup(measurement, analysis, calibration.value, load_reference())
+    setup = ReplaySetup(
+        measurement,
+        analysis,
+        calibration.value,
+        load_reference(),
+        force_full_scale_n=force_full_scale_n(data.manifest.get("firmware")),
+    )
     # A complete session whose recorder ended the recovery before these settings would
     # (an older, shorter settling rule - docs/settling.md - or a shorter hold) is analysed
     # on the recovery it kept, as an interrupted one is.

@@ -32,6 +32,7 @@ from typing import Any, TextIO
 from threadpoolctl import threadpool_limits
 
 from stipi_daemon.analysis.imaging import CircleROI, RectROI
+from stipi_daemon.analysis.results import force_full_scale_n
 from stipi_daemon.analysis.severity import load_reference
 from stipi_daemon.analysis.validity import assess_validity
 from stipi_daemon.app.acquisition import Acquisition, OnRunning
@@ -358,6 +359,8 @@ async def _run_daemon(
         reference=reference,
         t_start_s=clock.now(),
     )
+    # the load cell's rail, as the session records the probe (analyze reads it back)
+    pipeline.force_full_scale_n = force_full_scale_n(devices.probe.info_dict())
     # Which frames the report shows (their pictures are read from the session video).
     keeper = RepresentativeFrames(config.measurement.pitting_duration_s)
     measurer = _frame_measurer(config, devices, threshold, roi, keeper, pipeline)

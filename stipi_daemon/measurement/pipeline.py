@@ -30,6 +30,7 @@ import numpy as np
 
 from stipi_daemon.analysis.calibration import Calibration
 from stipi_daemon.analysis.flags import Flag
+from stipi_daemon.analysis.image_quality import FrameLevels, FramePictures
 from stipi_daemon.analysis.pitting import compute_pitting_parameters
 from stipi_daemon.analysis.recovery_fit import fit_recovery
 from stipi_daemon.analysis.results import (
@@ -37,6 +38,7 @@ from stipi_daemon.analysis.results import (
     MeasurementResult,
     analyze_recovery,
     applied_force_n_from_samples,
+    force_at_rail_fraction,
 )
 from stipi_daemon.analysis.severity import SeverityReference
 from stipi_daemon.analysis.vpr import elasticity_kpa, viscosity_n_s_per_mm2
@@ -202,6 +204,12 @@ class MeasurementPipeline:
         self.release: ReleaseObservation | None = None
         #: Frames whose S_k was not finite (fed as time only, see :meth:`frame`).
         self.unmeasurable_frames = 0
+        #: The threshold p, the ROI's pixel count [px] and the saturation limit [-] of the
+        #: frames' picture statistics (:meth:`picture`); None: the picture is not judged.
+        self.picture_setup: tuple[int, int, float] | None = None
+        #: The load cell's full scale and one count [N] (None: unknown, not judged).
+        self.force_full_scale_n: tuple[float, float] | None = None
+        self._levels: dict[float, FrameLevels] = {}
         self._live_t0: float | None = None
         #: Called with the latest session time [s] the measurement can still end at, each
         #: time that becomes known: the recovery window's end at the release
@@ -264,6 +272,32 @@ class MeasurementPipeline:
             self.unmeasurable_frames += 1
             return self.feed(Tick(t_s))
         return self.feed(FrameSample(t_s, s_k))
+
+    def picture(self, t_s: float, levels: FrameLevels) -> None:
+        """Record the picture statistics of the frame at ``t_s`` [s] (fed with
+        :meth:`frame`; any subset of the frames, e.g. one in n); the analysis judges the
+        image quality on them when :attr:`picture_setup` is set."""
+        self._levels[t_s] = levels
+
+    def _pictures(
+        self, t: np.ndarray, t_pit_start_s: float, hold_end_s: float
+    ) -> FramePictures | None:
+        """The picture statistics of the analysed span of frames ``t`` [s], if any."""
+        if self.picture_setup is None or t.size == 0:
+            return None
+        lo, hi = float(t[0]), float(t[-1])
+        times = sorted(x for x in self._levels if lo <= x <= hi)
+        if not times:
+            return None
+        p, roi_px, limit = self.picture_setup
+        return FramePictures(
+            times_s=tuple(times),
+            levels=tuple(self._levels[x] for x in times),
+            p=p,
+            roi_pixel_count=roi_px,
+            saturation_limit=limit,
+            hold_s=(t_pit_start_s, hold_end_s),
+        )
 
     def close(self, t_s: float) -> list[Output]:
         """Close the session at ``t_s`` [s]: any non-terminal phase ends.
@@ -353,19 +387,32 @@ class MeasurementPipeline:
         """
         self.release = self._observe_release(t_release_s)
         t0 = self.release.t0_s
+        end = self._hold_end_s(t_pit_start_s, t_pit_end_s, min(t0, t_release_s))
         try:
+            rail = 0.0
             if self.analysis.applied_force_n is not None:
                 f_a = self.analysis.applied_force_n
             else:
                 ft, fv = self._force.arrays()
-                end = self._hold_end_s(t_pit_start_s, t_pit_end_s, min(t0, t_release_s))
                 f_a = applied_force_n_from_samples(ft, fv, t_pit_start_s, end)
+                if self.force_full_scale_n is not None:
+                    rail = force_at_rail_fraction(
+                        ft, fv, t_pit_start_s, end, *self.force_full_scale_n
+                    )
             t, s = self._frames.arrays()
             if t_end_s is not None:
                 sel = t <= t_end_s
                 t, s = t[sel], s[sel]
             result = analyze_recovery(
-                t, s, t0, self.calibration, f_a, self.analysis, self.reference
+                t,
+                s,
+                t0,
+                self.calibration,
+                f_a,
+                self.analysis,
+                self.reference,
+                pictures=self._pictures(t, t_pit_start_s, end),
+                force_rail_fraction=rail,
             )
         except AnalysisError as exc:
             return None, str(exc), t0

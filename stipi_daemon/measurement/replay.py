@@ -166,6 +166,10 @@ class ReplaySetup:
     live_interval_s : float or None
         Interval of the live-parameter updates after the release [s of recording time], as
         the live shell asks for them; None asks for none.
+    force_full_scale_n : tuple of float or None
+        The load cell's full scale and one count [N] (the probe's ADC, as the session
+        recorded it; :func:`~stipi_daemon.analysis.results.force_full_scale_n`): hold
+        samples there make F_a invalid. None: not judged.
     """
 
     measurement: MeasurementConfig
@@ -174,6 +178,7 @@ class ReplaySetup:
     reference: SeverityReference
     t0_refine_s: float = 0.5
     live_interval_s: float | None = 1.0
+    force_full_scale_n: tuple[float, float] | None = None
 
 
 def calibration_from_mapping(data: Mapping[str, Any], where: str) -> Calibration:
@@ -428,6 +433,7 @@ def replay(rec: Recording, setup: ReplaySetup, *, partial_recovery: bool = False
         t_start_s=min(rec.arm_time_s, rec.first_time_s),
         t0_refine_s=setup.t0_refine_s,
     )
+    pipeline.force_full_scale_n = setup.force_full_scale_n
     feed = _events(rec)
     notes: list[str] = []
     if feed.skipped_force:
