@@ -480,6 +480,7 @@ def law_cases() -> list[LawCase]:
         LawCase("law-kww-tau6s-b0.5", Tissue("kww", tau_s=6.0, shape=0.5, **PIT)),
         LawCase("law-kww-tau3s-b0.6", Tissue("kww", tau_s=3.0, shape=0.6, **PIT)),
         LawCase("law-sls-springback-0.5", Tissue("sls", tau_s=8.0, shape=0.5, **PIT)),
+        LawCase("law-sls-springback-0.25", Tissue("sls", tau_s=8.0, shape=0.25, **PIT)),
         camera("cam-led-flicker-40pct", optics=Optics(flicker_depth=0.4)),
         camera("cam-noise-20-levels", optics=Optics(noise_sigma=20.0, seed=1)),
         camera("cam-noise-10-levels-control", optics=Optics(noise_sigma=10.0, seed=1)),

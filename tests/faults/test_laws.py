@@ -122,7 +122,7 @@ def test_world_force_is_the_hold_then_eq5_of_the_law() -> None:
 
 def test_law_cases_have_unique_names_and_every_truth_range_holds_its_value() -> None:
     cases = law_cases()
-    assert len({c.name for c in cases}) == len(cases) == 17
+    assert len({c.name for c in cases}) == len(cases) == 18
     for c in cases:
         t = law_truth(c, parse_scene(c.scene_doc(), c.name))
         for q in TOLERANCES:
