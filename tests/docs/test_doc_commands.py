@@ -98,6 +98,7 @@ EXPECTED_SKIPS = frozenset(
         ("docs/firmware.md", "make -C firmware/feather32u4 host-test"),
         ("docs/reliability.md", "./dev pytest tests/reliability -m slow"),
         ("docs/reliability.md", ".venv/bin/python -m tests.faults.matrix"),
+        ("docs/reliability.md", "tests.faults.matrix --laws --speed 0 --out"),
         ("docs/simavr_hil.md", "make -C firmware/feather32u4 && make -C"),
     }
 )

@@ -18,7 +18,8 @@ over the window the daemon watched):
 
 The fast subset runs in the test suite (``tests/faults/test_matrix.py``); the long form
 is ``python -m tests.faults.matrix --long --out docs/fault_matrix.json`` (docs/reliability.md,
-"Fault-injection matrix").
+"Fault-injection matrix"). ``--laws`` runs the group of recoveries from literature laws and
+camera faults rendered by the test (``tests/faults/law_matrix.py``, issue 37).
 """
 
 from __future__ import annotations
@@ -33,7 +34,7 @@ import time
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 import yaml
 
@@ -44,6 +45,9 @@ from stipi_daemon.sim import ground_truth
 from stipi_daemon.sim.physics import SceneModel
 from stipi_daemon.sim.scene import GRADE_PRESETS, Scene, parse_scene
 from stipi_daemon.storage import SessionReader
+
+if TYPE_CHECKING:
+    from .law_matrix import LawCase
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 SCENES = REPO_ROOT / "configs" / "scenes"
@@ -355,7 +359,7 @@ def classify(summary: dict[str, Any], true: dict[str, dict[str, Any]]) -> dict[s
 class CaseResult:
     """One case's run: how the daemon ended and the outcome of every primary quantity."""
 
-    case: Case
+    case: Case | LawCase
     phase: str = ""
     verdict: str = ""
     quantities: dict[str, dict[str, Any]] = field(default_factory=dict)
@@ -585,7 +589,7 @@ def long_cases() -> list[Case]:
         w = LONG_WINDOW_S[g]
         for kind in ("dark", "bright"):
             for t in (0.01, 0.5, 1.0, 2.0, 5.0, w / 2, w - 1.0):
-                times = {f"{kind}_rel_s": (t,)}
+                times: dict[str, Any] = {f"{kind}_rel_s": (t,)}
                 out.append(Case(f"{kind}-{g}-at{t:+g}s", g, window_s=w, **times))
     for g in ("I", "IV"):
         for t in (-1 / 60, 0.01, 0.03, 0.5, 2.0):
@@ -654,21 +658,32 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Run a grid, print the table and the totals, optionally write the JSON figures."""
     ap = argparse.ArgumentParser(prog="python -m tests.faults.matrix", description=__doc__)
     ap.add_argument("--long", action="store_true", help="the full grid (default: fast subset)")
+    ap.add_argument(
+        "--laws",
+        action="store_true",
+        help="the literature-law and camera-fault group (tests/faults/law_matrix.py)",
+    )
     ap.add_argument("--every", type=int, default=1, help="run every N-th case of the grid")
     ap.add_argument("--match", default="", help="run only cases whose name contains this")
     ap.add_argument("--speed", type=float, default=6.0, help="session clock speed [-]")
     ap.add_argument("--out", type=Path, help="write the figures as JSON here")
     ap.add_argument("--workdir", type=Path, help="keep the sessions here (default: temporary)")
     args = ap.parse_args(argv)
-    grid = long_cases() if args.long else fast_cases()
-    cases = [c for c in grid[:: max(1, args.every)] if args.match in c.name]
     with tempfile.TemporaryDirectory(prefix="stipi-faults-") as tmp:
         work = args.workdir or Path(tmp)
-        results = run_cases(cases, work, args.speed, echo=True)
+        if args.laws:
+            from .law_matrix import law_cases, run_law_cases
+
+            laws = [c for c in law_cases()[:: max(1, args.every)] if args.match in c.name]
+            results = run_law_cases(laws, work, args.speed, echo=True)
+        else:
+            grid = long_cases() if args.long else fast_cases()
+            cases = [c for c in grid[:: max(1, args.every)] if args.match in c.name]
+            results = run_cases(cases, work, args.speed, echo=True)
     doc = report_json(
         results,
         args.speed,
-        ("long" if args.long else "fast")
+        ("laws" if args.laws else "long" if args.long else "fast")
         + (f" every {args.every}" if args.every > 1 else "")
         + (f" matching {args.match!r}" if args.match else ""),
     )
