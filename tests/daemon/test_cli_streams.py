@@ -94,9 +94,13 @@ def test_sighup_ends_a_measurement_as_ctrl_c_does(tmp_path: Path) -> None:
     )
     try:
         assert proc.stdout is not None
+        seen: list[str] = []
         for line in proc.stdout:  # recording: the stream is up and the operator was asked
+            seen.append(line)
             if "idle -> armed" in line:
                 break
+        else:  # the output ended without it: the signal would reach no measurement
+            raise AssertionError(f"no 'idle -> armed' line (exit {proc.wait()}): {seen[-20:]}")
         proc.send_signal(signal.SIGHUP)
         out, err = proc.communicate(timeout=TIMEOUT_S)
     finally:

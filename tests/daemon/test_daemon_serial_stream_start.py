@@ -169,8 +169,8 @@ async def test_a_probe_scene_started_late_is_flagged_at_the_release(tmp_path: Pa
     release says why they are not to be trusted as they stand."""
     for attempt, speed in enumerate(SPEEDS):
         run = await _measure(tmp_path / f"attempt{attempt}", speed, inbound_s=0.15)
-        behind_s = _check_stream_start(run, inbound_s=0.15)
-        if kept_up(run.summary):
+        if kept_up(run.summary):  # else its timing is the loaded machine's: made again
+            behind_s = _check_stream_start(run, inbound_s=0.15)
             assert behind_s > 0.15, behind_s
             _check_flagged_late(run, behind_s)
             return
@@ -182,11 +182,11 @@ async def test_the_daemon_starts_the_probes_scene_at_the_cameras_origin(tmp_path
     missed: list[str] = []
     for attempt, speed in enumerate(SPEEDS):
         run = await _measure(tmp_path / f"attempt{attempt}", speed)
-        behind_s = _check_stream_start(run)
         summary = run.summary
-        if not kept_up(summary):
+        if not kept_up(summary):  # its timing is the loaded machine's: made again, slower
             missed.append(f"speed {speed}: did not keep up, {summary['run']['camera']}")
             continue
+        behind_s = _check_stream_start(run)
         if summary["verdict"]["status"] != "complete":
             _check_flagged_late(run, behind_s)
             missed.append(f"speed {speed}: probe's scene {behind_s * 1e3:.1f} ms behind")
