@@ -438,6 +438,37 @@ def analyze_recovery(
     else:
         notes.append(f"recovery fit gave no time constant (flags: {sorted(fit.flags)})")
 
+    severity_paper, severity_fit = _severities(paper_model, fit, reference, notes)
+
+    checks = _result_checks(pitting, fit, models, settings.settle_fraction)
+    quality, rules = _judged_pictures(pictures, times_s, s_k, pitting, calibration, settings)
+    return MeasurementResult(
+        pitting=pitting,
+        applied_force_n=float(applied_force_n),
+        indenter_radius_mm=radius,
+        paper_model=paper_model,
+        fit=fit,
+        fit_model=fit_model,
+        severity_paper=severity_paper,
+        severity_fit=severity_fit,
+        notes=tuple(notes),
+        models=models,
+        checks=checks + _severity_checks(pitting, models, checks, severity_paper, reference),
+        image_quality=quality,
+        quality_rules=tuple(rules),
+        force_at_rail_fraction=float(force_rail_fraction),
+    )
+
+
+def _severities(
+    paper_model: VPRModel | None,
+    fit: RecoveryFit,
+    reference: SeverityReference,
+    notes: list[str],
+) -> tuple[SeverityResult | None, SeverityResult | None]:
+    """The severity by the paper's estimator and by the fitted recovery (Section IV.C),
+    each flagged ``ESTIMATORS_DISAGREE`` when they name different classes (and the fit is
+    not poor); why one is undefined goes to ``notes``."""
     severity_paper: SeverityResult | None = None
     if paper_model is not None:
         try:
@@ -465,25 +496,7 @@ def analyze_recovery(
             severity_paper, flags=severity_paper.flags | {Flag.ESTIMATORS_DISAGREE}
         )
         severity_fit = replace(severity_fit, flags=severity_fit.flags | {Flag.ESTIMATORS_DISAGREE})
-
-    checks = _result_checks(pitting, fit, models, settings.settle_fraction)
-    quality, rules = _judged_pictures(pictures, times_s, s_k, pitting, calibration, settings)
-    return MeasurementResult(
-        pitting=pitting,
-        applied_force_n=float(applied_force_n),
-        indenter_radius_mm=radius,
-        paper_model=paper_model,
-        fit=fit,
-        fit_model=fit_model,
-        severity_paper=severity_paper,
-        severity_fit=severity_fit,
-        notes=tuple(notes),
-        models=models,
-        checks=checks + _severity_checks(pitting, models, checks, severity_paper, reference),
-        image_quality=quality,
-        quality_rules=tuple(rules),
-        force_at_rail_fraction=float(force_rail_fraction),
-    )
+    return severity_paper, severity_fit
 
 
 def _result_checks(

@@ -367,7 +367,7 @@ def dask_client(scheduler: str | None, workers: int | None) -> Iterator[tuple[An
             n_workers=n,
             threads_per_worker=1,
             processes=True,
-            dashboard_address=None,
+            dashboard_address=":0",  # its HTTP server on a free port, not 8787 (may be taken)
             silence_logs=logging.ERROR,
         ) as cluster,
         Client(cluster) as client,  # type: ignore[no-untyped-call]

@@ -289,8 +289,11 @@ def test_an_effect_that_moves_a_result_beyond_tolerance_invalidates_it(
             spoiled.append(q)
             assert st[q] == "invalid", (q, value, true, r.quality_rules)
     assert spoiled  # the effect really spoils a result
-    reasons = assess_validity(r, ended_done=True)["validity"][spoiled[0]]["reason"] or ""
-    assert "wrong side of p" in reasons or "not" in reasons
+    # the picture's own rule fired for every spoiled quantity (the reason validity shows
+    # first may be another rule's: flicker at 0.5 Hz also darkens S_0 below C1, the
+    # contact floor)
+    judged = {q.quantity for q in r.quality_rules if q.invalid}
+    assert set(spoiled) <= judged, (spoiled, r.quality_rules)
 
 
 @pytest.mark.parametrize(("noise", "expected"), [(0.0, "valid"), (20.0, "invalid")])

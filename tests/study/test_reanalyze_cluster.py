@@ -114,7 +114,7 @@ def test_a_worker_killed_mid_run_loses_no_session(
     settings = _settings(tmp_path)
     with (
         LocalCluster(  # type: ignore[no-untyped-call]
-            n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None
+            n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0"
         ) as cluster,
         Client(cluster) as watcher,  # type: ignore[no-untyped-call]
     ):

@@ -443,6 +443,42 @@ def _series(
     return tw - float(t0_s), yw, flags
 
 
+def _model_names(models: Sequence[str] | None) -> list[str]:
+    """The registry names to compare, Kelvin-Voigt first (default: all)."""
+    names = [_KV, *[m for m in (models or MODELS) if m != _KV]]
+    unknown = [m for m in names if m not in MODELS]
+    if unknown:
+        raise AnalysisError(f"unknown recovery model {unknown[0]!r} (known: {', '.join(MODELS)})")
+    return names
+
+
+def _check_settings(
+    settle_fraction: float,
+    replicates: int,
+    seed: int,
+    depth_rel_sd: float,
+    elasticity_kpa: float | None,
+    release_side: str,
+    value_resolution: float | None,
+    frame_period_s: float | None,
+) -> None:
+    """:func:`fit_recovery_models`' settings in their domains, else an AnalysisError
+    naming the parameter."""
+    if not 0.0 < settle_fraction < 1.0:
+        raise AnalysisError(f"settle_fraction must be in (0, 1), got {settle_fraction}")
+    if replicates < 0 or seed < 0:
+        raise AnalysisError(f"replicates and seed must be >= 0, got {replicates}, {seed}")
+    if not (math.isfinite(depth_rel_sd) and depth_rel_sd >= 0.0):
+        raise AnalysisError(f"depth_rel_sd must be finite and >= 0, got {depth_rel_sd}")
+    if elasticity_kpa is not None and not (math.isfinite(elasticity_kpa) and elasticity_kpa > 0.0):
+        raise AnalysisError(f"elasticity_kpa must be finite and > 0, got {elasticity_kpa}")
+    if release_side not in ("either", "before", "after"):
+        raise AnalysisError(f"release_side must be either, before or after, got {release_side!r}")
+    for name, v in (("value_resolution", value_resolution), ("frame_period_s", frame_period_s)):
+        if v is not None and not (math.isfinite(v) and v >= 0.0):
+            raise AnalysisError(f"{name} must be finite and >= 0, got {v}")
+
+
 def fit_recovery_models(
     times_s: ArrayLike,
     values: ArrayLike,
@@ -516,23 +552,17 @@ def fit_recovery_models(
         (a non-finite or non-positive ``elasticity_kpa``, a negative or non-finite
         ``value_resolution`` or ``frame_period_s``), each naming the parameter.
     """
-    if not 0.0 < settle_fraction < 1.0:
-        raise AnalysisError(f"settle_fraction must be in (0, 1), got {settle_fraction}")
-    if replicates < 0 or seed < 0:
-        raise AnalysisError(f"replicates and seed must be >= 0, got {replicates}, {seed}")
-    if not (math.isfinite(depth_rel_sd) and depth_rel_sd >= 0.0):
-        raise AnalysisError(f"depth_rel_sd must be finite and >= 0, got {depth_rel_sd}")
-    if elasticity_kpa is not None and not (math.isfinite(elasticity_kpa) and elasticity_kpa > 0.0):
-        raise AnalysisError(f"elasticity_kpa must be finite and > 0, got {elasticity_kpa}")
-    if release_side not in ("either", "before", "after"):
-        raise AnalysisError(f"release_side must be either, before or after, got {release_side!r}")
-    for name, v in (("value_resolution", value_resolution), ("frame_period_s", frame_period_s)):
-        if v is not None and not (math.isfinite(v) and v >= 0.0):
-            raise AnalysisError(f"{name} must be finite and >= 0, got {v}")
-    names = [_KV, *[m for m in (models or MODELS) if m != _KV]]
-    unknown = [m for m in names if m not in MODELS]
-    if unknown:
-        raise AnalysisError(f"unknown recovery model {unknown[0]!r} (known: {', '.join(MODELS)})")
+    _check_settings(
+        settle_fraction,
+        replicates,
+        seed,
+        depth_rel_sd,
+        elasticity_kpa,
+        release_side,
+        value_resolution,
+        frame_period_s,
+    )
+    names = _model_names(models)
     x, y, flags = _series(times_s, values, t0_s, window_s)
     y_lo, y_hi = float(np.min(y)), float(np.max(y))
     check_value_domain(y_lo, y_hi)
@@ -554,19 +584,7 @@ def fit_recovery_models(
         "release_side": release_side,
     }
     if span <= 1e-12 * max(abs(y_lo), abs(y_hi)) or span == 0.0:
-        fits = tuple(
-            ModelFit(m, None, MODELS[m].n_parameters, None, flags=frozenset({Flag.CONSTANT_SERIES}))
-            for m in names
-        )
-        flags |= {Flag.CONSTANT_SERIES, Flag.MODEL_SELECTION_UNAVAILABLE}
-        return RecoveryModelComparison(
-            fits,
-            variance_inflation=None,
-            best_model=None,
-            kelvin_voigt_delta_qaicc=None,
-            flags=frozenset(flags),
-            **common,  # type: ignore[arg-type]
-        )
+        return _constant_series(names, flags, common)
     s = _Series(
         x,
         (y - y_lo) / span,
@@ -581,6 +599,24 @@ def fit_recovery_models(
         release_side,
     )
     return _compare(names, s, replicates, seed, flags, common)
+
+
+def _constant_series(
+    names: list[str], flags: set[Flag], common: dict[str, Any]
+) -> RecoveryModelComparison:
+    """The comparison of a series without a rise: no model fitted, no selection."""
+    fits = tuple(
+        ModelFit(m, None, MODELS[m].n_parameters, None, flags=frozenset({Flag.CONSTANT_SERIES}))
+        for m in names
+    )
+    return RecoveryModelComparison(
+        fits,
+        variance_inflation=None,
+        best_model=None,
+        kelvin_voigt_delta_qaicc=None,
+        flags=frozenset(flags | {Flag.CONSTANT_SERIES, Flag.MODEL_SELECTION_UNAVAILABLE}),
+        **common,
+    )
 
 
 def _compare(
