@@ -92,6 +92,12 @@ class _Pipeline:
             now_s=0.0, phase=Phase.RECOVERY, t_pit_start_s=0.0, t_release_s=1.0
         )
 
+    @property
+    def phase(self) -> Phase:
+        """The phase, as :attr:`MeasurementPipeline.phase` gives it."""
+        phase: Phase = self.state.phase
+        return phase
+
     def feed(self, event: Any) -> list[Any]:
         self.fed.append(event)
         return []
@@ -120,7 +126,9 @@ def _acquisition(
     writer, pipeline = _Writer(), _Pipeline()
     camera = SimpleNamespace(stats=SimpleNamespace(fps=lambda: 60.0), camera=source)
     devices = SimpleNamespace(clock=clock, writer=writer, camera=camera, probe=None)
-    console = SimpleNamespace(line=lambda text: None, update=lambda *a, **k: None)
+    console = SimpleNamespace(
+        line=lambda *a, **k: None, update=lambda *a, **k: None, warn=lambda text: None
+    )
     measurer = None if source is None else SimpleNamespace(on_capture=lambda raw: None)
     acq = Acquisition(config, devices, pipeline, console, measurer)  # type: ignore[arg-type]
     return acq, writer, pipeline
