@@ -24,7 +24,7 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass, replace
-from typing import Any, Literal
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -695,16 +695,6 @@ def depth_relative_sd(
     return rel if math.isfinite(rel) else 0.0
 
 
-def release_side(times_s: NDArray[np.float64], t0_s: float) -> Literal["before", "either"]:
-    """Where the release lies relative to T_0 [s], for the intervals' frame-time error.
-
-    When T_0 is a frame's time it is the first frame that shows the release or comes after
-    the force drop (measurement/release.py's rule): the release lies before it
-    (``"before"``). Otherwise T_0 is the force drop or the operator's button themselves,
-    known to a sample either way (``"either"``, the wider draw)."""
-    return "before" if bool(np.any(times_s == t0_s)) else "either"
-
-
 def _usable_frames(
     times_s: ArrayLike, s_k: ArrayLike, pitting: PittingParameters
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -751,7 +741,6 @@ def _compared_models(
             rebound_force=force,
             elasticity_kpa=elasticity_kpa,
             depth_rel_sd=depth_relative_sd(t, s, pitting, calibration),
-            release_side=release_side(t, pitting.t0_s),
         )
     except AnalysisError as exc:
         notes.append(f"recovery models not compared: {exc}")
